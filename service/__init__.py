@@ -1,0 +1,1 @@
+"""The mnemoslam SLAM server: tracking, mapping, memory, semantics and the REST API."""

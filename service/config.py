@@ -1,0 +1,135 @@
+"""Typed configuration with documented defaults, loaded from `configs/*.yaml`.
+
+Every threshold of the pipeline lives here. Names follow RTAB-Map's parameters where one
+exists (its name is given in the field comment). A YAML file only needs the keys it changes:
+
+    odometry:
+      features: 1000
+    keyframe:
+      linear_update: 0.1
+"""
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+
+@dataclass
+class FeatureConfig:
+    max_features: int = 1000  # ORB keypoints per image (Vis/MaxFeatures)
+    grid_rows: int = 4  # keypoints are spread over a grid of cells ...
+    grid_cols: int = 6  # ... each cell keeps its best max_features/(rows*cols)
+    fast_threshold: int = 12  # FAST threshold; cells retry at min_fast_threshold if empty
+    min_fast_threshold: int = 5
+    scale_factor: float = 1.2  # ORB pyramid
+    levels: int = 8
+    min_depth: float = 0.2  # metres; nearer / farther depth readings are ignored
+    max_depth: float = 6.0  # (Vis/MaxDepth is 0 = inf in RTAB-Map; Kinect noise grows as z^2)
+
+
+@dataclass
+class StereoConfig:
+    max_row_diff: float = 2.0  # px, rectified rows of a left/right match may differ this much
+    min_disparity: float = 1.0  # px
+    max_disparity: float = 0.4  # fraction of image width
+    max_hamming: int = 60  # descriptor distance for a stereo match
+    max_depth: float = 60.0  # metres
+
+
+@dataclass
+class OdometryConfig:
+    match_ratio: float = 0.8  # nearest-neighbour distance ratio (Kp/NndrRatio, Vis/CorNNDR)
+    max_hamming: int = 80  # reject matches farther than this (of 256 bits)
+    guided_radius: float = 20.0  # px, matches must reproject this close to the predicted pose
+    min_inliers: int = 20  # PnP inliers to accept a pose (Vis/MinInliers)
+    pnp_reprojection_error: float = 2.0  # px (Vis/PnPReprojError)
+    pnp_iterations: int = 200  # RANSAC iterations (Vis/PnPIterations is 100; we refine after)
+    pnp_confidence: float = 0.999
+    max_translation: float = 0.0  # m between frames, 0 = unlimited (Odom/MaxTranslation?)
+    local_map_size: int = 3000  # 3-D points kept in the local map (OdomF2M/MaxSize)
+    motion_model: bool = True  # predict with constant velocity (Odom/GuessMotion)
+
+
+@dataclass
+class KeyframeConfig:
+    linear_update: float = 0.1  # metres moved since the last keyframe (RGBD/LinearUpdate)
+    angular_update: float = 0.1  # radians turned since the last keyframe (RGBD/AngularUpdate)
+    min_inlier_ratio: float = 0.5  # a keyframe also when inliers drop below this × the last keyframe's
+    min_inliers: int = 80  # ... or below this absolute count (Odom/KeyFrameThr-like)
+
+
+@dataclass
+class Config:
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
+    seed: int = 0  # seeds every random choice (RANSAC), for bit-for-bit reproducible runs
+
+
+class ConfigError(ValueError):
+    pass
+
+
+def _build(cls, data: dict, where: str):
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where or 'config'}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in names:
+            raise ConfigError(f"unknown config key {where + key!r}; known: {', '.join(sorted(names))}")
+        typ = hints[key]
+        if dataclasses.is_dataclass(typ):
+            kwargs[key] = _build(typ, value or {}, f"{where}{key}.")
+        else:
+            kwargs[key] = _coerce(typ, value, where + key)
+    return cls(**kwargs)
+
+
+def _coerce(typ, value, name):
+    origin = typing.get_origin(typ)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(typ)
+        if value is None and type(None) in args:
+            return None
+        typ = next(a for a in args if a is not type(None))
+    if typ is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if typ in (int, str, bool) and type(value) is typ:
+        return value
+    if typing.get_origin(typ) in (list, tuple) and isinstance(value, list):
+        return typing.get_origin(typ)(value)
+    raise ConfigError(f"config key {name!r}: expected {getattr(typ, '__name__', typ)}, got {value!r}")
+
+
+def load_config(path: str | Path | None = None, overrides: dict | None = None) -> Config:
+    """Defaults, updated by a YAML file, then by `overrides` (same nested shape)."""
+    data: dict = {}
+    if path is not None:
+        try:
+            data = yaml.safe_load(Path(path).read_text()) or {}
+        except OSError as e:
+            raise ConfigError(f"cannot read config {path}: {e.strerror}") from None
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: invalid YAML: {e}") from None
+    if overrides:
+        data = _merge(data, overrides)
+    return _build(Config, data, "")
+
+
+def _merge(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _merge(out.get(k) or {}, v) if isinstance(v, dict) else v
+    return out
+
+
+def to_dict(config: Config) -> dict:
+    return dataclasses.asdict(config)
