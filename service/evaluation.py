@@ -1,0 +1,213 @@
+"""Trajectory accuracy: absolute trajectory error (ATE) and relative pose error (RPE).
+
+Follows TUM RGB-D's ``evaluate_ate.py`` / ``evaluate_rpe.py`` and evo:
+
+* estimate and ground truth are associated one-to-one by nearest timestamp (``associate_stamps``);
+* ATE: the estimate's positions are aligned onto the ground truth (Umeyama, SE(3) or Sim(3)),
+  then the per-pose position errors (metres) are summarised;
+* RPE: for matched pose pairs (i, i + delta), delta counted in matched poses (frames), the error
+  of the estimated relative motion against the true one. It does not depend on the rigid
+  alignment; under Sim(3) the estimate's translations are scaled by the recovered scale first.
+
+Everything is vectorized over the poses.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from client.geometry import invert
+from client.trajectory import Trajectory, read_kitti_poses, read_tum
+
+ALIGN_MODES = ("se3", "sim3", "none")
+
+
+def associate_stamps(gt_stamps: np.ndarray, est_stamps: np.ndarray,
+                     max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one nearest-timestamp matching.
+
+    Every estimate stamp is paired with the nearest ground-truth stamp when they differ by at most
+    ``max_dt`` seconds. When several estimates claim the same ground-truth stamp, only the one with
+    the smallest |dt| keeps it (ties: the earlier estimate), so each index is used at most once.
+    Inputs need not be sorted. Returns ``(i_gt, i_est)`` integer index arrays, ordered by
+    estimate stamp.
+    """
+    gt = np.asarray(gt_stamps, dtype=np.float64).reshape(-1)
+    est = np.asarray(est_stamps, dtype=np.float64).reshape(-1)
+    empty = np.zeros(0, dtype=np.intp)
+    if len(gt) == 0 or len(est) == 0:
+        return empty, empty.copy()
+    order = np.argsort(gt, kind="stable")
+    g = gt[order]
+    k = np.searchsorted(g, est)                        # g[k-1] < est <= g[k]
+    lo, hi = np.clip(k - 1, 0, len(g) - 1), np.clip(k, 0, len(g) - 1)
+    nearest = np.where(np.abs(g[lo] - est) <= np.abs(g[hi] - est), lo, hi)
+    dt = np.abs(g[nearest] - est)
+    i_est = np.flatnonzero(dt <= max_dt)
+    # Best candidates first (stable: ties keep estimate order), then first claim of each gt wins.
+    i_est = i_est[np.lexsort((est[i_est], dt[i_est]))]
+    _, first = np.unique(nearest[i_est], return_index=True)
+    i_est = i_est[first]
+    i_est = i_est[np.argsort(est[i_est], kind="stable")]
+    return order[nearest[i_est]].astype(np.intp), i_est.astype(np.intp)
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares (s, R, t) minimising sum ||dst - (s R src + t)||^2 (Umeyama 1991).
+
+    ``src`` and ``dst`` are (N, 3) corresponding points. R is always a proper rotation
+    (det +1; a reflection is replaced by the best rotation). Collinear input leaves the rotation
+    about the line undetermined: a valid rotation is still returned. With ``with_scale=False``,
+    or when ``src`` has no spread (all points identical), s = 1. Raises ValueError for N < 3.
+    """
+    src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
+    dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
+    if len(src) != len(dst):
+        raise ValueError(f"umeyama: {len(src)} source points for {len(dst)} destination points")
+    if len(src) < 3:
+        raise ValueError(f"umeyama: need at least 3 point pairs to align, got {len(src)}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.ones(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2] = -1.0
+    R = U @ np.diag(S) @ Vt
+    var_s = float((xs ** 2).sum() / len(src))
+    s = float(D @ S / var_s) if with_scale and var_s > 1e-12 else 1.0
+    t = mu_d - s * R @ mu_s
+    return R, t, s
+
+
+@dataclass
+class EvalResult:
+    """Accuracy of an estimated trajectory against ground truth (metres, degrees)."""
+
+    align: str
+    matched: int
+    gt_count: int
+    est_count: int
+    max_dt: float
+    ate_rmse: float
+    ate_mean: float
+    ate_median: float
+    ate_max: float
+    scale: float
+    rpe_delta: int
+    rpe_trans_rmse: float
+    rpe_rot_rmse: float
+    path_length: float
+    ate_percent_of_path: float
+
+    def to_dict(self) -> dict:
+        """Plain JSON-serialisable dict; non-finite numbers become None."""
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                for k, v in asdict(self).items()}
+
+    def format(self) -> str:
+        """Human-readable multi-line summary."""
+        pct = f"{self.ate_percent_of_path:.3f} %" if np.isfinite(self.ate_percent_of_path) else "n/a"
+        return "\n".join([
+            f"matched      {self.matched} poses (estimate {self.est_count}, ground truth {self.gt_count},"
+            f" max_dt {self.max_dt:g} s)",
+            f"alignment    {self.align}  scale {self.scale:.6f}",
+            f"ATE rmse     {self.ate_rmse:.6f} m",
+            f"ATE mean     {self.ate_mean:.6f} m   median {self.ate_median:.6f} m   max {self.ate_max:.6f} m",
+            f"ATE / path   {pct} of {self.path_length:.6f} m",
+            f"RPE trans    {self.rpe_trans_rmse:.6f} m rmse   (delta {self.rpe_delta} frames)",
+            f"RPE rot      {self.rpe_rot_rmse:.6f} deg rmse",
+        ])
+
+
+def _angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angles (radians) of (..., 3, 3) matrices via atan2: precise near 0 and pi,
+    unlike arccos of the trace."""
+    vee = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                    R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.arctan2(0.5 * np.linalg.norm(vee, axis=-1), 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1))
+
+
+def _rmse(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(x ** 2)))
+
+
+def evaluate(gt: Trajectory, est: Trajectory, align: str = "se3", max_dt: float = 0.02,
+             rpe_delta: int = 1) -> EvalResult:
+    """Associate ``est`` with ``gt`` by stamp, align (``"se3"``, ``"sim3"`` or ``"none"``) and
+    compute ATE and RPE.
+
+    ``rpe_delta`` is the RPE step in matched poses (frames), not seconds: pairs (i, i + delta)
+    over the matched sequence. Raises ValueError when fewer than 3 poses match, when
+    ``rpe_delta`` is not in [1, matched), or for an unknown alignment mode.
+    """
+    if align not in ALIGN_MODES:
+        raise ValueError(f"unknown alignment {align!r}; expected one of {', '.join(ALIGN_MODES)}")
+    i_gt, i_est = associate_stamps(gt.stamps, est.stamps, max_dt)
+    n = len(i_gt)
+    if n < 3:
+        raise ValueError(f"only {n} poses matched between ground truth ({len(gt)}) and estimate "
+                         f"({len(est)}) within max_dt={max_dt} s; need at least 3 "
+                         "(check that both files use the same time base)")
+    if not 1 <= rpe_delta < n:
+        raise ValueError(f"rpe_delta must be in [1, {n - 1}] for {n} matched poses, got {rpe_delta}")
+    G, E = gt.poses[i_gt], est.poses[i_est].copy()
+
+    if align == "none":
+        R, t, s = np.eye(3), np.zeros(3), 1.0
+    else:
+        R, t, s = umeyama(E[:, :3, 3], G[:, :3, 3], with_scale=align == "sim3")
+    aligned = s * E[:, :3, 3] @ R.T + t
+    err = np.linalg.norm(aligned - G[:, :3, 3], axis=1)
+
+    # RPE: error of the relative motion; a rigid world change cancels, only the scale matters.
+    E[:, :3, 3] *= s
+    d = rpe_delta
+    rel_g = invert(G[:-d]) @ G[d:]
+    rel_e = invert(E[:-d]) @ E[d:]
+    rel_err = invert(rel_g) @ rel_e
+    rpe_t = np.linalg.norm(rel_err[:, :3, 3], axis=1)
+    rpe_r = np.degrees(_angle(rel_err[:, :3, :3]))
+
+    path = float(np.linalg.norm(np.diff(G[:, :3, 3], axis=0), axis=1).sum())
+    ate_rmse = _rmse(err)
+    return EvalResult(
+        align=align, matched=n, gt_count=len(gt), est_count=len(est), max_dt=float(max_dt),
+        ate_rmse=ate_rmse, ate_mean=float(err.mean()), ate_median=float(np.median(err)),
+        ate_max=float(err.max()), scale=float(s), rpe_delta=int(d),
+        rpe_trans_rmse=_rmse(rpe_t), rpe_rot_rmse=_rmse(rpe_r), path_length=path,
+        ate_percent_of_path=100.0 * ate_rmse / path if path > 0 else float("nan"),
+    )
+
+
+def _column_count(path: Path) -> int:
+    """Number of fields on the first data line (comments and blank lines skipped); 0 if none."""
+    try:
+        with open(path) as f:
+            for line in f:
+                line = line.strip().replace(",", " ")
+                if line and not line.startswith("#"):
+                    return len(line.split())
+    except OSError:
+        pass  # let the reader raise its DatasetError naming the file
+    return 0
+
+
+def read_trajectory(path: str | Path) -> Trajectory:
+    """TUM file (``t tx ty tz qx qy qz qw``), or KITTI poses (12 numbers per line, stamps k * 0.1 s)
+    detected by column count."""
+    path = Path(path)
+    return read_kitti_poses(path) if _column_count(path) == 12 else read_tum(path)
+
+
+def evaluate_files(gt_path: str | Path, est_path: str | Path, align: str = "se3", max_dt: float = 0.02,
+                   as_json: bool = False, rpe_delta: int = 1) -> str:
+    """Evaluate an estimate file against a ground-truth file (TUM or KITTI poses, see
+    ``read_trajectory``) and return the report: ``EvalResult.format()`` text, or a JSON object
+    when ``as_json``. Raises DatasetError for unreadable files, ValueError as ``evaluate``."""
+    res = evaluate(read_trajectory(gt_path), read_trajectory(est_path), align=align, max_dt=max_dt,
+                   rpe_delta=rpe_delta)
+    return json.dumps(res.to_dict(), indent=2) if as_json else res.format()
