@@ -53,6 +53,17 @@ class OdometryConfig:
     max_translation: float = 0.0  # m between frames, 0 = unlimited (Odom/MaxTranslation?)
     local_map_size: int = 3000  # 3-D points kept in the local map (OdomF2M/MaxSize)
     motion_model: bool = True  # predict with constant velocity (Odom/GuessMotion)
+    # The local map takes a tracked frame's features when the camera moved or turned this
+    # much since the last map update, or when inliers fell below map_update_ratio × the
+    # inliers of that update (OdomF2M: Odom/KeyFrameThr 0.3). Independent of graph keyframes.
+    map_update_linear: float = 0.05
+    map_update_angular: float = 0.05
+    map_update_ratio: float = 0.6
+    icp_fallback: bool = True  # RGB-D: register depth (point-to-plane ICP) when features fail
+    icp_below_inliers: int = 60  # RGB-D: fewer PnP inliers than this -> refine the pose with ICP
+    icp_min_inlier_ratio: float = 0.3  # associated depth points needed to trust ICP
+    icp_min_conditioning: float = 0.002  # smallest/largest Hessian eigenvalue: below = degenerate
+    lost_frames_reset: int = 3  # lost frames in a row before a new segment starts (Odom/ResetCountdown)
 
 
 @dataclass

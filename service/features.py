@@ -1,0 +1,215 @@
+"""Feature extraction: ORB keypoints spread over the image, each with its 3-D point in the
+camera frame when the sensor measured one (depth image for RGB-D, rectified stereo match
+for stereo)."""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from client.frames import Calibration, Frame
+
+from .config import FeatureConfig, StereoConfig
+
+
+@dataclass
+class FrameFeatures:
+    """Keypoints of one frame. `points` holds camera-frame 3-D coordinates, NaN rows where
+    the keypoint has no depth."""
+
+    keypoints: np.ndarray  # (N, 2) float32 pixel coordinates (level 0)
+    descriptors: np.ndarray  # (N, 32) uint8 ORB
+    points: np.ndarray  # (N, 3) float32 camera frame, NaN when unknown
+    octaves: np.ndarray  # (N,) int8 pyramid level of each keypoint
+    depth: np.ndarray | None = None  # the frame's depth image (RGB-D), for dense registration
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+    @property
+    def has_depth(self) -> np.ndarray:
+        return np.isfinite(self.points[:, 2])
+
+    def subset(self, idx) -> "FrameFeatures":
+        return FrameFeatures(self.keypoints[idx], self.descriptors[idx], self.points[idx], self.octaves[idx], self.depth)
+
+
+def _keypoint_arrays(kps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions, responses and octaves of cv2.KeyPoints as arrays (the one place we cross
+    from OpenCV's keypoint objects to numpy)."""
+    n = len(kps)
+    xy = cv2.KeyPoint_convert(kps).reshape(-1, 2) if n else np.zeros((0, 2), np.float32)
+    response = np.fromiter((k.response for k in kps), np.float32, n)
+    octave = np.fromiter((k.octave for k in kps), np.int8, n)
+    return xy, response, octave
+
+
+class FeatureExtractor:
+    """ORB over a grid: each cell keeps its strongest keypoints so features cover the image
+    (RTAB-Map's GFTT/ORB with grid cells, ORB-SLAM's octree distribution)."""
+
+    def __init__(self, calibration: Calibration, config: FeatureConfig, stereo: StereoConfig):
+        self.calibration = calibration
+        self.config = config
+        self.stereo = stereo
+        c = config
+        self._orb = cv2.ORB_create(
+            nfeatures=c.max_features * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
+            edgeThreshold=19, patchSize=31, fastThreshold=c.fast_threshold,
+        )
+        self._orb_low = cv2.ORB_create(
+            nfeatures=c.max_features * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
+            edgeThreshold=19, patchSize=31, fastThreshold=c.min_fast_threshold,
+        )
+
+    # -- public -------------------------------------------------------------------------
+    def extract(self, frame: Frame) -> FrameFeatures:
+        grey = frame.grey
+        kps, desc, xy, octave = self._detect(grey)
+        if self.calibration.baseline and frame.right is not None:
+            points = self._stereo_points(grey, frame.right, xy, desc)
+        elif frame.depth is not None:
+            points = self._depth_points(frame.depth, xy)
+        else:
+            points = np.full((len(xy), 3), np.nan, np.float32)
+        return FrameFeatures(xy, desc, points, octave, frame.depth if not self.calibration.baseline else None)
+
+    # -- detection ----------------------------------------------------------------------
+    def _detect(self, grey: np.ndarray, orb=None):
+        orb = orb or self._orb
+        kps = orb.detect(grey, None)
+        if len(kps) < self.config.max_features // 2 and orb is self._orb:
+            kps = self._orb_low.detect(grey, None)  # low-texture image: lower FAST threshold
+        kps = self._spread(kps, grey.shape)
+        kps, desc = orb.compute(grey, kps)
+        if desc is None or not len(kps):
+            return [], np.zeros((0, 32), np.uint8), np.zeros((0, 2), np.float32), np.zeros(0, np.int8)
+        xy, _, octave = _keypoint_arrays(kps)
+        return kps, desc, xy.astype(np.float32), octave
+
+    def _spread(self, kps, shape):
+        """Keep the strongest max_features/(rows*cols) keypoints of every grid cell (cells
+        with fewer donate their quota to the global ranking)."""
+        c = self.config
+        if len(kps) <= c.max_features:
+            return kps
+        xy, response, _ = _keypoint_arrays(kps)
+        h, w = shape[:2]
+        cell = (np.minimum((xy[:, 1] * c.grid_rows / h).astype(int), c.grid_rows - 1) * c.grid_cols
+                + np.minimum((xy[:, 0] * c.grid_cols / w).astype(int), c.grid_cols - 1))
+        order = np.lexsort((-response, cell))  # by cell, strongest first
+        cell_sorted = cell[order]
+        first = np.searchsorted(cell_sorted, cell_sorted, side="left")
+        rank = np.arange(len(order)) - first  # rank inside its cell
+        quota = max(1, c.max_features // (c.grid_rows * c.grid_cols))
+        keep = order[rank < quota]
+        if len(keep) < c.max_features:  # fill up with the best of the rest
+            rest = order[rank >= quota]
+            rest = rest[np.argsort(-response[rest], kind="stable")][: c.max_features - len(keep)]
+            keep = np.concatenate([keep, rest])
+        keep.sort()
+        return [kps[i] for i in keep]
+
+    # -- 3-D from depth -----------------------------------------------------------------
+    def _depth_points(self, depth: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """Back-project keypoints with the depth image. A reading is rejected when it is
+        missing, outside [min_depth, max_depth], or on a depth edge (3×3 range > 5% of z)."""
+        cam = self.calibration.camera
+        h, w = depth.shape[:2]
+        u = np.clip(np.rint(xy[:, 0]).astype(int), 1, w - 2)
+        v = np.clip(np.rint(xy[:, 1]).astype(int), 1, h - 2)
+        offsets = np.array([-1, 0, 1])
+        patch = depth[(v[:, None, None] + offsets[None, :, None]), (u[:, None, None] + offsets[None, None, :])]
+        patch = patch.reshape(len(xy), 9).astype(np.float32)
+        patch = np.where(np.isfinite(patch) & (patch > 0), patch, np.nan)
+        z = patch[:, 4]
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN patches
+            spread = np.nanmax(patch, axis=1) - np.nanmin(patch, axis=1) if len(xy) else z
+            ok = (z >= self.config.min_depth) & (z <= self.config.max_depth) & (spread <= 0.05 * z)
+        z = np.where(ok, z, np.nan)
+        x = (xy[:, 0] - cam.cx) / cam.fx * z
+        y = (xy[:, 1] - cam.cy) / cam.fy * z
+        return np.stack([x, y, z], axis=1).astype(np.float32)
+
+    # -- 3-D from rectified stereo ------------------------------------------------------
+    def _stereo_points(self, left, right, xy_l, desc_l) -> np.ndarray:
+        """Match left keypoints to right keypoints on the same rectified row, refine the
+        disparity to sub-pixel with a SAD patch search, and triangulate."""
+        s = self.stereo
+        cam = self.calibration.camera
+        out = np.full((len(xy_l), 3), np.nan, np.float32)
+        right = right if right.ndim == 2 else cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
+        kps_r = self._orb_low.detect(right, None)
+        kps_r, desc_r = self._orb.compute(right, kps_r)
+        if desc_r is None or not len(kps_r) or not len(xy_l):
+            return out
+        xy_r, _, _ = _keypoint_arrays(kps_r)
+        # Hamming distance for all pairs, then the epipolar (row) and disparity constraints.
+        dist = _hamming_matrix(desc_l, desc_r)
+        disp = xy_l[:, None, 0] - xy_r[None, :, 0]
+        max_disp = s.max_disparity * cam.width
+        valid = (np.abs(xy_l[:, None, 1] - xy_r[None, :, 1]) <= s.max_row_diff) & (disp >= s.min_disparity) & (disp <= max_disp)
+        dist = np.where(valid, dist, 255)
+        j = np.argmin(dist, axis=1)
+        best = dist[np.arange(len(j)), j]
+        ok = best <= s.max_hamming
+        i = np.nonzero(ok)[0]
+        j = j[ok]
+        d = xy_l[i, 0] - xy_r[j, 0]
+        d = _refine_disparity(left, right, xy_l[i], d)
+        good = d >= s.min_disparity
+        i, d = i[good], d[good]
+        z = cam.fx * self.calibration.baseline / d
+        keep = z <= s.max_depth
+        i, z = i[keep], z[keep]
+        out[i, 0] = (xy_l[i, 0] - cam.cx) / cam.fx * z
+        out[i, 1] = (xy_l[i, 1] - cam.cy) / cam.fy * z
+        out[i, 2] = z
+        return out
+
+
+def _hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """All-pairs Hamming distances (len(a), len(b)) uint8 of 256-bit descriptors."""
+    au = np.ascontiguousarray(a).view(np.uint64)
+    bu = np.ascontiguousarray(b).view(np.uint64)
+    d = np.bitwise_count(np.bitwise_xor.outer(au[:, 0], bu[:, 0]))
+    for k in range(1, au.shape[1]):
+        d += np.bitwise_count(np.bitwise_xor.outer(au[:, k], bu[:, k]))
+    return d
+
+
+def _refine_disparity(left, right, xy, disp, half=5, search=2) -> np.ndarray:
+    """Sub-pixel disparity: SAD of (2·half+1)² patches at disparity d-search..d+search on
+    the same row, then a parabola through the best cost and its neighbours."""
+    h, w = left.shape[:2]
+    n = len(xy)
+    if n == 0:
+        return disp
+    x = np.rint(xy[:, 0]).astype(int)
+    y = np.rint(xy[:, 1]).astype(int)
+    d0 = np.rint(disp).astype(int)
+    r = np.arange(-half, half + 1)
+    shifts = np.arange(-search, search + 1)
+    inside = (y - half >= 0) & (y + half < h) & (x - half >= 0) & (x + half < w) \
+        & (x - d0 - search - half >= 0) & (x - d0 + search + half < w)
+    rows = np.clip(y[:, None] + r[None, :], 0, h - 1)  # (n, P)
+    cols_l = np.clip(x[:, None] + r[None, :], 0, w - 1)
+    pl = left[rows[:, :, None], cols_l[:, None, :]].astype(np.int16)  # (n, P, P)
+    pl = pl - pl.mean(axis=(1, 2), keepdims=True).astype(np.int16)
+    cols_r = np.clip(x[:, None, None] - d0[:, None, None] - shifts[None, :, None] + r[None, None, :], 0, w - 1)  # (n, S, P)
+    pr = right[rows[:, None, :, None], cols_r[:, :, None, :]].astype(np.int16)  # (n, S, P, P)
+    pr = pr - pr.mean(axis=(2, 3), keepdims=True).astype(np.int16)
+    cost = np.abs(pl[:, None] - pr).sum(axis=(2, 3)).astype(np.float64)  # (n, S)
+    k = np.argmin(cost, axis=1)
+    interior = (k > 0) & (k < len(shifts) - 1)
+    kc = np.clip(k, 1, len(shifts) - 2)
+    c0, c1, c2 = (cost[np.arange(n), kc + o] for o in (-1, 0, 1))
+    denom = c0 - 2 * c1 + c2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(interior & (denom > 0), 0.5 * (c0 - c2) / denom, 0.0)
+    refined = d0 + shifts[k] + np.clip(frac, -0.5, 0.5)
+    # Outside the image or a minimum on the search border: keep the keypoint disparity.
+    return np.where(inside & interior, refined, np.where(inside, -1.0, disp)).astype(np.float64)

@@ -1,0 +1,286 @@
+"""Visual odometry: frame-to-local-map tracking with PnP + RANSAC.
+
+The local map holds the 3-D points (world frame) of recent keyframes with their latest ORB
+descriptor. Each frame is matched against the map points that project into the image,
+predicted by a constant-velocity motion model; PnP + RANSAC estimates the pose, a
+Levenberg–Marquardt refinement on the inliers polishes it. When the gated match fails, the
+frame is matched again without the prediction (wide baselines, sudden motion); when that
+fails too, the frame is lost. After `lost_frames_reset` lost frames in a row a new segment
+starts from the last known pose.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from client.frames import PinholeCamera
+from client.geometry import invert, make_pose, rotation_angle
+
+from .config import OdometryConfig
+from . import icp
+from .features import FrameFeatures
+
+
+class _DepthReference:
+    """The depth image of the last map update, its pyramid built on first use."""
+
+    def __init__(self, pose: np.ndarray, depth: np.ndarray):
+        self.pose, self.depth, self._levels = pose, depth, None
+
+    def levels(self, camera: PinholeCamera) -> list:
+        if self._levels is None:
+            self._levels = icp.depth_pyramid(self.depth, camera, icp.STEPS)
+        return self._levels
+
+
+@dataclass
+class TrackResult:
+    """The outcome of tracking one frame."""
+
+    status: str  # "init" (first frame of a segment), "ok", or "lost"
+    pose: np.ndarray | None  # camera-to-world, None when lost
+    inliers: int = 0
+    matches: int = 0
+    segment: int = 0
+    map_index: np.ndarray | None = None  # per frame feature: matched local-map point or -1
+    inlier_mask: np.ndarray | None = None  # per frame feature: PnP inlier
+
+    @property
+    def tracked(self) -> bool:
+        return self.status != "lost"
+
+
+class LocalMap:
+    """A bounded set of world points with descriptors, refreshed by keyframes."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.points = np.zeros((0, 3), np.float64)
+        self.descriptors = np.zeros((0, 32), np.uint8)
+        self.observations = np.zeros(0, np.int32)
+        self.last_seen = np.zeros(0, np.int64)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def clear(self) -> None:
+        self.__init__(self.capacity)
+
+    def update(self, stamp_id: int, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> None:
+        """Insert a keyframe: features matched to a map point refresh it (running mean of
+        the position, latest descriptor); unmatched features with depth become new points;
+        the least recently seen points beyond capacity are dropped."""
+        has_depth = features.has_depth
+        world = features.points.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        matched = (map_index >= 0) & has_depth
+        idx = map_index[matched]
+        if len(idx):
+            n = self.observations[idx].astype(np.float64)[:, None]
+            self.points[idx] = (self.points[idx] * n + world[matched]) / (n + 1)
+            self.descriptors[idx] = features.descriptors[matched]
+            self.observations[idx] += 1
+            self.last_seen[idx] = stamp_id
+        seen_only = (map_index >= 0) & ~has_depth
+        self.last_seen[map_index[seen_only]] = stamp_id
+        new = (map_index < 0) & has_depth
+        self.points = np.concatenate([self.points, world[new]])
+        self.descriptors = np.concatenate([self.descriptors, features.descriptors[new]])
+        self.observations = np.concatenate([self.observations, np.ones(int(new.sum()), np.int32)])
+        self.last_seen = np.concatenate([self.last_seen, np.full(int(new.sum()), stamp_id, np.int64)])
+        if len(self.points) > self.capacity:
+            keep = np.sort(np.argsort(-self.last_seen, kind="stable")[: self.capacity])
+            self.points, self.descriptors = self.points[keep], self.descriptors[keep]
+            self.observations, self.last_seen = self.observations[keep], self.last_seen[keep]
+
+
+class Odometry:
+    """Tracks frames against a local map; owns the motion model and the segment counter."""
+
+    def __init__(self, camera: PinholeCamera, config: OdometryConfig, seed: int = 0):
+        self.camera = camera
+        self.config = config
+        self.K = camera.K
+        self.map = LocalMap(config.local_map_size)
+        self.pose: np.ndarray | None = None  # last tracked pose
+        self.velocity = np.eye(4)  # last inter-frame motion, camera frame
+        self.last_stamp: float | None = None
+        self.segment = 0
+        self.lost_in_row = 0
+        self._last_dt: float | None = None
+        self._reference: _DepthReference | None = None
+        self._updates = 0
+        self._map_pose = np.eye(4)
+        self._map_inliers = 0
+        self._seed = seed
+
+    # -- tracking -----------------------------------------------------------------------
+    def track(self, features: FrameFeatures, stamp: float) -> TrackResult:
+        if self.pose is None or len(self.map) == 0:
+            return self._start_segment(features, stamp)
+        predicted = self._predict(stamp)
+        result = self._register(features, predicted, gated=self.config.motion_model)
+        if result is None and self.config.motion_model:
+            result = self._register(features, predicted, gated=False)
+        c = self.config
+        if c.icp_fallback and (result is None or result[2].sum() < c.icp_below_inliers):
+            refined = self._register_depth(features, predicted if result is None else result[0])
+            result = refined or result
+        if result is None:
+            self.lost_in_row += 1
+            if self.lost_in_row >= self.config.lost_frames_reset and features.has_depth.sum() >= self.config.min_inliers:
+                return self._start_segment(features, stamp, new_segment=True)
+            return TrackResult("lost", None, segment=self.segment, map_index=np.full(len(features), -1))
+        pose, map_index, inliers = result
+        if self._needs_map_update(pose, int(inliers.sum())):
+            self._update_map(features, pose, np.where(inliers, map_index, -1), int(inliers.sum()))
+        self.velocity = invert(self.pose) @ pose  # motion over the last interval ...
+        self._last_dt = self._dt(stamp)  # ... of this length, rescaled in _predict
+        self.pose, self.last_stamp, self.lost_in_row = pose, stamp, 0
+        return TrackResult("ok", pose, int(inliers.sum()), int((map_index >= 0).sum()), self.segment, map_index, inliers)
+
+    def _needs_map_update(self, pose: np.ndarray, inliers: int) -> bool:
+        c = self.config
+        delta = invert(self._map_pose) @ pose
+        return (np.linalg.norm(delta[:3, 3]) >= c.map_update_linear
+                or rotation_angle(delta[:3, :3]) >= c.map_update_angular
+                or inliers < c.map_update_ratio * self._map_inliers)
+
+    def _update_map(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray, inliers: int) -> None:
+        self._updates += 1
+        self.map.update(self._updates, features, pose, map_index)
+        self._map_pose, self._map_inliers = pose, inliers
+        if features.depth is not None:
+            self._reference = _DepthReference(pose, features.depth)
+
+    def _register_depth(self, features: FrameFeatures, predicted: np.ndarray):
+        """Point-to-plane ICP of this frame's depth against the last map update's depth."""
+        ref = self._reference
+        if ref is None or features.depth is None:
+            return None
+        c = self.config
+        levels = icp.depth_pyramid(features.depth, self.camera, icp.STEPS)
+        res = icp.register(levels, ref.levels(self.camera), invert(ref.pose) @ predicted,
+                           min_inlier_ratio=c.icp_min_inlier_ratio, min_conditioning=c.icp_min_conditioning)
+        if not res.ok:
+            return None
+        return ref.pose @ res.pose, np.full(len(features), -1), np.zeros(len(features), bool)
+
+    # -- internals ----------------------------------------------------------------------
+    def _start_segment(self, features: FrameFeatures, stamp: float, new_segment: bool = False) -> TrackResult:
+        if new_segment:
+            self.segment += 1
+        self.map.clear()
+        self.pose = np.eye(4) if self.pose is None else self.pose
+        self.velocity = np.eye(4)
+        self.last_stamp, self.lost_in_row = stamp, 0
+        self._last_dt = None
+        self._update_map(features, self.pose, np.full(len(features), -1), int(features.has_depth.sum()))
+        return TrackResult("init", self.pose.copy(), int(features.has_depth.sum()), 0, self.segment,
+                           np.full(len(features), -1), np.zeros(len(features), bool))
+
+    def _dt(self, stamp: float) -> float | None:
+        return None if self.last_stamp is None else stamp - self.last_stamp
+
+    def _predict(self, stamp: float) -> np.ndarray:
+        """Constant-velocity prediction, the last motion scaled to the elapsed time."""
+        if not self.config.motion_model:
+            return self.pose
+        dt, last_dt = self._dt(stamp), self._last_dt
+        motion = self.velocity
+        if dt and last_dt and last_dt > 0 and abs(dt / last_dt - 1) > 0.2:
+            motion = _scale_motion(motion, dt / last_dt)
+        return self.pose @ motion
+
+    def _register(self, features: FrameFeatures, predicted: np.ndarray, gated: bool):
+        """Match against the local map and solve PnP. Returns (pose, map_index, inlier mask)
+        or None when fewer than min_inliers support a pose."""
+        c = self.config
+        cam = self.camera
+        # Map points in front of the predicted camera and inside the image (with a margin
+        # that is the whole image when ungated).
+        T_cw = invert(predicted)
+        pc = self.map.points @ T_cw[:3, :3].T + T_cw[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = pc[:, :2] / pc[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        margin = c.guided_radius if gated else max(cam.width, cam.height)
+        visible = (pc[:, 2] > 0.05) & (uv[:, 0] > -margin) & (uv[:, 0] < cam.width + margin) \
+            & (uv[:, 1] > -margin) & (uv[:, 1] < cam.height + margin)
+        if not gated:
+            visible = np.ones(len(pc), bool)
+        cand = np.nonzero(visible)[0]
+        if len(cand) < c.min_inliers or len(features) < c.min_inliers:
+            return None
+        q_idx, m_idx = _match(features.descriptors, self.map.descriptors[cand], c.match_ratio, c.max_hamming)
+        m_idx = cand[m_idx]
+        if gated:
+            near = np.linalg.norm(uv[m_idx] - features.keypoints[q_idx], axis=1) <= c.guided_radius
+            q_idx, m_idx = q_idx[near], m_idx[near]
+        if len(q_idx) < c.min_inliers:
+            return None
+        pose, inl = self._solve_pnp(self.map.points[m_idx], features.keypoints[q_idx], T_cw)
+        if pose is None or inl.sum() < c.min_inliers:
+            return None
+        map_index = np.full(len(features), -1)
+        map_index[q_idx] = m_idx
+        inliers = np.zeros(len(features), bool)
+        inliers[q_idx[inl]] = True
+        return pose, map_index, inliers
+
+    def _solve_pnp(self, world: np.ndarray, pixels: np.ndarray, T_cw_guess: np.ndarray):
+        c = self.config
+        rvec0, _ = cv2.Rodrigues(T_cw_guess[:3, :3])
+        tvec0 = T_cw_guess[:3, 3].reshape(3, 1).copy()
+        cv2.setRNGSeed(self._seed)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            world.astype(np.float64), pixels.astype(np.float64), self.K, None,
+            rvec=rvec0.copy(), tvec=tvec0.copy(), useExtrinsicGuess=False,
+            iterationsCount=c.pnp_iterations, reprojectionError=c.pnp_reprojection_error,
+            confidence=c.pnp_confidence, flags=cv2.SOLVEPNP_AP3P,
+        )
+        if not ok or inl is None or len(inl) < 4:
+            return None, np.zeros(len(world), bool)
+        mask = np.zeros(len(world), bool)
+        mask[inl.ravel()] = True
+        rvec, tvec = cv2.solvePnPRefineLM(world[mask], pixels[mask].astype(np.float64), self.K, None, rvec, tvec)
+        # Re-select inliers under the refined pose (RANSAC's set came from a minimal sample).
+        proj, _ = cv2.projectPoints(world, rvec, tvec, self.K, None)
+        err = np.linalg.norm(proj.reshape(-1, 2) - pixels, axis=1)
+        mask = err <= c.pnp_reprojection_error
+        if mask.sum() >= 4:
+            rvec, tvec = cv2.solvePnPRefineLM(world[mask], pixels[mask].astype(np.float64), self.K, None, rvec, tvec)
+        R, _ = cv2.Rodrigues(rvec)
+        pose = invert(make_pose(R, tvec.ravel()))
+        if c.max_translation > 0 and self.pose is not None and \
+                np.linalg.norm(pose[:3, 3] - self.pose[:3, 3]) > c.max_translation:
+            return None, np.zeros(len(world), bool)
+        return pose, mask
+
+
+def _match(query: np.ndarray, train: np.ndarray, ratio: float, max_dist: int):
+    """Nearest-neighbour matching with the ratio test and one match per train point.
+    Returns (query indices, train indices)."""
+    if len(train) < 2 or len(query) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query, train, k=2)
+    arr = np.array([(m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2], np.float64)
+    qi = np.array([m[0].queryIdx for m in knn if len(m) == 2], int)
+    if not len(arr):
+        return np.zeros(0, int), np.zeros(0, int)
+    ti, d1, d2 = arr[:, 0].astype(int), arr[:, 1], arr[:, 2]
+    ok = (d1 <= max_dist) & (d1 < ratio * d2)
+    qi, ti, d1 = qi[ok], ti[ok], d1[ok]
+    # One query per train point: keep the closest.
+    order = np.lexsort((d1, ti))
+    first = np.ones(len(order), bool)
+    first[1:] = ti[order][1:] != ti[order][:-1]
+    keep = np.sort(order[first])
+    return qi[keep], ti[keep]
+
+
+def _scale_motion(T: np.ndarray, s: float) -> np.ndarray:
+    """The rigid motion T scaled by s along its geodesic (axis-angle × s, translation × s)."""
+    rvec, _ = cv2.Rodrigues(T[:3, :3])
+    R, _ = cv2.Rodrigues(rvec * s)
+    return make_pose(R, T[:3, 3] * s)

@@ -1,0 +1,74 @@
+"""The per-frame SLAM pipeline, the same for the offline runner and the service:
+extract → track → decide keyframe → (memory, loop closure, optimization, semantics as
+they land)."""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from client.frames import Calibration, Frame
+
+from .config import Config
+from .features import FeatureExtractor
+from .keyframes import KeyframePolicy
+from .odometry import Odometry
+
+log = logging.getLogger("mnemoslam.pipeline")
+
+
+@dataclass
+class FrameResult:
+    """What the pipeline did with one frame."""
+
+    index: int
+    stamp: float
+    status: str  # "ok", "init", "lost", or "skipped" (no usable depth)
+    pose: np.ndarray | None
+    keyframe: str | None = None  # why it became a keyframe, if it did
+    inliers: int = 0
+    segment: int = 0
+    features: int = 0
+    timings: dict = field(default_factory=dict)  # ms per step
+
+    @property
+    def tracked(self) -> bool:
+        return self.pose is not None
+
+
+class Pipeline:
+    """One SLAM session for one camera."""
+
+    def __init__(self, calibration: Calibration, config: Config):
+        self.calibration = calibration
+        self.config = config
+        self.extractor = FeatureExtractor(calibration, config.features, config.stereo)
+        self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed)
+        self.keyframes = KeyframePolicy(config.keyframe)
+
+    def process(self, frame: Frame) -> FrameResult:
+        t0 = time.perf_counter()
+        if not self._has_geometry(frame):
+            log.warning("frame %d (%s): no valid depth, skipped", frame.index, frame.source)
+            return FrameResult(frame.index, frame.stamp, "skipped", None)
+        features = self.extractor.extract(frame)
+        t1 = time.perf_counter()
+        tracked = self.odometry.track(features, frame.stamp)
+        t2 = time.perf_counter()
+        keyframe = self.keyframes.decide(tracked)
+        t3 = time.perf_counter()
+        return FrameResult(
+            frame.index, frame.stamp, tracked.status, tracked.pose, keyframe, tracked.inliers,
+            tracked.segment, len(features),
+            {"features": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "keyframe": (t3 - t2) * 1e3},
+        )
+
+    def _has_geometry(self, frame: Frame) -> bool:
+        if self.calibration.baseline:
+            return frame.right is not None
+        if frame.depth is None:
+            return False
+        d = frame.depth
+        return bool(np.any(np.isfinite(d) & (d > 0)))
