@@ -38,7 +38,7 @@ class StereoConfig:
     min_disparity: float = 1.0  # px
     max_disparity: float = 0.4  # fraction of image width
     max_hamming: int = 60  # descriptor distance for a stereo match
-    max_depth: float = 60.0  # metres
+    max_depth: float = 40.0  # metres; farther stereo depth is biased (1/disparity is convex) and skews scale
 
 
 @dataclass
@@ -47,6 +47,7 @@ class OdometryConfig:
     max_hamming: int = 80  # reject matches farther than this (of 256 bits)
     guided_radius: float = 20.0  # px, matches must reproject this close to the predicted pose
     min_inliers: int = 20  # PnP inliers to accept a pose (Vis/MinInliers)
+    confident_inliers: int = 60  # fewer: also try unguided matching, then (RGB-D) depth ICP
     pnp_reprojection_error: float = 2.0  # px (Vis/PnPReprojError)
     pnp_iterations: int = 200  # RANSAC iterations (Vis/PnPIterations is 100; we refine after)
     pnp_confidence: float = 0.999
@@ -60,7 +61,6 @@ class OdometryConfig:
     map_update_angular: float = 0.05
     map_update_ratio: float = 0.6
     icp_fallback: bool = True  # RGB-D: register depth (point-to-plane ICP) when features fail
-    icp_below_inliers: int = 60  # RGB-D: fewer PnP inliers than this -> refine the pose with ICP
     icp_min_inlier_ratio: float = 0.3  # associated depth points needed to trust ICP
     icp_min_conditioning: float = 0.002  # smallest/largest Hessian eigenvalue: below = degenerate
     lost_frames_reset: int = 3  # lost frames in a row before a new segment starts (Odom/ResetCountdown)

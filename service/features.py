@@ -69,7 +69,7 @@ class FeatureExtractor:
         grey = frame.grey
         kps, desc, xy, octave = self._detect(grey)
         if self.calibration.baseline and frame.right is not None:
-            points = self._stereo_points(grey, frame.right, xy, desc)
+            points = self._stereo_points(grey, frame.right, xy, desc, octave)
         elif frame.depth is not None:
             points = self._depth_points(frame.depth, xy)
         else:
@@ -135,7 +135,7 @@ class FeatureExtractor:
         return np.stack([x, y, z], axis=1).astype(np.float32)
 
     # -- 3-D from rectified stereo ------------------------------------------------------
-    def _stereo_points(self, left, right, xy_l, desc_l) -> np.ndarray:
+    def _stereo_points(self, left, right, xy_l, desc_l, octave_l) -> np.ndarray:
         """Match left keypoints to right keypoints on the same rectified row, refine the
         disparity to sub-pixel with a SAD patch search, and triangulate."""
         s = self.stereo
@@ -151,7 +151,8 @@ class FeatureExtractor:
         dist = _hamming_matrix(desc_l, desc_r)
         disp = xy_l[:, None, 0] - xy_r[None, :, 0]
         max_disp = s.max_disparity * cam.width
-        valid = (np.abs(xy_l[:, None, 1] - xy_r[None, :, 1]) <= s.max_row_diff) & (disp >= s.min_disparity) & (disp <= max_disp)
+        row_tol = s.max_row_diff * self.config.scale_factor ** octave_l.astype(np.float32)  # coarser levels, coarser rows
+        valid = (np.abs(xy_l[:, None, 1] - xy_r[None, :, 1]) <= row_tol[:, None]) & (disp >= s.min_disparity) & (disp <= max_disp)
         dist = np.where(valid, dist, 255)
         j = np.argmin(dist, axis=1)
         best = dist[np.arange(len(j)), j]
@@ -181,7 +182,7 @@ def _hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return d
 
 
-def _refine_disparity(left, right, xy, disp, half=5, search=2) -> np.ndarray:
+def _refine_disparity(left, right, xy, disp, half=5, search=4) -> np.ndarray:
     """Sub-pixel disparity: SAD of (2·half+1)² patches at disparity d-search..d+search on
     the same row, then a parabola through the best cost and its neighbours."""
     h, w = left.shape[:2]

@@ -120,13 +120,12 @@ class Odometry:
         if self.pose is None or len(self.map) == 0:
             return self._start_segment(features, stamp)
         predicted = self._predict(stamp)
-        result = self._register(features, predicted, gated=self.config.motion_model)
-        if result is None and self.config.motion_model:
-            result = self._register(features, predicted, gated=False)
         c = self.config
-        if c.icp_fallback and (result is None or result[2].sum() < c.icp_below_inliers):
-            refined = self._register_depth(features, predicted if result is None else result[0])
-            result = refined or result
+        result = self._register(features, predicted, gated=True) if c.motion_model else None
+        if _support(result) < c.confident_inliers:  # wide baseline or bad prediction: search everywhere
+            result = max(result, self._register(features, predicted, gated=False), key=_support)
+        if c.icp_fallback and _support(result) < c.confident_inliers:  # few features: use the depth
+            result = self._register_depth(features, predicted if result is None else result[0]) or result
         if result is None:
             self.lost_in_row += 1
             if self.lost_in_row >= self.config.lost_frames_reset and features.has_depth.sum() >= self.config.min_inliers:
@@ -256,6 +255,11 @@ class Odometry:
                 np.linalg.norm(pose[:3, 3] - self.pose[:3, 3]) > c.max_translation:
             return None, np.zeros(len(world), bool)
         return pose, mask
+
+
+def _support(result) -> int:
+    """Inlier count of a registration result (None counts as 0)."""
+    return 0 if result is None else int(result[2].sum())
 
 
 def _match(query: np.ndarray, train: np.ndarray, ratio: float, max_dist: int):

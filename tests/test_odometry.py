@@ -1,0 +1,113 @@
+"""Tracking front end: PnP on synthetic correspondences, depth/stereo back-projection,
+keyframe decisions and loss recovery."""
+import cv2
+import numpy as np
+import pytest
+
+from client.frames import Calibration, Frame, PinholeCamera
+from client.geometry import invert, make_pose, rotation_angle
+from service.config import load_config
+from service.features import FeatureExtractor, FrameFeatures
+from service.keyframes import KeyframePolicy
+from service.odometry import Odometry, TrackResult
+
+CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
+def _scene(n=400, seed=0):
+    rng = np.random.default_rng(seed)
+    pts = np.c_[rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(2, 5, n)]
+    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    return pts, desc
+
+
+def _observe(pts_w, desc, pose, noise=0.0, outliers=0.0, seed=1):
+    """Features of a camera at `pose` seeing world points: pixels, camera-frame 3-D."""
+    rng = np.random.default_rng(seed)
+    T_cw = invert(pose)
+    pc = pts_w @ T_cw[:3, :3].T + T_cw[:3, 3]
+    uv = pc[:, :2] / pc[:, 2:] * [CAM.fx, CAM.fy] + [CAM.cx, CAM.cy]
+    uv = uv + rng.normal(0, noise, uv.shape) if noise else uv
+    bad = rng.random(len(uv)) < outliers
+    uv[bad] = rng.uniform([0, 0], [640, 480], (bad.sum(), 2))
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    return FrameFeatures(uv[inside].astype(np.float32), desc[inside], pc[inside].astype(np.float32),
+                         np.zeros(inside.sum(), np.int8)), bad[inside]
+
+
+def test_pnp_recovers_known_motion_with_noise_and_outliers():
+    pts, desc = _scene()
+    cfg = load_config()
+    odo = Odometry(CAM, cfg.odometry)
+    f0, _ = _observe(pts, desc, np.eye(4))
+    assert odo.track(f0, 0.0).status == "init"
+    R, _ = cv2.Rodrigues(np.array([0.03, -0.05, 0.02]))
+    truth = make_pose(R, [0.08, -0.02, 0.12])
+    f1, bad = _observe(pts, desc, truth, noise=0.5, outliers=0.2)
+    res = odo.track(f1, 1 / 30)
+    assert res.status == "ok"
+    err = invert(truth) @ res.pose
+    assert np.linalg.norm(err[:3, 3]) < 0.005
+    assert np.degrees(rotation_angle(err[:3, :3])) < 0.2
+    # Outliers are rejected: almost no injected outlier counts as an inlier.
+    assert (res.inlier_mask & bad).sum() <= 2
+    assert res.inliers >= 0.7 * (~bad).sum()
+
+
+def test_lost_then_new_segment():
+    pts, desc = _scene()
+    cfg = load_config(overrides={"odometry": {"lost_frames_reset": 2, "icp_fallback": False}})
+    odo = Odometry(CAM, cfg.odometry)
+    odo.track(_observe(pts, desc, np.eye(4))[0], 0.0)
+    rng = np.random.default_rng(5)
+    other = FrameFeatures(rng.uniform(0, 480, (300, 2)).astype(np.float32),
+                          rng.integers(0, 256, (300, 32), dtype=np.uint8),
+                          np.c_[rng.uniform(-1, 1, (300, 2)), rng.uniform(1, 3, 300)].astype(np.float32),
+                          np.zeros(300, np.int8))
+    assert odo.track(other, 0.1).status == "lost"
+    second = odo.track(other, 0.2)
+    assert second.status == "init" and second.segment == 1
+    np.testing.assert_allclose(second.pose, np.eye(4))  # continues from the last known pose
+
+
+def test_depth_backprojection_rejects_invalid_and_edges():
+    cfg = load_config()
+    ex = FeatureExtractor(Calibration(CAM), cfg.features, cfg.stereo)
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[:, 320:] = 4.0  # a depth edge at column 320
+    depth[100:140, 100:140] = np.nan
+    depth[300:340, 100:140] = 0.0
+    xy = np.array([[200, 200], [320, 200], [120, 120], [120, 320], [500, 400]], np.float32)
+    pts = ex._depth_points(depth, xy)
+    assert np.allclose(pts[0], [(200 - CAM.cx) / CAM.fx * 2, (200 - CAM.cy) / CAM.fy * 2, 2.0], atol=1e-5)
+    assert np.isnan(pts[1:4, 2]).all()  # edge, NaN, zero
+    assert pts[4, 2] == pytest.approx(4.0)
+
+
+def test_stereo_depth_from_shifted_texture():
+    rng = np.random.default_rng(3)
+    tex = cv2.GaussianBlur((rng.random((480, 700)) * 255).astype(np.uint8), (0, 0), 1.5)
+    tex = cv2.equalizeHist(tex)
+    disparity = 21
+    left = tex[:, :640].copy()
+    right = tex[:, disparity:disparity + 640].copy()  # x_right = x_left - disparity
+    cal = Calibration(CAM, baseline=0.1, depth_scale=1.0)
+    cfg = load_config()
+    ex = FeatureExtractor(cal, cfg.features, cfg.stereo)
+    f = ex.extract(Frame(0, 0.0, left, right=right))
+    z = f.points[f.has_depth, 2]
+    assert len(z) > 200
+    expected = CAM.fx * 0.1 / disparity
+    assert np.median(np.abs(z - expected)) < 0.02 * expected
+
+
+def test_keyframe_policy():
+    cfg = load_config()
+    pol = KeyframePolicy(cfg.keyframe)
+    assert pol.decide(TrackResult("init", np.eye(4), 300)) == "init"
+    assert pol.decide(TrackResult("ok", make_pose(np.eye(3), [0.05, 0, 0]), 290)) is None
+    assert pol.decide(TrackResult("ok", make_pose(np.eye(3), [0.11, 0, 0]), 290)) == "motion"
+    R, _ = cv2.Rodrigues(np.array([0, 0.12, 0]))
+    assert pol.decide(TrackResult("ok", make_pose(R, [0.11, 0, 0]), 280)) == "motion"
+    assert pol.decide(TrackResult("ok", make_pose(R, [0.11, 0, 0]), 100)) == "quality"
+    assert pol.decide(TrackResult("lost", None)) is None
