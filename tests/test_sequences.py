@@ -1,0 +1,87 @@
+"""Whole real sequences through the offline runner: tracking and accuracy bounds.
+
+The bounds are what the odometry achieves today with a margin; the product targets of
+issue #2 that are not met yet are stated next to each bound."""
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from client.datasets import open_dataset
+from service.config import load_config
+from service.evaluation import evaluate
+from service.runner import run_dataset
+
+from conftest import require
+
+pytestmark = pytest.mark.data
+
+
+def _run(path, **options):
+    ds = open_dataset(path, **options)
+    out = run_dataset(ds, load_config(), progress=False)
+    return ds, out, evaluate(ds.ground_truth, out.trajectory)
+
+
+def test_7scenes_redkitchen_no_frame_lost(data_dir):
+    ds, out, ev = _run(require(data_dir / "7scenes_redkitchen"))
+    assert out.summary.frames == 1000 and out.summary.lost == 0 and out.summary.segments == 1
+    assert ev.matched == 1000
+    assert ev.ate_rmse < 0.09  # measured 7.1 cm; issue target < 6 cm (odometry only)
+
+
+def test_tum_cabinet_keyframes_all_tracked(data_dir):
+    ds, out, ev = _run(require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes"))
+    assert out.summary.tracked == 58 and out.summary.lost == 0
+    assert ev.ate_rmse < 0.35  # measured 22 cm; issue target < 5 cm (textureless, needs dense RGB-D)
+
+
+@pytest.mark.parametrize("name,max_percent,min_tracked", [("a", 1.0, 51), ("b", 3.0, 45)])
+def test_kitti_stereo(data_dir, name, max_percent, min_tracked):
+    ds, out, ev = _run(require(data_dir / "kitti_odometry_snippets" / "sequences" / name))
+    assert out.summary.tracked >= min_tracked
+    # measured a: 0.42 %, b: 2.1 % of path (b: grass, trees and moving cars); target < 1 %
+    assert ev.ate_percent_of_path < max_percent
+
+
+def test_euroc_stereo_still_vehicle(data_dir):
+    ds, out, ev = _run(require(data_dir / "euroc_v101_head"))
+    assert out.summary.tracked == 40
+    assert ev.ate_rmse < 0.01
+
+
+def test_same_input_same_trajectory_bit_for_bit(data_dir):
+    path = require(data_dir / "7scenes_redkitchen")
+    a = run_dataset(open_dataset(path, max_frames=120), load_config(), progress=False).trajectory
+    b = run_dataset(open_dataset(path, max_frames=120), load_config(), progress=False).trajectory
+    assert len(a) == 120
+    assert np.array_equal(a.poses, b.poses) and np.array_equal(a.stamps, b.stamps)
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_cli_wrong_path_is_one_line(tmp_path):
+    r = _cli("run", str(tmp_path / "nope"), "--out", str(tmp_path / "o"))
+    assert r.returncode == 2
+    assert "no such file or directory" in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_cli_run_with_corrupt_image_names_file_and_goes_on(data_dir, tmp_path):
+    src = require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes")
+    seq = tmp_path / "rgbd_dataset_freiburg3_cabinet_keyframes"
+    shutil.copytree(src, seq)
+    for p in seq.rglob("*"):
+        p.chmod(0o644 if p.is_file() else 0o755)
+    victim = sorted((seq / "rgb").iterdir())[3]
+    victim.write_bytes(b"not a jpeg")
+    r = _cli("run", str(seq), "--out", str(tmp_path / "o"), "-q", "--max-frames", "10")
+    assert r.returncode == 0, r.stderr
+    assert victim.name in r.stderr
+    assert "1 unreadable" in r.stdout
+    lines = (tmp_path / "o" / "trajectory.tum").read_text().splitlines()
+    assert len(lines) == 9
