@@ -51,7 +51,7 @@ class OdometryConfig:
     pnp_reprojection_error: float = 2.0  # px (Vis/PnPReprojError)
     pnp_iterations: int = 200  # RANSAC iterations (Vis/PnPIterations is 100; we refine after)
     pnp_confidence: float = 0.999
-    max_translation: float = 0.0  # m between frames, 0 = unlimited (Odom/MaxTranslation?)
+    max_translation: float = 0.0  # m between frames, 0 = unlimited (Odom/MaxTranslation)
     local_map_size: int = 3000  # 3-D points kept in the local map (OdomF2M/MaxSize)
     motion_model: bool = True  # predict with constant velocity (Odom/GuessMotion)
     # The local map takes a tracked frame's features when the camera moved or turned this

@@ -1,0 +1,80 @@
+"""Run every sequence in MNEMOSLAM_DATA and the synthetic scene through the offline
+pipeline; print ATE RMSE, frames/s and peak memory per sequence as a table.
+
+    python bench/run_sequences.py [--only NAME] [--synthetic-frames N]
+
+Frames/s is end to end (file decoding + pipeline) in one process; "pipeline fps" excludes
+decoding (frames are decoded before the clock starts). Peak memory is the process's
+resident-set high-water mark after each sequence (ru_maxrss), so it only grows.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from client.datasets import open_dataset  # noqa: E402
+from service.config import load_config  # noqa: E402
+from service.evaluation import evaluate  # noqa: E402
+from service.pipeline import Pipeline  # noqa: E402
+from service.runner import run_dataset  # noqa: E402
+
+
+def sequences(data: Path, synthetic_frames: int):
+    yield "tum fr3/cabinet keyframes", data / "rgbd_dataset_freiburg3_cabinet_keyframes", {}
+    yield "7-scenes redkitchen", data / "7scenes_redkitchen", {}
+    yield "kitti a (stereo)", data / "kitti_odometry_snippets/sequences/a", {}
+    yield "kitti b (stereo)", data / "kitti_odometry_snippets/sequences/b", {}
+    yield "euroc v101 head (stereo)", data / "euroc_v101_head", {}
+    yield "synthetic loop", "synthetic:loop", {"max_frames": synthetic_frames}
+    yield "synthetic loop + noise", "synthetic:loop", {"max_frames": synthetic_frames, "noise": True}
+
+
+def pipeline_fps(ds, config, limit=300) -> float:
+    """Frames/s of the pipeline alone on pre-decoded frames."""
+    frames = [ds.frame(i) for i in range(min(limit, len(ds)))]
+    p = Pipeline(ds.calibration, config)
+    t = time.perf_counter()
+    for f in frames:
+        p.process(f)
+    return len(frames) / (time.perf_counter() - t)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", help="run sequences whose name contains this")
+    ap.add_argument("--synthetic-frames", type=int, default=900)
+    args = ap.parse_args()
+    data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
+    config = load_config()
+    rows = []
+    for name, path, opts in sequences(data, args.synthetic_frames):
+        if args.only and args.only not in name:
+            continue
+        if not str(path).startswith("synthetic") and not Path(path).exists():
+            print(f"skip {name}: {path} not found", file=sys.stderr)
+            continue
+        ds = open_dataset(path, **opts)
+        out = run_dataset(ds, config, progress=True)
+        ev = evaluate(ds.ground_truth, out.trajectory) if ds.ground_truth is not None else None
+        s = out.summary
+        h, w = ds.calibration.camera.height, ds.calibration.camera.width
+        rows.append((name, f"{w}x{h}", s.frames, s.tracked, s.lost, s.keyframes,
+                     f"{ev.ate_rmse * 100:.2f}" if ev else "-", f"{ev.ate_percent_of_path:.2f}" if ev else "-",
+                     f"{s.fps:.1f}", f"{pipeline_fps(ds, config):.1f}",
+                     f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f}"))
+    head = ("sequence", "size", "frames", "tracked", "lost", "kf", "ATE cm", "ATE %path", "fps e2e", "fps pipeline", "peak MB")
+    widths = [max(len(str(r[i])) for r in rows + [head]) for i in range(len(head))]
+    for r in [head] + rows:
+        print("  ".join(str(v).rjust(wd) for v, wd in zip(r, widths)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
