@@ -57,8 +57,8 @@ class OdometryConfig:
     # The local map takes a tracked frame's features when the camera moved or turned this
     # much since the last map update, or when inliers fell below map_update_ratio × the
     # inliers of that update (OdomF2M: Odom/KeyFrameThr 0.3). Independent of graph keyframes.
-    map_update_linear: float = 0.05
-    map_update_angular: float = 0.05
+    map_update_linear: float = 0.02
+    map_update_angular: float = 0.02
     map_update_ratio: float = 0.6
     icp_fallback: bool = True  # RGB-D: register depth (point-to-plane ICP) when features fail
     icp_min_inlier_ratio: float = 0.3  # associated depth points needed to trust ICP
