@@ -69,16 +69,16 @@ class LocalMap:
         self.__init__(self.capacity)
 
     def update(self, stamp_id: int, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> None:
-        """Insert a keyframe: features matched to a map point refresh it (running mean of
-        the position, latest descriptor); unmatched features with depth become new points;
-        the least recently seen points beyond capacity are dropped."""
+        """Insert a tracked frame: features matched to a map point refresh its descriptor
+        (the point keeps its first position: later observations come from poses that have
+        drifted more, and averaging them in moves the map with the drift); unmatched
+        features with depth become new points; the least recently seen points beyond
+        capacity are dropped."""
         has_depth = features.has_depth
         world = features.points.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
         matched = (map_index >= 0) & has_depth
         idx = map_index[matched]
         if len(idx):
-            n = self.observations[idx].astype(np.float64)[:, None]
-            self.points[idx] = (self.points[idx] * n + world[matched]) / (n + 1)
             self.descriptors[idx] = features.descriptors[matched]
             self.observations[idx] += 1
             self.last_seen[idx] = stamp_id
