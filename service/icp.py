@@ -1,12 +1,15 @@
 """Dense RGB-D registration: coarse-to-fine point-to-plane ICP with projective data
-association (KinectFusion-style) joined with a direct photometric term (DVO-style), solved
-by robust Gauss–Newton, vectorized over whole images.
+association (KinectFusion-style) joined with a direct photometric term (DVO-style: the grey
+value of each source pixel against the reference image at its warped position), solved by
+robustly weighted Gauss–Newton, vectorized over whole images.
 
 It tracks where features cannot: textureless scenes (a plain cabinet on a white floor)
 still have planes, and the colour edges between surfaces pin the sliding directions the
 planes leave free. The Hessian's smallest eigenvalue tells when neither the geometry nor the
 image constrains all six degrees of freedom (a single untextured wall), so a degenerate
 solution is reported rather than trusted.
+
+Without grey images (`depth_pyramid(..., grey=None)`) the registration is geometric only.
 """
 from __future__ import annotations
 
@@ -21,53 +24,88 @@ from client.geometry import invert, make_pose
 
 @dataclass
 class DepthLevel:
-    """Vertex and normal maps of one pyramid level (camera frame), and optionally the grey
-    image with its gradients sampled at the same pixels."""
+    """Vertex and normal maps of one pyramid level (camera frame) and, when the pyramid was
+    built with a grey image, the blurred grey level with its gradients at the same pixels."""
 
     step: int
     fx: float
     fy: float
     cx: float
     cy: float
-    vertices: np.ndarray  # (h, w, 3), NaN where invalid
-    normals: np.ndarray  # (h, w, 3), NaN where invalid
+    vertices: np.ndarray  # (h, w, 3) float32, NaN where invalid
+    normals: np.ndarray  # (h, w, 3) float32, NaN where invalid
     intensity: np.ndarray | None = None  # (h, w, 3) float32: grey in [0, 1], d/du, d/dv per level pixel
-    _cache: dict = field(default_factory=dict, repr=False)
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def valid(self) -> np.ndarray:
         return np.isfinite(self.normals[..., 0])
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
-        if "points" not in self._cache:
-            ok = self.valid.ravel()
-            self._cache["points"] = (np.ascontiguousarray(self.vertices.reshape(-1, 3)[ok]),
-                                     np.ascontiguousarray(self.normals.reshape(-1, 3)[ok]))
-        return self._cache["points"]
+        """Vertices and normals (N, 3) of the pixels with a valid normal."""
+        ok = self.valid.ravel()
+        return self.vertices.reshape(-1, 3)[ok], self.normals.reshape(-1, 3)[ok]
 
-    def photometric_points(self, min_gradient: float, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-        """3-D points and grey values of the pixels with depth and a strong image gradient."""
-        key = ("photo", min_gradient, max_points)
-        if key not in self._cache:
+    # -- arrays for the solver, built on first use (planar: one contiguous row per coordinate)
+    def _source_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices and normals (3, N) of the valid pixels."""
+        c = self._cache.get("src_geo")
+        if c is None:
+            idx = np.flatnonzero(self.valid.ravel())
+            c = self._cache["src_geo"] = (np.ascontiguousarray(self.vertices.reshape(-1, 3)[idx].T),
+                                          np.ascontiguousarray(self.normals.reshape(-1, 3)[idx].T))
+        return c
+
+    def _source_photometric(self, min_gradient: float, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices (3, N) and grey values (N,) of the pixels with a valid normal (depth, and
+        no depth edge next to it: an edge pixel's grey mixes two surfaces that move apart
+        with parallax) and a gradient of at least `min_gradient` per level pixel (the
+        strongest `max_points` of them)."""
+        key = ("src_photo", min_gradient, max_points)
+        c = self._cache.get(key)
+        if c is None:
             if self.intensity is None:
-                self._cache[key] = (np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
+                c = (np.zeros((3, 0), np.float32), np.zeros(0, np.float32))
             else:
-                g2 = self.intensity[..., 1] ** 2 + self.intensity[..., 2] ** 2
-                sel = np.isfinite(self.vertices[..., 2]) & (g2 >= min_gradient ** 2)
-                idx = np.flatnonzero(sel)
+                g2 = (self.intensity[..., 1] ** 2 + self.intensity[..., 2] ** 2).ravel()
+                idx = np.flatnonzero(self.valid.ravel() & (g2 >= min_gradient ** 2))
                 if len(idx) > max_points:
-                    idx = idx[np.argpartition(-g2.ravel()[idx], max_points)[:max_points]]
-                self._cache[key] = (np.ascontiguousarray(self.vertices.reshape(-1, 3)[idx]),
-                                    np.ascontiguousarray(self.intensity[..., 0].ravel()[idx]))
-        return self._cache[key]
+                    idx = np.sort(idx[np.argpartition(-g2[idx], max_points)[:max_points]])
+                c = (np.ascontiguousarray(self.vertices.reshape(-1, 3)[idx].T),
+                     np.ascontiguousarray(self.intensity[..., 0].ravel()[idx]))
+            self._cache[key] = c
+        return c
+
+    def _reference_geometry(self) -> np.ndarray:
+        """(5, (h+2)·(w+2)): normal, plane offset n·q and depth of every pixel, with a NaN
+        border so that clipped indices of points projecting outside gather invalid entries."""
+        g = self._cache.get("ref_geo")
+        if g is None:
+            h, w = self.vertices.shape[:2]
+            g = np.full((5, h + 2, w + 2), np.nan, np.float32)
+            n = np.moveaxis(self.normals, -1, 0)
+            g[:3, 1:-1, 1:-1] = n
+            g[3, 1:-1, 1:-1] = np.einsum("kij,kij->ij", n, np.moveaxis(self.vertices, -1, 0))
+            g[4, 1:-1, 1:-1] = self.vertices[..., 2]
+            g = self._cache["ref_geo"] = g.reshape(5, -1)
+        return g
+
+    def _reference_photometric(self) -> np.ndarray:
+        """(h, w, 4): grey, d/du, d/dv and depth (invalid = far), sampled by one remap."""
+        g = self._cache.get("ref_photo")
+        if g is None:
+            z = self.vertices[..., 2]
+            g = self._cache["ref_photo"] = np.ascontiguousarray(np.concatenate(
+                [self.intensity, np.where(np.isfinite(z), z, 1e3)[..., None]], axis=-1), dtype=np.float32)
+        return g
 
 
 @dataclass
 class IcpResult:
     pose: np.ndarray  # T_ref_cur
-    inlier_ratio: float  # associated inliers / source points
+    inlier_ratio: float  # associated geometric inliers / source points with a normal
     rmse: float  # point-to-plane residual of the inliers, metres
-    conditioning: float  # smallest / largest eigenvalue of the normalized Hessian
+    conditioning: float  # smallest / largest eigenvalue of the normalized Hessian (geometric + photometric)
     ok: bool
 
 
@@ -76,28 +114,32 @@ STEPS = (16, 8, 4)  # pyramid subsampling, coarse first: 40×30 … 160×120 at 
 
 def depth_pyramid(depth: np.ndarray, cam: PinholeCamera, steps=STEPS, min_depth=0.2, max_depth=6.0,
                   grey: np.ndarray | None = None) -> list[DepthLevel]:
-    """Vertex + normal maps subsampled by each step (coarse first); with `grey` (H×W uint8,
-    or float in [0, 1]) also the Gaussian-pyramid grey image and its gradients, which enable
-    the photometric term of `register`. Steps must be powers of two when `grey` is given."""
+    """Vertex + normal maps subsampled by each step (coarse first).
+
+    With `grey` (H×W uint8 or float in [0, 1], or a BGR image; registered to the depth) every level also
+    holds the Gaussian-pyramid grey image and its gradients, which enables the photometric
+    term of `register`; the steps must then be powers of two. Level pixel x samples full
+    image pixel step·x, the centre of a Gaussian pyramid's level pixel.
+    """
     depth = np.where(np.isfinite(depth) & (depth >= min_depth) & (depth <= max_depth), depth, 0).astype(np.float32)
     images = {}
     if grey is not None:
         g = np.asarray(grey)
+        if g.ndim == 3:
+            g = cv2.cvtColor(g, cv2.COLOR_BGR2GRAY)
         g = g.astype(np.float32) / 255.0 if g.dtype == np.uint8 else g.astype(np.float32)
         if g.shape != depth.shape:
-            raise ValueError(f"grey image {g.shape} does not match depth {depth.shape}")
-        for s in steps:
-            if s < 1 or s & (s - 1):
-                raise ValueError(f"pyramid steps must be powers of two with a grey image, got {s}")
-        s = 1
-        images[1] = g
+            raise ValueError(f"grey image {g.shape} does not match the depth image {depth.shape}")
+        bad = [s for s in steps if s < 1 or s & (s - 1)]
+        if bad:
+            raise ValueError(f"pyramid steps must be powers of two with a grey image, got {bad}")
+        s, images[1] = 1, g
         while s < max(steps):
             g = cv2.pyrDown(g)
             s *= 2
             images[s] = g
     levels = []
     for s in steps:
-        # Sample s·x of the full image: the pixel a Gaussian pyramid centres its level-x pixel on.
         d = depth[::s, ::s]
         h, w = d.shape
         fx, fy, cx, cy = cam.fx / s, cam.fy / s, cam.cx / s, cam.cy / s
@@ -109,7 +151,7 @@ def depth_pyramid(depth: np.ndarray, cam: PinholeCamera, steps=STEPS, min_depth=
             g = images[s]
             gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8, borderType=cv2.BORDER_REPLICATE)
             gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8, borderType=cv2.BORDER_REPLICATE)
-            inten = np.ascontiguousarray(np.stack([g, gx, gy], axis=-1))
+            inten = np.stack([g, gx, gy], axis=-1)
         levels.append(DepthLevel(s, fx, fy, cx, cy, V, _normals(V), inten))
     return levels
 
@@ -132,207 +174,232 @@ def _normals(V: np.ndarray) -> np.ndarray:
     return np.where(edge | ~np.isfinite(norm) | (norm == 0), np.nan, n).astype(np.float32)
 
 
+# ---------------------------------------------------------------------------------------------
+# Solver
+# ---------------------------------------------------------------------------------------------
+
 @dataclass
-class _Params:
-    max_dist: float
-    cos_max: float
+class _LevelConfig:
+    iterations: int
+    max_dist: float  # metres: association gate on the point-to-plane and the depth difference
+    cos_max: float  # normal-angle gate
     photometric_weight: float
     min_gradient: float
     max_photo_points: int
-    sigma_g_min: float = 0.002
-    sigma_i_min: float = 2.0 / 255
+    tolerance: float  # stop when the update is below this (metres and radians)
+    sigma_g: float  # floor of the robust point-to-plane scale, metres
+    sigma_i: float  # floor of the robust grey-value scale
+    huber: float = 1.345  # Huber threshold of the geometric weights, in robust scales
+    nu: float = 5.0  # Student-t degrees of freedom of the photometric weights
 
 
-def _geometric(p_src, n_src, ref: DepthLevel, T, prm: _Params):
-    """Point-to-plane residuals and Jacobians (left perturbation ω, τ) of the associated points."""
-    R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
-    p = p_src @ R.T + t
+# Truncation of the cost that compares start hypotheses.
+_COST_TAU_G = 0.02
+_COST_TAU_I = 0.1
+
+
+def _rows(p: np.ndarray, g: np.ndarray, r: np.ndarray, sw: np.ndarray) -> np.ndarray:
+    """(7, N): sqrt(w)·[p × g; g; r], the whitened Jacobian of g·(exp(δ) p) with respect to
+    the left perturbation δ = (ω, τ), and the whitened residual."""
+    A = np.empty((7, p.shape[1]), np.float32)
+    A[0] = p[1] * g[2] - p[2] * g[1]
+    A[1] = p[2] * g[0] - p[0] * g[2]
+    A[2] = p[0] * g[1] - p[1] * g[0]
+    A[3:6] = g
+    A[6] = r
+    A *= sw
+    return A
+
+
+def _geometric(P, Nn, ref: DepthLevel, R, t, cfg: _LevelConfig):
+    """Point-to-plane residuals n·(T p − q) of the source points associated projectively,
+    gated on the residual, the depth difference and the normal angle. Returns the residuals,
+    the transformed points (3, M) and the reference normals (3, M)."""
+    p = R @ P + t[:, None]
     h, w = ref.vertices.shape[:2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        iz = 1.0 / p[:, 2]
-        u = np.rint(p[:, 0] * iz * ref.fx + ref.cx)
-        v = np.rint(p[:, 1] * iz * ref.fy + ref.cy)
-    inside = (p[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    idx = np.flatnonzero(inside)
-    lin = v[idx].astype(np.intp) * w + u[idx].astype(np.intp)
-    q = ref.vertices.reshape(-1, 3)[lin]
-    n = ref.normals.reshape(-1, 3)[lin]
-    ps = p[idx]
-    diff = ps - q
-    n_s = n_src[idx] @ R.T
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        iz = 1.0 / p[2]
+        iz[p[2] <= 0] = np.nan
+        # Pixel + 1 in the padded map, rounded (truncation of u + 1.5 ≥ 0); NaN → clipped to the border.
+        ui = np.clip((p[0] * iz * ref.fx + (ref.cx + 1.5)).astype(np.int32), 0, w + 1)
+        vi = np.clip((p[1] * iz * ref.fy + (ref.cy + 1.5)).astype(np.int32), 0, h + 1)
+    g = np.take(ref._reference_geometry(), vi * (w + 2) + ui, axis=1)
+    r = g[0] * p[0] + g[1] * p[1] + g[2] * p[2] - g[3]
+    n_s = R @ Nn
+    cos = g[0] * n_s[0] + g[1] * n_s[1] + g[2] * n_s[2]
     with np.errstate(invalid="ignore"):
-        ok = (np.isfinite(n[:, 0]) & (np.einsum("ij,ij->i", diff, diff) < prm.max_dist ** 2)
-              & (np.einsum("ij,ij->i", n, n_s) > prm.cos_max))
-    ps, n, diff = ps[ok], n[ok], diff[ok]
-    r = np.einsum("ij,ij->i", diff, n)
-    J = np.concatenate([np.cross(ps, n), n], axis=1)
-    return r, J, ps
+        ok = np.flatnonzero((np.abs(r) < cfg.max_dist) & (np.abs(p[2] - g[4]) < cfg.max_dist) & (cos > cfg.cos_max))
+    return r[ok], np.take(p, ok, axis=1), np.take(g[:3], ok, axis=1)
 
 
-def _photometric(p_src, i_src, ref: DepthLevel, T, prm: _Params):
-    """Grey-value residuals I_ref(π(T p)) − I_src and their Jacobians (left perturbation)."""
+def _photometric(P, I, ref: DepthLevel, R, t):
+    """Grey-value residuals I_ref(π(T p)) − I_src (bilinear) of the source points that land
+    inside the reference image and are not occluded there. Returns the residuals, the
+    transformed points (3, M) and the image gradient as a 3-D gradient dI/dp (3, M)."""
+    p = R @ P + t[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iz = 1.0 / p[2]
+        iz[p[2] <= 0.05] = np.nan
+        u = (p[0] * iz * ref.fx + ref.cx).reshape(-1, 1)
+        v = (p[1] * iz * ref.fy + ref.cy).reshape(-1, 1)
+    s = cv2.remap(ref._reference_photometric(), u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                  borderValue=(np.nan,) * 4).reshape(-1, 4)
+    r = s[:, 0] - I
+    with np.errstate(invalid="ignore"):
+        # Inside the image, and the reference does not see a clearly nearer surface there.
+        ok = np.flatnonzero(np.isfinite(r) & np.isfinite(iz) & (p[2] <= s[:, 3] * 1.05 + 0.02))
+    s, p, iz = np.take(s, ok, axis=0), np.take(p, ok, axis=1), iz[ok]
+    gx, gy = s[:, 1] * (ref.fx * iz), s[:, 2] * (ref.fy * iz)
+    return r[ok], p, np.stack([gx, gy, -(gx * p[0] + gy * p[1]) * iz])
+
+
+def _median(a: np.ndarray) -> float:
+    k = len(a) // 2
+    return float(np.partition(a, k)[k]) if len(a) else 0.0
+
+
+def _normal_equations(src: DepthLevel, ref: DepthLevel, T: np.ndarray, cfg: _LevelConfig):
+    """The robustly weighted Gauss–Newton system (H, b: H x = -b) of the joint problem at T
+    and its statistics, or None when too few points associate. Each term is whitened by its
+    own robust scale (MAD, floored), so `photometric_weight` is the relative weight of
+    equally noisy residuals: Huber weights on the point-to-plane residuals, Student-t weights
+    on the grey-value ones (after removing their median, a global brightness change)."""
     R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
-    p = p_src @ R.T + t
-    h, w = ref.vertices.shape[:2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        iz = 1.0 / p[:, 2]
-        u = p[:, 0] * iz * ref.fx + ref.cx
-        v = p[:, 1] * iz * ref.fy + ref.cy
-    inside = (p[:, 2] > 0.05) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    idx = np.flatnonzero(inside)
-    u, v, ps, iz = u[idx], v[idx], p[idx], iz[idx]
-    s = cv2.remap(ref.intensity, u.reshape(-1, 1), v.reshape(-1, 1), cv2.INTER_LINEAR,
-                  borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)
-    # Occlusion: the reference sees a nearer surface there.
-    lin = np.rint(v).astype(np.intp) * w + np.rint(u).astype(np.intp)
-    zr = ref.vertices[..., 2].ravel()[lin]
-    with np.errstate(invalid="ignore"):
-        vis = ~(ps[:, 2] > zr * 1.05 + 0.02)
-    s, ps, iz, i0 = s[vis], ps[vis], iz[vis], i_src[idx][vis]
-    r = s[:, 0] - i0
-    gx, gy = s[:, 1] * ref.fx, s[:, 2] * ref.fy
-    gp = np.stack([gx * iz, gy * iz, -(gx * ps[:, 0] + gy * ps[:, 1]) * iz * iz], axis=1)
-    J = np.concatenate([np.cross(ps, gp), gp], axis=1)
-    return r, J
-
-
-def _mad(r: np.ndarray) -> float:
-    return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) else 0.0
-
-
-def _huber(a: np.ndarray, k: float) -> np.ndarray:
-    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12)).astype(np.float32)
-
-
-def _linearize(src: DepthLevel, ref: DepthLevel, T: np.ndarray, prm: _Params):
-    p_src, n_src = src.points()
-    r_g, J_g, ps = _geometric(p_src, n_src, ref, T, prm)
+    P, Nn = src._source_geometry()
+    r_g, ps, n = _geometric(P, Nn, ref, R, t, cfg)
     if len(r_g) < 30:
         return None
-    sg = max(_mad(r_g), prm.sigma_g_min)
-    w_g = _huber(np.abs(r_g) / sg, 1.345) / sg ** 2
-    H = (J_g * w_g[:, None]).T.astype(np.float64) @ J_g
-    b = (J_g * w_g[:, None]).T.astype(np.float64) @ r_g
-    info = {"n_g": len(r_g), "N_g": len(p_src), "r_g": r_g, "ps": ps, "sg": sg, "H_g": H.copy()}
-    use_photo = prm.photometric_weight > 0 and ref.intensity is not None and src.intensity is not None
-    if use_photo:
-        p_i, i_src = src.photometric_points(prm.min_gradient, prm.max_photo_points)
-        if len(p_i) >= 30:
-            r_i, J_i = _photometric(p_i, i_src, ref, T, prm)
+    a = np.abs(r_g)
+    sg = max(1.4826 * _median(a), cfg.sigma_g)
+    k = cfg.huber * sg
+    sw = np.sqrt(np.minimum(1.0, k / np.maximum(a, 1e-12)), dtype=np.float32) * np.float32(1 / sg)
+    blocks = [_rows(ps, n, r_g, sw)]
+    st = {"n_g": len(r_g), "N_g": P.shape[1], "r_g": r_g, "ps": ps, "sg": sg, "n_i": 0,
+          "cost": (np.minimum(r_g * r_g / _COST_TAU_G ** 2, 1).sum() + P.shape[1] - len(r_g)) / P.shape[1]}
+    if cfg.photometric_weight > 0 and ref.intensity is not None and src.intensity is not None:
+        Pi, I = src._source_photometric(cfg.min_gradient, cfg.max_photo_points)
+        if Pi.shape[1] >= 30:
+            r_i, pi, gp = _photometric(Pi, I, ref, R, t)
             if len(r_i) >= 30:
-                r_i = r_i - np.median(r_i)  # global brightness change
-                si = max(_mad(r_i), prm.sigma_i_min)
-                a = np.abs(r_i) / si
-                nu = 5.0
-                w_i = ((nu + 1) / (nu + a * a) * prm.photometric_weight / si ** 2).astype(np.float32)
-                Hi = (J_i * w_i[:, None]).T.astype(np.float64) @ J_i
-                H += Hi
-                b += (J_i * w_i[:, None]).T.astype(np.float64) @ r_i
-                info.update(n_i=len(r_i), N_i=len(p_i), r_i=r_i, si=si, H_i=Hi)
-    return H, b, info
+                r_i = r_i - _median(r_i)
+                a = np.abs(r_i)
+                si = max(1.4826 * _median(a), cfg.sigma_i)
+                sw = np.sqrt((cfg.nu + 1) / (cfg.nu + (a / si) ** 2) * (cfg.photometric_weight / si ** 2), dtype=np.float32)
+                blocks.append(_rows(pi, gp, r_i, sw))
+                st["cost"] += (np.minimum(r_i * r_i / _COST_TAU_I ** 2, 1).sum() + Pi.shape[1] - len(r_i)) / Pi.shape[1]
+                st.update(n_i=len(r_i), si=si)
+    A = blocks[0] if len(blocks) == 1 else np.concatenate(blocks, axis=1)
+    M = (A @ A.T).astype(np.float64)
+    return M[:6, :6], M[:6, 6], st
+
+
+def _solve_level(src: DepthLevel, ref: DepthLevel, T: np.ndarray, cfg: _LevelConfig, iterations: int):
+    """Gauss–Newton at one level. Returns the pose and the last system (H, stats) or None."""
+    last = None
+    for _ in range(iterations):
+        ne = _normal_equations(src, ref, T, cfg)
+        if ne is None:
+            break
+        H, b, st = ne
+        last = (H, st)
+        try:
+            x = -np.linalg.solve(H + (1e-9 * np.trace(H)) * np.eye(6), b)
+        except np.linalg.LinAlgError:
+            break
+        T = _exp(x) @ T
+        if np.linalg.norm(x[3:]) < cfg.tolerance and np.linalg.norm(x[:3]) < cfg.tolerance:
+            break
+    return T, last
 
 
 def _conditioning(H: np.ndarray, ps: np.ndarray) -> float:
-    """Smallest / largest eigenvalue with rotation scaled to the scene's size."""
-    scale = np.sqrt(np.mean(np.sum(ps.astype(np.float64) ** 2, axis=1)))
+    """Smallest / largest eigenvalue of H with rotation scaled to the scene's size."""
+    scale = float(np.sqrt(np.mean(np.sum(ps.astype(np.float64) ** 2, axis=0))))
     d = 1.0 / np.array([scale] * 3 + [1.0] * 3)
     eig = np.linalg.eigvalsh(H * d[:, None] * d[None, :])
     return float(max(eig[0], 0.0) / eig[-1]) if eig[-1] > 0 else 0.0
 
 
 def _exp(x: np.ndarray) -> np.ndarray:
-    Rd, _ = cv2.Rodrigues(x[:3].reshape(3, 1))
+    Rd, _ = cv2.Rodrigues(np.asarray(x[:3], np.float64).reshape(3, 1))
     return make_pose(Rd, x[3:])
 
 
-def _cost(src: DepthLevel, ref: DepthLevel, T: np.ndarray, prm: _Params, tau_g: float, tau_i: float) -> float:
-    """Truncated quadratic cost over all source points (unassociated ones cost the maximum),
-    comparable between different poses."""
-    p_src, n_src = src.points()
-    r_g, _, _ = _geometric(p_src, n_src, ref, T, prm)
-    c = (np.minimum((r_g / tau_g) ** 2, 1).sum() + len(p_src) - len(r_g)) / max(len(p_src), 1)
-    if prm.photometric_weight > 0 and ref.intensity is not None and src.intensity is not None:
-        p_i, i_src = src.photometric_points(prm.min_gradient, prm.max_photo_points)
-        if len(p_i):
-            r_i, _ = _photometric(p_i, i_src, ref, T, prm)
-            if len(r_i):
-                r_i = r_i - np.median(r_i)
-            c += (np.minimum((r_i / tau_i) ** 2, 1).sum() + len(p_i) - len(r_i)) / len(p_i)
-    return float(c)
-
-
-def _solve_level(src, ref, T, prm, iterations):
-    last = None
-    for _ in range(iterations):
-        lin = _linearize(src, ref, T, prm)
-        if lin is None:
-            break
-        H, b, info = lin
-        last = (H, info)
-        try:
-            x = -np.linalg.solve(H + 1e-6 * np.trace(H) / 6 * np.eye(6), b)
-        except np.linalg.LinAlgError:
-            break
-        T = _exp(x) @ T
-        if np.linalg.norm(x[3:]) < 1e-5 and np.linalg.norm(x[:3]) < 1e-5:
-            break
-    return T, last
-
-
-def register(src: list[DepthLevel], ref: list[DepthLevel], T_init: np.ndarray, iterations=(10, 10, 10),
-             max_distance=(0.3, 0.15, 0.08), max_normal_angle_deg=40.0, min_inlier_ratio=0.3,
-             min_conditioning=1e-3, photometric_weight=1.0, min_gradient=(0.01, 0.01, 0.01),
-             max_photo_points=4000, hypotheses=True) -> IcpResult:
-    """Align the source pyramid onto the reference one, starting at T_init (T_ref_src).
-
-    With grey images in both pyramids a photometric term joins the point-to-plane one
-    (`photometric_weight` scales it; 0 = geometry only)."""
-    T = np.asarray(T_init, np.float64).copy()
-    cos_max = np.cos(np.radians(max_normal_angle_deg))
-    n = len(src)
-    iterations, max_distance, min_gradient = (_per_level(x, n) for x in (iterations, max_distance, min_gradient))
-    last = None
-    for level, (s_lvl, r_lvl) in enumerate(zip(src, ref)):
-        prm = _Params(max_distance[level], cos_max, photometric_weight, min_gradient[level], max_photo_points)
-        if len(s_lvl.points()[0]) < 50:
-            continue
-        if level == 0 and hypotheses:
-            cands = _hypotheses(T)
-            best = None
-            for T0 in cands:
-                Tc, lc = _solve_level(s_lvl, r_lvl, T0, prm, iterations[level])
-                c = _cost(s_lvl, r_lvl, Tc, prm, 0.02, 0.1)
-                if best is None or c < best[0]:
-                    best = (c, Tc, lc)
-            _, T, lvl_last = best
-        else:
-            T, lvl_last = _solve_level(s_lvl, r_lvl, T, prm, iterations[level])
-        last = lvl_last or last
-    if last is None:
-        return IcpResult(T, 0.0, np.inf, 0.0, False)
-    H, info = last
-    cond = _conditioning(H, info["ps"])
-    r = info["r_g"]
-    k = 3 * info["sg"]
-    rmse = float(np.sqrt(np.mean(r[np.abs(r) <= k] ** 2))) if np.any(np.abs(r) <= k) else float("inf")
-    ratio = info["n_g"] / max(info["N_g"], 1)
-    ok = ratio >= min_inlier_ratio and cond >= min_conditioning
-    return IcpResult(T, float(ratio), rmse, cond, bool(ok))
-
-
 def _hypotheses(T: np.ndarray) -> list[np.ndarray]:
+    """The prediction, half of it and no motion (only the prediction when it is no motion)."""
     rvec, _ = cv2.Rodrigues(T[:3, :3])
+    if np.linalg.norm(T[:3, 3]) < 1e-3 and np.linalg.norm(rvec) < 1e-3:
+        return [T]
     half = make_pose(cv2.Rodrigues(rvec * 0.5)[0], T[:3, 3] * 0.5)
     return [T, half, np.eye(4)]
 
 
-def _per_level(x, n):
+def _per_level(x, n: int) -> tuple:
     if np.isscalar(x):
         return (x,) * n
     x = tuple(x)
-    if len(x) < n:
-        x = x + (x[-1],) * (n - len(x))
-    return x
+    return x + (x[-1],) * (n - len(x)) if len(x) < n else x
+
+
+def register(src: list[DepthLevel], ref: list[DepthLevel], T_init: np.ndarray, iterations=(10, 15, 20),
+             max_distance=(0.3, 0.15, 0.08), max_normal_angle_deg=40.0, min_inlier_ratio=0.3,
+             min_conditioning=1e-3, *, photometric_weight=(3.0, 3.0, 1.0), min_gradient=0.01,
+             max_photo_points=4000, tolerance=(1e-3, 5e-4, 1e-4), geometric_sigma=(0.01, 0.005, 0.002),
+             photometric_sigma=(0.03, 0.02, 0.008), hypotheses=True, hypothesis_iterations=3) -> IcpResult:
+    """Align the source pyramid onto the reference one, starting at T_init (T_ref_src).
+
+    Per-level arguments (coarse first) take a tuple or one value for all levels; a short
+    tuple repeats its last value.
+
+    - With grey images in both pyramids a photometric term joins the point-to-plane one;
+      `photometric_weight` is its weight relative to the geometric term once both are
+      whitened by their robust scales (0: geometry only). `min_gradient` (grey levels / 255
+      per level pixel) and `max_photo_points` select its source pixels.
+    - `geometric_sigma` (metres) and `photometric_sigma` (grey / 255) floor the robust scales.
+    - `tolerance`: a level stops when the update is below it (metres, radians).
+    - With `hypotheses` the coarsest level also starts from half of T_init and from no motion;
+      after `hypothesis_iterations` the start with the lowest truncated cost goes on.
+    - `ok` means enough associated points (`min_inlier_ratio`) and a well-conditioned joint
+      Hessian (`min_conditioning`).
+    """
+    T = np.asarray(T_init, np.float64).copy()
+    cos_max = float(np.cos(np.radians(max_normal_angle_deg)))
+    n = len(src)
+    per = [_per_level(x, n) for x in (iterations, max_distance, photometric_weight, min_gradient, tolerance,
+                                      geometric_sigma, photometric_sigma)]
+    last = None
+    first = True
+    for level, (s_lvl, r_lvl) in enumerate(zip(src, ref)):
+        it, md, pw, mg, tol, sgm, sim = (x[level] for x in per)
+        cfg = _LevelConfig(int(it), md, cos_max, pw, mg, max_photo_points, tol, sgm, sim)
+        if cfg.iterations <= 0 or s_lvl._source_geometry()[0].shape[1] < 50:
+            continue
+        if first and hypotheses:
+            probe = min(hypothesis_iterations, cfg.iterations)
+            best = None
+            for T0 in _hypotheses(T):
+                Tc, lc = _solve_level(s_lvl, r_lvl, T0, cfg, probe)
+                c = lc[1]["cost"] if lc else np.inf
+                if best is None or c < best[0]:
+                    best = (c, Tc, lc)
+            _, T, lvl_last = best
+            if cfg.iterations > probe:
+                T, lc = _solve_level(s_lvl, r_lvl, T, cfg, cfg.iterations - probe)
+                lvl_last = lc or lvl_last
+        else:
+            T, lvl_last = _solve_level(s_lvl, r_lvl, T, cfg, cfg.iterations)
+        first = False
+        last = lvl_last or last
+    if last is None:
+        return IcpResult(T, 0.0, np.inf, 0.0, False)
+    H, st = last
+    cond = _conditioning(H, st["ps"])
+    r = st["r_g"]
+    inl = np.abs(r) <= 3 * st["sg"]
+    rmse = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
+    ratio = st["n_g"] / max(st["N_g"], 1)
+    ok = ratio >= min_inlier_ratio and cond >= min_conditioning
+    return IcpResult(T, float(ratio), rmse, cond, bool(ok))
 
 
 def relative(T_w_ref: np.ndarray, T_w_cur: np.ndarray) -> np.ndarray:
