@@ -24,6 +24,7 @@ class FrameFeatures:
     points: np.ndarray  # (N, 3) float32 camera frame, NaN when unknown
     octaves: np.ndarray  # (N,) int8 pyramid level of each keypoint
     depth: np.ndarray | None = None  # the frame's depth image (RGB-D), for dense registration
+    grey: np.ndarray | None = None  # the frame's grey image (RGB-D), for dense registration
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -33,7 +34,7 @@ class FrameFeatures:
         return np.isfinite(self.points[:, 2])
 
     def subset(self, idx) -> "FrameFeatures":
-        return FrameFeatures(self.keypoints[idx], self.descriptors[idx], self.points[idx], self.octaves[idx], self.depth)
+        return FrameFeatures(self.keypoints[idx], self.descriptors[idx], self.points[idx], self.octaves[idx], self.depth, self.grey)
 
 
 def _keypoint_arrays(kps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -74,7 +75,8 @@ class FeatureExtractor:
             points = self._depth_points(frame.depth, xy)
         else:
             points = np.full((len(xy), 3), np.nan, np.float32)
-        return FrameFeatures(xy, desc, points, octave, frame.depth if not self.calibration.baseline else None)
+        rgbd = not self.calibration.baseline and frame.depth is not None
+        return FrameFeatures(xy, desc, points, octave, frame.depth if rgbd else None, grey if rgbd else None)
 
     # -- detection ----------------------------------------------------------------------
     def _detect(self, grey: np.ndarray, orb=None):

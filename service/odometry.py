@@ -26,12 +26,12 @@ from .features import FrameFeatures
 class _DepthReference:
     """The depth image of the last map update, its pyramid built on first use."""
 
-    def __init__(self, pose: np.ndarray, depth: np.ndarray):
-        self.pose, self.depth, self._levels = pose, depth, None
+    def __init__(self, pose: np.ndarray, depth: np.ndarray, grey: np.ndarray | None):
+        self.pose, self.depth, self.grey, self._levels = pose, depth, grey, None
 
     def levels(self, camera: PinholeCamera) -> list:
         if self._levels is None:
-            self._levels = icp.depth_pyramid(self.depth, camera, icp.STEPS)
+            self._levels = icp.depth_pyramid(self.depth, camera, icp.STEPS, grey=self.grey)
         return self._levels
 
 
@@ -151,7 +151,7 @@ class Odometry:
         self.map.update(self._updates, features, pose, map_index)
         self._map_pose, self._map_inliers = pose, inliers
         if features.depth is not None:
-            self._reference = _DepthReference(pose, features.depth)
+            self._reference = _DepthReference(pose, features.depth, features.grey)
 
     def _register_depth(self, features: FrameFeatures, predicted: np.ndarray):
         """Point-to-plane ICP of this frame's depth against the last map update's depth."""
@@ -159,7 +159,7 @@ class Odometry:
         if ref is None or features.depth is None:
             return None
         c = self.config
-        levels = icp.depth_pyramid(features.depth, self.camera, icp.STEPS)
+        levels = icp.depth_pyramid(features.depth, self.camera, icp.STEPS, grey=features.grey)
         res = icp.register(levels, ref.levels(self.camera), invert(ref.pose) @ predicted,
                            min_inlier_ratio=c.icp_min_inlier_ratio, min_conditioning=c.icp_min_conditioning)
         if not res.ok:
