@@ -1,0 +1,106 @@
+"""The long-term memory's SQLite schema and its migrations.
+
+The stored schema version is `PRAGMA user_version` (0 = empty file), mirrored in
+`admin.schema_version` for people reading the file with other tools. `MIGRATIONS[i]` takes
+a database from version i to i + 1; `MapStore` applies the missing ones in order, each in
+its own `BEGIN IMMEDIATE` transaction together with the version bump, so a crash during a
+migration leaves the previous version intact. To change the schema, append a function —
+never edit one that has shipped.
+
+Table and column names follow RTAB-Map's schema where it has an equivalent (Node, Link,
+Feature, Word, Data, Statistics, Admin); see docs in storage/store.py for the encodings.
+"""
+from __future__ import annotations
+
+import sqlite3
+from typing import Callable
+
+import sqlite_utils
+from sqlite_utils.db import ForeignKey
+
+Migration = Callable[[sqlite_utils.Database], None]
+
+
+def has_rtree(conn: sqlite3.Connection) -> bool:
+    """Whether this SQLite build has the R*Tree module (ENABLE_RTREE)."""
+    return any(r[0] == "ENABLE_RTREE" for r in conn.execute("PRAGMA compile_options"))
+
+
+def _create(db: sqlite_utils.Database, name: str, columns: dict, *, autoincrement: str | None = None, **kw) -> None:
+    # sqlite-utils' create() has no public AUTOINCREMENT switch; its SQL builder does
+    # (pinned sqlite-utils 4.2.1).
+    db.execute(db.create_table_sql(name, columns, _autoincrement=autoincrement, **kw))
+
+
+def _fk(table: str, column: str, other: str, other_column: str = "id", on_delete: str = "CASCADE") -> ForeignKey:
+    return ForeignKey(table, column, other, other_column, on_delete=on_delete)
+
+
+def m001_initial(db: sqlite_utils.Database) -> None:
+    """v1: sessions, nodes (+ spatial index), links, features, words, images, statistics, admin."""
+    _create(db, "admin", {"key": str, "value": str}, pk="key")
+    _create(
+        db, "sessions",
+        {"id": int, "robot": str, "map_id": int, "started_at": float, "calibration": str,
+         "config": str, "ended_at": float},
+        pk="id", not_null=["robot", "map_id", "started_at", "calibration"],
+    )
+    # AUTOINCREMENT: node ids are global across sessions and never reused, even after a node
+    # is deleted (RTAB-Map's ids are monotonic too; caches of a memory manager rely on it).
+    _create(
+        db, "nodes",
+        {"id": int, "session_id": int, "robot": str, "stamp": float, "pose": bytes,
+         "x": float, "y": float, "z": float, "weight": int, "label": str, "time_enter": float},
+        pk="id", autoincrement="id",
+        not_null=["session_id", "robot", "stamp", "pose", "x", "y", "z", "weight", "time_enter"],
+        defaults={"weight": 0},
+        foreign_keys=[_fk("nodes", "session_id", "sessions", on_delete="NO ACTION")],
+    )
+    db["nodes"].create_index(["session_id", "stamp"], index_name="idx_nodes_session")
+    db["nodes"].create_index(["robot"], index_name="idx_nodes_robot")
+    # Labels are unique like RTAB-Map's Node.label (goals are set by label); NULLs don't clash.
+    db["nodes"].create_index(["label"], index_name="idx_nodes_label", unique=True)
+    if has_rtree(db.conn):
+        # R*Tree of the node positions (degenerate boxes), kept in sync by triggers. Its
+        # coordinates are float32 rounded outwards, so queries re-check the exact x, y, z.
+        db.execute("CREATE VIRTUAL TABLE nodes_rtree USING rtree(id, min_x, max_x, min_y, max_y, min_z, max_z)")
+        db.execute("""CREATE TRIGGER nodes_rtree_insert AFTER INSERT ON nodes BEGIN
+            INSERT INTO nodes_rtree VALUES (new.id, new.x, new.x, new.y, new.y, new.z, new.z); END""")
+        db.execute("""CREATE TRIGGER nodes_rtree_update AFTER UPDATE OF x, y, z ON nodes BEGIN
+            UPDATE nodes_rtree SET min_x = new.x, max_x = new.x, min_y = new.y, max_y = new.y,
+                min_z = new.z, max_z = new.z WHERE id = new.id; END""")
+        db.execute("""CREATE TRIGGER nodes_rtree_delete AFTER DELETE ON nodes BEGIN
+            DELETE FROM nodes_rtree WHERE id = old.id; END""")
+    else:
+        db["nodes"].create_index(["x", "y", "z"], index_name="idx_nodes_xyz")
+    _create(
+        db, "links",
+        {"from_id": int, "to_id": int, "type": int, "transform": bytes, "information": bytes},
+        pk=("from_id", "to_id", "type"), not_null=["from_id", "to_id", "type", "transform", "information"],
+        foreign_keys=[_fk("links", "from_id", "nodes"), _fk("links", "to_id", "nodes")],
+    )
+    db["links"].create_index(["to_id"], index_name="idx_links_to")
+    _create(
+        db, "features",
+        {"node_id": int, "count": int, "keypoints": bytes, "descriptors": bytes, "points": bytes,
+         "word_ids": bytes},
+        pk="node_id", not_null=["count", "keypoints", "descriptors", "points"],
+        foreign_keys=[_fk("features", "node_id", "nodes")],
+    )
+    _create(db, "words", {"id": int, "descriptor": bytes, "time_enter": float}, pk="id",
+            not_null=["descriptor"])
+    _create(
+        db, "images", {"node_id": int, "color": bytes, "depth": bytes}, pk="node_id",
+        foreign_keys=[_fk("images", "node_id", "nodes")],
+    )
+    _create(
+        db, "statistics", {"node_id": int, "data": str}, pk="node_id", not_null=["data"],
+        foreign_keys=[_fk("statistics", "node_id", "nodes")],
+    )
+
+
+#: Applied in order: MIGRATIONS[i] upgrades schema version i to i + 1.
+MIGRATIONS: tuple[Migration, ...] = (m001_initial,)
+
+#: Tables a v1 database has (for "is this a mnemoslam database" checks).
+TABLES = ("admin", "sessions", "nodes", "links", "features", "words", "images", "statistics")

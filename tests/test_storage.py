@@ -1,0 +1,719 @@
+"""The SQLite long-term memory: real database files in tmp_path, no mocks."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from client.frames import Calibration, PinholeCamera
+from client.trajectory import read_tum
+from storage import KeyframeRecord, LinkType, MapStore, StoreError, UnknownIdError
+from storage.cli import db_export, db_info
+from storage.store import _pack, _unpack
+
+ROOT = Path(__file__).resolve().parents[1]
+CAL = Calibration(PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480), None, 5000.0)
+STEREO = Calibration(PinholeCamera(718.856, 718.856, 607.19, 185.22, 1241, 376), 0.537, 1000.0)
+JPEG = b"\xff\xd8\xff\xe0" + bytes(range(200)) + b"\xff\xd9"
+PNG = b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 3
+
+
+def pose(x=0.0, y=0.0, z=0.0, yaw=0.0) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    P = np.eye(4)
+    P[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    P[:3, 3] = (x, y, z)
+    return P
+
+
+def record(rng, session_id, stamp=0.0, P=None, n=50, **kw) -> KeyframeRecord:
+    pts = rng.normal(size=(n, 3)).astype(np.float32)
+    pts[::7] = np.nan  # keypoints without depth
+    return KeyframeRecord(
+        session_id=session_id, stamp=stamp, pose=pose() if P is None else P,
+        keypoints=(rng.random((n, 2)) * 640).astype(np.float32),
+        descriptors=rng.integers(0, 256, (n, 32), dtype=np.uint8), points=pts, **kw)
+
+
+def rows(path, sql, params=()):
+    c = sqlite3.connect(path, isolation_level=None)  # autocommit; closed at once
+    try:
+        return c.execute(sql, params).fetchall()
+    finally:
+        c.close()
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(7)
+
+
+@pytest.fixture
+def store(tmp_path):
+    with MapStore(tmp_path / "map.db") as s:
+        yield s
+
+
+# -- round trip / encodings -----------------------------------------------------------------
+
+
+def test_keyframe_round_trip_is_bit_exact(store, rng):
+    sid = store.begin_session("r1", CAL, {"features": {"max_features": 500}})
+    first = store.add_keyframe(record(rng, sid, 1.0))
+    P = pose(0.1234567890123, -2.5e-9, 3.0, yaw=0.3)
+    T = np.linalg.inv(pose()) @ P
+    info = np.diag(np.arange(1.0, 7.0)) * 1e4
+    rec = record(rng, sid, 1.5, P, n=500, weight=3, image_jpeg=JPEG, depth_png=PNG,
+                 odom_link=(first, T, info), word_ids=rng.integers(0, 2**31 - 1, 500).astype(np.int32),
+                 statistics={"inliers": np.int64(123), "ms": np.float32(4.5), "nan": float("nan"),
+                             "arr": np.arange(3), "nested": {"ok": True}})
+    nid = store.add_keyframe(rec)
+    assert nid == first + 1
+
+    node = store.get_node(nid)
+    assert (node.id, node.session_id, node.robot, node.stamp, node.weight, node.label) == (nid, sid, "r1", 1.5, 3, None)
+    assert node.pose.dtype == np.float64 and node.pose.tobytes() == P.tobytes()
+    assert np.array_equal(node.position, P[:3, 3])
+
+    kp, desc, pts, words = store.load_features(nid)
+    for got, want in ((kp, rec.keypoints), (desc, rec.descriptors), (pts, rec.points), (words, rec.word_ids)):
+        assert got.dtype == want.dtype and got.shape == want.shape
+        assert got.tobytes() == want.tobytes()  # bit-exact, NaN rows included
+        assert got.flags.writeable
+    assert store.load_features(first)[3] is None
+
+    assert store.load_images(nid) == (JPEG, PNG)
+    assert store.load_images(first) == (None, None)
+    assert store.statistics(nid) == {"inliers": 123, "ms": 4.5, "nan": None, "arr": [0, 1, 2], "nested": {"ok": True}}
+    assert store.statistics(first) is None
+
+    (link,) = store.links(node_ids=[nid])
+    assert (link.from_id, link.to_id, link.type) == (first, nid, LinkType.NEIGHBOR)
+    assert link.transform.tobytes() == T.tobytes() and link.information.tobytes() == info.tobytes()
+
+    assert store.get_node(9999) is None
+    with pytest.raises(UnknownIdError):
+        store.load_features(9999)
+    with pytest.raises(UnknownIdError):
+        store.load_images(9999)
+
+
+def test_pose_blob_layout_and_empty_features(store, rng, tmp_path):
+    sid = store.begin_session("r1", CAL)
+    P = pose(1, 2, 3, yaw=1.0)
+    nid = store.add_keyframe(record(rng, sid, 0.0, P, n=0))
+    kp, desc, pts, words = store.load_features(nid)
+    assert kp.shape == (0, 2) and desc.shape == (0, 32) and pts.shape == (0, 3) and words is None
+    blob, x, y, z = rows(tmp_path / "map.db", "SELECT pose, x, y, z FROM nodes WHERE id = ?", (nid,))[0]
+    assert len(blob) == 128 and np.frombuffer(blob, "<f8").reshape(4, 4).tobytes() == P.tobytes()
+    assert (x, y, z) == (1.0, 2.0, 3.0)
+
+
+def test_pack_unpack_little_endian():
+    a = np.arange(6, dtype=">f4").reshape(3, 2)  # big-endian input is stored little-endian
+    blob = _pack(a, np.float32)
+    assert blob == np.arange(6, dtype="<f4").tobytes()
+    b = _unpack(blob, np.float32, (3, 2))
+    assert b.dtype == np.float32 and np.array_equal(a, b)
+    with pytest.raises(StoreError, match="corrupt blob"):
+        _unpack(blob[:-1], np.float32, (3, 2))
+
+
+# -- bad input ------------------------------------------------------------------------------
+
+
+def _bad(rng, sid, **change):
+    rec = record(rng, sid, 1.0)
+    for k, v in change.items():
+        setattr(rec, k, v(rec) if callable(v) else v)
+    return rec
+
+
+BAD = {
+    "keypoints float64": dict(keypoints=lambda r: r.keypoints.astype(np.float64)),
+    "keypoints (N, 3)": dict(keypoints=lambda r: np.zeros((len(r.keypoints), 3), np.float32)),
+    "descriptors (N, 31)": dict(descriptors=lambda r: r.descriptors[:, :31]),
+    "descriptors float": dict(descriptors=lambda r: r.descriptors.astype(np.float32)),
+    "points count": dict(points=lambda r: r.points[:-1]),
+    "points list": dict(points=lambda r: r.points.tolist()),
+    "word_ids int64": dict(word_ids=lambda r: np.zeros(len(r.keypoints), np.int64)),
+    "pose 3x4": dict(pose=np.eye(4)[:3]),
+    "pose NaN": dict(pose=np.full((4, 4), np.nan)),
+    "pose bottom row": dict(pose=np.ones((4, 4))),
+    "stamp NaN": dict(stamp=float("nan")),
+    "stamp str": dict(stamp="1.0"),
+    "weight float": dict(weight=1.5),
+    "jpeg not jpeg": dict(image_jpeg=b"GIF89a..."),
+    "png str": dict(depth_png="not bytes"),
+    "odom_link short": dict(odom_link=(1,)),
+    "odom_link transform": dict(odom_link=(1, np.eye(3), None)),
+    "odom_link information": dict(odom_link=(1, np.eye(4), np.eye(5))),
+    "statistics not JSON": dict(statistics={"bad": object()}),
+    "statistics not dict": dict(statistics=[1, 2]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_bad_record_is_a_value_error_before_any_write(store, rng, tmp_path, case):
+    sid = store.begin_session("r1", CAL)
+    store.add_keyframe(record(rng, sid, 0.0))
+    with pytest.raises(ValueError) as e:
+        store.add_keyframe(_bad(rng, sid, **BAD[case]))
+    assert str(e.value)
+    assert store.count_nodes() == 1
+    assert rows(tmp_path / "map.db", "SELECT COUNT(*) FROM features")[0][0] == 1
+
+
+# -- atomicity ------------------------------------------------------------------------------
+
+
+def _row_counts(path):
+    return {t: rows(path, f"SELECT COUNT(*) FROM {t}")[0][0] for t in ("nodes", "features", "images", "links", "statistics")}
+
+
+def test_failure_midway_leaves_no_partial_node(store, rng, tmp_path):
+    db = tmp_path / "map.db"
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0.0, image_jpeg=JPEG, statistics={"k": 1}))
+    before = _row_counts(db)
+    # The odometry link is inserted after node, features and images: an unknown from-node
+    # fails its foreign key there and everything of the keyframe is rolled back.
+    with pytest.raises(UnknownIdError, match="odometry link from node 777"):
+        store.add_keyframe(record(rng, sid, 1.0, image_jpeg=JPEG, depth_png=PNG, statistics={"k": 2},
+                                  odom_link=(777, np.eye(4), None)))
+    assert _row_counts(db) == before
+    assert store.integrity_check() == "ok"
+    # The store keeps working and the id sequence was not advanced by the failed keyframe.
+    b = store.add_keyframe(record(rng, sid, 1.0, odom_link=(a, np.eye(4), None)))
+    assert b == a + 1
+
+
+def test_failure_in_the_last_statement_rolls_back_everything(store, rng, tmp_path):
+    db = tmp_path / "map.db"
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0.0))
+    before = _row_counts(db)
+    # Inject a real SQLite failure into the statistics insert, the transaction's last one.
+    rows(db, "CREATE TRIGGER boom BEFORE INSERT ON statistics BEGIN SELECT RAISE(ABORT, 'injected failure'); END")
+    with pytest.raises(StoreError, match="injected failure"):
+        store.add_keyframe(record(rng, sid, 1.0, image_jpeg=JPEG, odom_link=(a, np.eye(4), None), statistics={"x": 1}))
+    assert _row_counts(db) == before
+    rows(db, "DROP TRIGGER boom")
+    store.add_keyframe(record(rng, sid, 1.0, odom_link=(a, np.eye(4), None), statistics={"x": 1}))
+    assert _row_counts(db)["statistics"] == 1
+
+
+# -- updates --------------------------------------------------------------------------------
+
+
+def test_update_poses_moves_nodes_and_is_all_or_nothing(store, rng):
+    sid = store.begin_session("r1", CAL)
+    ids = [store.add_keyframe(record(rng, sid, i, pose(i, 0, 0))) for i in range(5)]
+    new = {ids[1]: pose(10, 10, 10, yaw=0.5), ids[3]: pose(-5, 1, 2)}
+    assert store.update_poses(new) == 2
+    assert store.get_node(ids[1]).pose.tobytes() == new[ids[1]].tobytes()
+    assert store.get_node(ids[0]).pose.tobytes() == pose(0, 0, 0).tobytes()
+    # x, y, z (and the spatial index) follow the pose
+    assert [n.id for n in store.nodes(bbox=((9, 9, 9), (11, 11, 11)))] == [ids[1]]
+    assert [n.id for n in store.nodes(bbox=((0.5, -1, -1), (3.5, 1, 1)))] == [ids[2]]
+    with pytest.raises(UnknownIdError, match="12345"):
+        store.update_poses({ids[0]: pose(50, 0, 0), 12345: pose()})
+    assert store.get_node(ids[0]).pose[0, 3] == 0.0  # rolled back
+    with pytest.raises(ValueError):
+        store.update_poses({ids[0]: np.eye(3)})
+    assert store.update_poses({}) == 0
+
+
+def test_labels_are_unique(store, rng):
+    sid = store.begin_session("r1", CAL)
+    a, b = (store.add_keyframe(record(rng, sid, i)) for i in range(2))
+    store.set_label(a, "kitchen")
+    assert store.get_node(a).label == "kitchen" and store.node_by_label("kitchen").id == a
+    with pytest.raises(StoreError, match=f"already on node {a}"):
+        store.set_label(b, "kitchen")
+    store.set_label(a, None)
+    store.set_label(b, "kitchen")
+    assert store.node_by_label("kitchen").id == b
+    with pytest.raises(UnknownIdError):
+        store.set_label(999, "x")
+
+
+def test_set_word_ids(store, rng):
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0, n=20))
+    w = np.arange(20, dtype=np.int32)
+    store.set_word_ids(a, w)
+    assert np.array_equal(store.load_features(a)[3], w)
+    with pytest.raises(ValueError, match="19 word_ids"):
+        store.set_word_ids(a, w[:19])
+    store.set_word_ids(a, None)
+    assert store.load_features(a)[3] is None
+
+
+# -- queries --------------------------------------------------------------------------------
+
+
+def test_bbox_and_paging(store, rng):
+    sid = store.begin_session("r1", CAL)
+    ids = [store.add_keyframe(record(rng, sid, i, pose(i % 10, i // 10, 0.5), n=4)) for i in range(100)]
+    box = ((2, 3, 0), (4, 5, 1))  # bounds included: x in {2,3,4}, y in {3,4,5}
+    inside = [n.id for n in store.nodes(bbox=box, limit=None)]
+    assert inside == [ids[y * 10 + x] for y in (3, 4, 5) for x in (2, 3, 4)]
+    assert store.count_nodes(bbox=box) == 9
+    assert store.count_nodes(bbox=((2, 3, 0.6), (4, 5, 1))) == 0
+    assert store.count_nodes(bbox=((-1e9,) * 3, (1e9,) * 3)) == 100
+    # exact bounds even though the R*Tree stores float32
+    assert store.count_nodes(bbox=((2.0000001, 3, 0), (4, 5, 1))) == 6
+
+    pages = [store.nodes(session_id=sid, limit=30, offset=o) for o in range(0, 100, 30)]
+    assert [len(p) for p in pages] == [30, 30, 30, 10]
+    assert [n.id for p in pages for n in p] == ids
+    assert len(store.nodes()) == 100 and len(store.nodes(limit=None)) == 100
+    assert [n.id for n in store.nodes(bbox=box, limit=4, offset=4)] == inside[4:8]
+    assert store.nodes(offset=1000) == []
+    with pytest.raises(ValueError):
+        store.nodes(bbox=((1, 1, 1), (0, 0, 0)))
+    with pytest.raises(ValueError):
+        store.nodes(bbox=((0, 0), (1, 1)))
+    with pytest.raises(ValueError):
+        store.nodes(offset=-1)
+
+
+def test_links_by_type(store, rng):
+    s1 = store.begin_session("r1", CAL)
+    s2 = store.begin_session("r2", CAL)
+    a = [store.add_keyframe(record(rng, s1, i, odom_link=None)) for i in range(4)]
+    b = [store.add_keyframe(record(rng, s2, i)) for i in range(2)]
+    for x, y in zip(a, a[1:]):
+        store.add_link(x, y, LinkType.NEIGHBOR, np.eye(4))
+    store.add_link(a[3], a[0], LinkType.GLOBAL_CLOSURE, pose(0.1), np.eye(6) * 50)
+    store.add_link(a[2], a[0], 2, pose(0.2))
+    store.add_link(b[0], a[1], LinkType.GLOBAL_CLOSURE, pose(0.3))  # inter-session loop
+    assert len(store.links()) == 6
+    assert [(l.from_id, l.to_id) for l in store.links(type=LinkType.GLOBAL_CLOSURE)] == [(a[3], a[0]), (b[0], a[1])]
+    assert [l.type for l in store.links(type=2)] == [LinkType.LOCAL_SPACE]
+    assert len(store.links(session_id=s1)) == 6 and len(store.links(session_id=s2)) == 1
+    assert {(l.from_id, l.to_id) for l in store.links(node_ids=[a[0]])} == {(a[0], a[1]), (a[3], a[0]), (a[2], a[0])}
+    assert len(store.links(session_id=s1, type=LinkType.NEIGHBOR)) == 3
+    loop = store.links(type=1, node_ids=[a[3]])[0]
+    assert np.array_equal(loop.transform, pose(0.1)) and np.array_equal(loop.information, np.eye(6) * 50)
+    assert store.stats()["links_by_type"] == {"neighbor": 3, "global_closure": 2, "local_space": 1}
+
+    with pytest.raises(StoreError, match="already exists"):
+        store.add_link(a[3], a[0], LinkType.GLOBAL_CLOSURE, pose(0.5))
+    store.add_link(a[3], a[0], LinkType.GLOBAL_CLOSURE, pose(0.5), replace=True)
+    assert store.links(type=1, node_ids=[a[3]])[0].transform[0, 3] == 0.5
+    with pytest.raises(UnknownIdError, match="no node 4242"):
+        store.add_link(a[0], 4242, LinkType.USER, np.eye(4))
+    with pytest.raises(ValueError, match="unknown link type"):
+        store.add_link(a[0], a[1], 42, np.eye(4))
+    with pytest.raises(ValueError):
+        store.add_link(a[0], a[1], 4, np.eye(4), np.eye(4))
+    assert len(store.links()) == 6
+
+
+def test_trajectory_is_ordered_by_stamp(store, rng):
+    sid = store.begin_session("r1", CAL)
+    stamps = [3.0, 1.0, 2.5, 0.5, 2.0]
+    for t in stamps:
+        store.add_keyframe(record(rng, sid, t, pose(t, 2 * t, 0, yaw=t), n=3))
+    traj = store.trajectory(sid)
+    assert list(traj.stamps) == sorted(stamps)
+    for t, P in zip(traj.stamps, traj.poses):
+        assert P.tobytes() == pose(t, 2 * t, 0, yaw=t).tobytes()
+    empty = store.begin_session("r1", CAL)
+    assert len(store.trajectory(empty)) == 0
+    with pytest.raises(UnknownIdError):
+        store.trajectory(999)
+
+
+def test_multi_session(store, rng):
+    s1 = store.begin_session("alpha", CAL, {"seed": 1})
+    s2 = store.begin_session("beta", STEREO)
+    a = [store.add_keyframe(record(rng, s1, i)) for i in range(3)]
+    b = [store.add_keyframe(record(rng, s2, i)) for i in range(2)]
+    assert b[0] == a[-1] + 1  # node ids are global
+    sessions = store.sessions()
+    assert [(s.id, s.robot, s.map_id) for s in sessions] == [(s1, "alpha", 0), (s2, "beta", 1)]
+    assert sessions[0].config == {"seed": 1} and sessions[1].config is None
+    assert store.calibration(s1) == CAL and store.calibration(s2) == STEREO
+    assert store.calibration(s2).kind == "stereo"
+    assert json.loads(json.dumps(store.session(s2).to_dict()))["calibration"]["baseline"] == 0.537
+    assert [n.id for n in store.nodes(robot="beta")] == b
+    assert store.count_nodes(robot="alpha") == 3 and store.count_nodes(robot="nobody") == 0
+    assert store.count_nodes(session_id=s2, robot="alpha") == 0
+    assert [s.id for s in store.sessions(robot="beta")] == [s2]
+    assert store.session(999) is None
+    with pytest.raises(UnknownIdError):
+        store.calibration(999)
+
+    store.end_session(s1)
+    ended = store.session(s1).ended_at
+    assert ended is not None and store.session(s2).ended_at is None
+    store.end_session(s1)
+    assert store.session(s1).ended_at == ended
+    with pytest.raises(StoreError, match="ended"):
+        store.add_keyframe(record(rng, s1, 9))
+    with pytest.raises(UnknownIdError):
+        store.add_keyframe(record(rng, 999, 9))
+    with pytest.raises(UnknownIdError):
+        store.end_session(999)
+    s3 = store.begin_session("alpha", CAL)
+    assert store.session(s3).map_id == 2
+    st = store.session_stats()
+    assert st[s1] == {"nodes": 3, "first_stamp": 0.0, "last_stamp": 2.0} and st[s3]["nodes"] == 0
+
+
+# -- schema ---------------------------------------------------------------------------------
+
+
+def test_schema_version_and_migration(tmp_path, rng):
+    path = tmp_path / "map.db"
+    with MapStore(path) as s:
+        assert s.schema_version == s.current_version == 1
+        assert s.get_info("schema_version") == 1 and s.get_info("created_at") > 0
+        sid = s.begin_session("r1", CAL)
+        nid = s.add_keyframe(record(rng, sid, 0.0))
+        s.set_info("note", {"a": [1, 2]})
+    assert rows(path, "PRAGMA user_version") == [(1,)]
+    assert rows(path, "PRAGMA journal_mode") == [("wal",)]
+
+    applied = []
+
+    def m002_fake(db):
+        applied.append(1)
+        db["nodes"].add_column("semantic_class", str)
+        db["objects"].create({"id": int, "node_id": int, "name": str}, pk="id")
+        db.execute("UPDATE nodes SET semantic_class = 'floor'")
+
+    class StoreV2(MapStore):
+        MIGRATIONS = MapStore.MIGRATIONS + (m002_fake,)
+
+    with StoreV2(path) as s:
+        assert s.schema_version == 2 and s.get_info("schema_version") == 2
+        assert s.get_node(nid) is not None and s.get_info("note") == {"a": [1, 2]}
+    assert rows(path, "SELECT semantic_class FROM nodes") == [("floor",)]
+    assert "objects" in {r[0] for r in rows(path, "SELECT name FROM sqlite_master")}
+    with StoreV2(path):
+        pass
+    assert applied == [1]  # applied once
+
+    # The v1 code refuses the v2 file.
+    with pytest.raises(StoreError, match="schema version 2, newer than this mnemoslam knows"):
+        MapStore(path)
+
+
+def test_failed_migration_keeps_previous_version(tmp_path):
+    path = tmp_path / "map.db"
+    MapStore(path).close()
+
+    def m002_broken(db):
+        db["nodes"].add_column("half_done", int)
+        raise RuntimeError("migration bug")
+
+    class Broken(MapStore):
+        MIGRATIONS = MapStore.MIGRATIONS + (m002_broken,)
+
+    with pytest.raises(RuntimeError, match="migration bug"):
+        Broken(path)
+    assert rows(path, "PRAGMA user_version") == [(1,)]
+    assert "half_done" not in {r[1] for r in rows(path, "PRAGMA table_info(nodes)")}
+    with MapStore(path) as s:
+        assert s.integrity_check() == "ok"
+
+
+def test_newer_schema_refused(tmp_path):
+    path = tmp_path / "map.db"
+    MapStore(path).close()
+    rows(path, "PRAGMA user_version = 99")
+    with pytest.raises(StoreError, match="schema version 99, newer"):
+        MapStore(path)
+    with pytest.raises(StoreError, match="newer"):
+        db_info(path)
+
+
+def test_open_errors(tmp_path):
+    missing = tmp_path / "none.db"
+    with pytest.raises(StoreError, match="no database"):
+        MapStore(missing, create=False)
+    with pytest.raises(StoreError, match="no database"):
+        db_info(missing)
+    with pytest.raises(StoreError, match="no database"):
+        db_export(missing, tmp_path / "out")
+    assert not missing.exists()
+
+    junk = tmp_path / "junk.db"
+    junk.write_bytes(b"this is not sqlite" * 100)
+    with pytest.raises(StoreError, match="not a SQLite database"):
+        MapStore(junk)
+    foreign = tmp_path / "foreign.db"
+    rows(foreign, "CREATE TABLE t (x)")
+    with pytest.raises(StoreError, match="not a mnemoslam database"):
+        MapStore(foreign)
+    with pytest.raises(StoreError, match="directory"):
+        MapStore(tmp_path)
+    empty = tmp_path / "empty.db"
+    empty.touch()
+    with pytest.raises(StoreError, match="not a mnemoslam database"):
+        MapStore(empty, create=False)
+    with pytest.raises(ValueError):
+        MapStore(":memory:")
+
+
+def test_close(tmp_path, rng):
+    s = MapStore(tmp_path / "sub" / "map.db")  # parents are created
+    sid = s.begin_session("r1", CAL)
+    s.count_nodes()
+    s.close()
+    s.close()
+    assert s.closed
+    with pytest.raises(StoreError, match="closed"):
+        s.add_keyframe(record(rng, sid))
+    with pytest.raises(StoreError, match="closed"):
+        s.count_nodes()
+
+
+# -- concurrency and crashes ----------------------------------------------------------------
+
+
+def test_reader_thread_while_writers_add_keyframes(store):
+    s1 = store.begin_session("r1", CAL)
+    s2 = store.begin_session("r2", CAL)
+    errors, seen = [], {0: [], 1: []}
+    done = threading.Event()
+
+    def write(sid, n, seed):
+        try:
+            rng = np.random.default_rng(seed)
+            prev = None
+            for i in range(n):
+                prev = store.add_keyframe(record(rng, sid, i * 0.1, pose(i * 0.01), n=200, statistics={"i": i},
+                                                 odom_link=None if prev is None else (prev, pose(0.01), None)))
+        except Exception as e:  # pragma: no cover - reported below
+            errors.append(e)
+
+    def read(k):
+        try:
+            while not done.is_set():
+                n = store.count_nodes()
+                seen[k].append(n)
+                if n:
+                    last = store.nodes(limit=1, offset=n - 1)[0]
+                    kp, desc, pts, _ = store.load_features(last.id)
+                    assert len(kp) == len(desc) == len(pts) == 200
+                    store.stats()
+        except Exception as e:  # pragma: no cover
+            errors.append(e)
+
+    readers = [threading.Thread(target=read, args=(k,)) for k in range(2)]
+    writers = [threading.Thread(target=write, args=(s1, 200, 1)), threading.Thread(target=write, args=(s2, 50, 2))]
+    for t in readers + writers:
+        t.start()
+    for t in writers:
+        t.join(60)
+    done.set()
+    for t in readers:
+        t.join(10)
+    assert not errors, errors
+    assert store.count_nodes(session_id=s1) == 200 and store.count_nodes(session_id=s2) == 50
+    assert len(store.links()) == 199 + 49
+    for counts in seen.values():
+        assert len(counts) > 5 and counts == sorted(counts)
+    assert store.integrity_check() == "ok"
+
+
+def test_reader_counts_are_monotonic(store):
+    sid = store.begin_session("r1", CAL)
+    seen, errors = [], []
+    done = threading.Event()
+
+    def read():
+        try:
+            while not done.is_set():
+                seen.append(store.count_nodes())
+        except Exception as e:  # pragma: no cover
+            errors.append(e)
+
+    t = threading.Thread(target=read)
+    t.start()
+    rng = np.random.default_rng(3)
+    for i in range(200):
+        store.add_keyframe(record(rng, sid, i, n=100))
+        if i % 50 == 0:
+            time.sleep(0.005)
+    done.set()
+    t.join(10)
+    assert not errors
+    assert len(seen) > 5 and seen == sorted(seen) and seen[-1] <= 200
+
+
+CHILD = r"""
+import sys
+sys.path.insert(0, {root!r})
+import numpy as np
+from client.frames import Calibration, PinholeCamera
+from storage import KeyframeRecord, MapStore
+store = MapStore({path!r})
+sid = store.begin_session("crash", Calibration(PinholeCamera(500, 500, 320, 240, 640, 480)))
+rng = np.random.default_rng(0)
+prev, i = None, 0
+while True:
+    P = np.eye(4); P[0, 3] = i * 0.01
+    n = 500
+    rec = KeyframeRecord(sid, i * 0.1, P, rng.random((n, 2), dtype=np.float32),
+                         rng.integers(0, 256, (n, 32), dtype=np.uint8), rng.random((n, 3), dtype=np.float32),
+                         image_jpeg=b"\xff\xd8\xff" + rng.bytes(20000), statistics={{"i": i}},
+                         odom_link=None if prev is None else (prev, np.eye(4), None))
+    prev = store.add_keyframe(rec)
+    print(prev, flush=True)
+    i += 1
+"""
+
+
+def test_kill_9_keeps_every_committed_keyframe(tmp_path):
+    path = tmp_path / "crash.db"
+    proc = subprocess.Popen([sys.executable, "-c", CHILD.format(root=str(ROOT), path=str(path))],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    printed = []
+    deadline = time.monotonic() + 30
+    try:
+        while len(printed) < 50 and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            printed.append(int(line))
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        out, err = proc.communicate(timeout=10)
+    assert proc.returncode == -signal.SIGKILL
+    assert len(printed) >= 50, err
+    printed += [int(l) for l in out.split("\n")[:-1]]  # lines printed before the kill (complete ones only)
+    assert rows(path, "PRAGMA integrity_check") == [("ok",)]
+    with MapStore(path, create=False) as s:
+        assert s.integrity_check() == "ok"
+        ids = {n.id for n in s.nodes(limit=None)}
+        assert set(printed) <= ids
+        n = len(ids)
+        st = s.stats()
+        # no partial keyframe: every node has its features, image, statistics and odometry link
+        assert st["features"] == st["images"] == st["statistics"] == n and st["links"] == n - 1
+        kp, desc, pts, _ = s.load_features(max(ids))
+        assert kp.shape == (500, 2) and desc.shape == (500, 32)
+
+
+# -- export and CLI -------------------------------------------------------------------------
+
+
+def test_export_writes_tum_that_read_tum_reads_back(store, rng, tmp_path):
+    s1 = store.begin_session("r1", CAL)
+    s2 = store.begin_session("r2", CAL)
+    want = {}
+    for sid in (s1, s2):
+        prev = None
+        for i in range(6):
+            P = pose(0.1 * i + sid, 0.05 * i, -0.2 * i, yaw=0.2 * i)
+            prev = store.add_keyframe(record(rng, sid, 100.0 + i * 0.5, P, n=5,
+                                             odom_link=None if prev is None else (prev, pose(0.1), None)))
+            want.setdefault(sid, []).append(P)
+
+    files = store.export(tmp_path / "all")
+    assert sorted(p.name for p in files) == ["graph.json", f"trajectory_{s1}.tum", f"trajectory_{s2}.tum"]
+    for sid in (s1, s2):
+        traj = read_tum(tmp_path / "all" / f"trajectory_{sid}.tum")
+        assert len(traj) == 6
+        assert np.allclose(traj.stamps, 100.0 + np.arange(6) * 0.5)
+        assert np.allclose(traj.poses, np.array(want[sid]), atol=1e-6)
+    graph = json.loads((tmp_path / "all" / "graph.json").read_text())
+    assert len(graph["nodes"]) == 12 and len(graph["links"]) == 10 and len(graph["sessions"]) == 2
+    n0 = graph["nodes"][0]
+    assert np.array(n0["pose"]).reshape(4, 4).tobytes() == want[s1][0].tobytes()  # exact
+    assert set(n0) >= {"id", "session", "stamp", "pose"} and set(graph["links"][0]) >= {"from", "to", "type", "transform"}
+
+    files = store.export(tmp_path / "one", session_id=s2)
+    assert sorted(p.name for p in files) == ["graph.json", "trajectory.tum"]
+    traj = read_tum(tmp_path / "one" / "trajectory.tum")
+    assert np.allclose(traj.poses, np.array(want[s2]), atol=1e-6)
+    graph = json.loads((tmp_path / "one" / "graph.json").read_text())
+    assert {n["session"] for n in graph["nodes"]} == {s2} and len(graph["links"]) == 5
+
+
+def test_db_info_and_export_text(tmp_path, rng):
+    path = tmp_path / "map.db"
+    with MapStore(path) as s:
+        s1 = s.begin_session("robot_a", CAL)
+        prev = None
+        for i in range(7):
+            prev = s.add_keyframe(record(rng, s1, 10.0 + i, n=11, image_jpeg=JPEG,
+                                         odom_link=None if prev is None else (prev, np.eye(4), None)))
+        s.add_link(prev, prev - 6, LinkType.GLOBAL_CLOSURE, np.eye(4))
+        s.begin_session("robot_b", STEREO)
+    text = db_info(path)
+    for needle in ("schema    v1", "sessions  2", "robot_a", "robot_b", "nodes     7", "links     7 (neighbor 6, global_closure 1)",
+                   "features  7 (77 keypoints)", "images    7", "words     0", "integrity ok", "10.000000", "16.000000", "MB"):
+        assert needle in text, (needle, text)
+    out = db_export(path, tmp_path / "exp", session=s1)
+    assert "trajectory.tum" in out and "graph.json" in out
+    assert len(read_tum(tmp_path / "exp" / "trajectory.tum")) == 7
+    with pytest.raises(StoreError, match="no session 42"):
+        db_export(path, tmp_path / "exp2", session=42)
+
+
+def test_stats_counts_and_file_size(store, rng):
+    sid = store.begin_session("r1", CAL)
+    store.add_keyframe(record(rng, sid, 0, n=10, image_jpeg=JPEG, statistics={"a": 1}))
+    st = store.stats()
+    assert {k: st[k] for k in ("schema_version", "sessions", "nodes", "links", "features", "keypoints", "words",
+                               "images", "statistics")} == dict(schema_version=1, sessions=1, nodes=1, links=0,
+                                                                features=1, keypoints=10, words=0, images=1, statistics=1)
+    assert st["file_bytes"] >= os.path.getsize(store.path) and st["wal_bytes"] > 0
+    json.dumps(st)
+
+
+def test_wal_restarts_after_a_checkpoint(tmp_path):
+    path = tmp_path / "wal.db"
+    wal = Path(str(path) + "-wal")
+    rng = np.random.default_rng(5)
+
+    class NoBackground(MapStore):  # only the explicit checkpoint below, for a deterministic WAL
+        _CHECKPOINT_COMMITS = _CHECKPOINT_PERIOD = 1e9
+
+    with NoBackground(path) as s:
+        assert rows(path, "PRAGMA journal_mode") == [("wal",)]
+        sid = s.begin_session("r1", CAL)
+        for i in range(100):  # ~27 kB each
+            s.add_keyframe(record(rng, sid, i, n=500))
+        pages, done = s.checkpoint()
+        assert pages == done > 0
+        size = wal.stat().st_size
+        for i in range(100, 200):  # the same amount again goes to the start of the WAL
+            s.add_keyframe(record(rng, sid, i, n=500))
+        assert wal.stat().st_size <= size * 1.1  # (it would double without the restart)
+        assert s.integrity_check() == "ok"
+    assert not wal.exists()  # the last close checkpoints and removes it
+    with MapStore(path, create=False) as s:
+        assert s.count_nodes() == 200
+
+
+def test_background_checkpointer_copies_the_wal(tmp_path):
+    class Eager(MapStore):
+        _CHECKPOINT_COMMITS = 4
+
+    path = tmp_path / "bg.db"
+    rng = np.random.default_rng(5)
+    with Eager(path) as s:
+        sid = s.begin_session("r1", CAL)
+        for i in range(40):  # ~1 MB, all in the WAL at first
+            s.add_keyframe(record(rng, sid, i, n=500))
+        deadline = time.monotonic() + 10
+        while path.stat().st_size < 0.8e6 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert path.stat().st_size >= 0.8e6  # copied into the database file by the checkpointer
