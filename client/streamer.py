@@ -1,0 +1,304 @@
+"""The camera client: stream a dataset, a video file or a camera to the service over Zenoh.
+
+    from client.streamer import CameraStreamer, stream_dataset
+    from client.transport import ZenohSettings, open_session
+    from client.protocol import KeySpace
+
+    stats = stream_dataset(open_dataset("synthetic:loop"), "robot1", ZenohSettings.client(), rate=15)
+    print(stats.line())
+
+    session = open_session(ZenohSettings.client())              # or with your own session
+    with CameraStreamer(session, "robot1", dataset.calibration, KeySpace()) as cam:
+        for seq, frame in enumerate(dataset):
+            cam.send(frame, seq)
+
+What goes on the wire is `client.protocol` (frame messages on `<prefix>/<robot>/camera/frame`,
+the camera info on `<prefix>/<robot>/camera/info`).
+
+Delivery: the frame publisher uses CongestionControl.BLOCK and reliable transport, so the
+client never drops a frame silently: when the network or the service's receive queue is full,
+`send` blocks until there is room, and a client that produces faster than the service consumes
+is slowed down to the service's pace (back-pressure). Whether the service then keeps or skips
+frames is the service's decision, which it can count. Frames published while no subscriber
+matches the key are not stored anywhere: start the service first, or use
+`wait_for_subscriber`. The camera info is `put` once at start AND served by a queryable on the
+info key, so a service that starts later gets it with `session.get(keyspace.info(robot))`.
+
+CLI (wired in service/cli.py as `mnemoslam stream`): `add_stream_arguments(parser)` defines the
+options and sets `stream_main` as the command's `func`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass
+
+from .frames import Calibration, Frame
+from .protocol import (DEFAULT_PREFIX, KINDS, KeySpace, ProtocolError, encode_frame, encode_info,
+                       frame_kind)
+from .transport import DEFAULT_ENDPOINT, MODES, ZenohSettings, open_session
+
+log = logging.getLogger(__name__)
+
+
+class CameraStreamer:
+    """Publishes one robot's camera on a Zenoh session (the session stays the caller's).
+
+    On construction it puts the camera info once and declares a queryable on the info key that
+    answers with it; `send` encodes a frame and puts it on the frame key through one publisher
+    declared here (CongestionControl.BLOCK: never dropped by the client, see the module
+    documentation). `kind` ("rgbd", "stereo", "mono") defaults to the source's: `calibration.kind`
+    ("stereo" with a baseline, else "rgbd"); pass "mono" for a camera without depth.
+    `depth_scale` (raw depth units per metre on the wire) defaults to `calibration.depth_scale`.
+    """
+
+    def __init__(self, session, robot: str, calibration: Calibration, keyspace: KeySpace | None = None, *,
+                 color: str = "jpeg", depth: str = "png", depth_scale: float | None = None,
+                 kind: str | None = None, jpeg_quality: int = 90):
+        import zenoh
+
+        self.session = session
+        self.keyspace = keyspace if keyspace is not None else KeySpace()
+        self.robot = robot
+        self.frame_key = self.keyspace.frame(robot)  # validates the robot id
+        self.info_key = self.keyspace.info(robot)
+        self.kind = kind if kind is not None else calibration.kind
+        if self.kind not in KINDS:
+            raise ProtocolError("bad_kind", f"kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        if color not in ("jpeg", "png", "raw"):
+            raise ValueError(f"colour encoding must be jpeg, png or raw, got {color!r}")
+        if depth not in ("png", "raw"):
+            raise ValueError(f"depth encoding must be png or raw, got {depth!r}")
+        self.color, self.depth, self.jpeg_quality = color, depth, int(jpeg_quality)
+        self.depth_scale = float(depth_scale if depth_scale is not None else calibration.depth_scale)
+        self.calibration = calibration
+        self.info = encode_info(robot, calibration, self.kind)
+        self.frames_sent = 0
+        self.bytes_sent = 0
+        self._closed = False
+        self._publisher = session.declare_publisher(
+            self.frame_key, congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE)
+        self._queryable = session.declare_queryable(self.info_key, self._answer_info)
+        session.put(self.info_key, self.info, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _answer_info(self, query) -> None:
+        try:
+            query.reply(self.info_key, self.info)
+        except Exception as e:  # a query that went away must not kill zenoh's callback thread
+            log.debug("camera info reply failed: %s", e)
+
+    @property
+    def has_subscriber(self) -> bool:
+        """True when some subscriber on the network matches the frame key."""
+        return bool(self._publisher.matching_status.matching)
+
+    def wait_for_subscriber(self, timeout: float) -> bool:
+        """Wait up to `timeout` seconds for a subscriber of the frame key; True if there is one."""
+        end = time.monotonic() + max(0.0, timeout)
+        while not self.has_subscriber:
+            if time.monotonic() >= end:
+                return False
+            time.sleep(0.01)
+        return True
+
+    def encode(self, frame: Frame, seq: int) -> bytes:
+        """The frame message `send` would put (ProtocolError if the frame does not fit the kind)."""
+        have = frame_kind(frame)
+        if self.kind != "mono" and have != self.kind:
+            raise ProtocolError("bad_frame", f"{frame.source or 'frame'}: a {self.kind} camera got a {have} frame")
+        return encode_frame(frame, self.robot, seq, depth_scale=self.depth_scale, color=self.color,
+                            depth=self.depth, jpeg_quality=self.jpeg_quality, kind=self.kind)
+
+    def send(self, frame: Frame, seq: int) -> int:
+        """Encode and publish one frame; returns the message size in bytes. Blocks while the
+        network / receiver is congested."""
+        if self._closed:
+            raise RuntimeError("CameraStreamer is closed")
+        message = self.encode(frame, seq)
+        self._publisher.put(message)
+        self.frames_sent += 1
+        self.bytes_sent += len(message)
+        return len(message)
+
+    def close(self) -> None:
+        """Undeclare the publisher and the info queryable (the session stays open)."""
+        if self._closed:
+            return
+        self._closed = True
+        for entity in (self._publisher, self._queryable):
+            try:
+                entity.undeclare()
+            except Exception as e:  # session already closed
+                log.debug("undeclare failed: %s", e)
+
+    def __enter__(self) -> "CameraStreamer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@dataclass
+class StreamStats:
+    """What `stream_dataset` sent. `mbps` is megabits per second of frame messages."""
+
+    frames: int
+    bytes: int
+    seconds: float
+    fps: float
+    mbps: float
+    subscriber: bool = True  # a subscriber matched the frame key when streaming ended
+
+    def line(self) -> str:
+        return (f"streamed {self.frames} frames, {self.bytes / 1e6:.1f} MB in {self.seconds:.2f} s "
+                f"({self.fps:.1f} fps, {self.mbps:.1f} Mbit/s)"
+                + ("" if self.subscriber else "; no subscriber was listening"))
+
+
+def _length(dataset) -> int | None:
+    try:
+        return len(dataset)
+    except TypeError:
+        return None
+
+
+def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *, rate: float | None = None,
+                   color: str = "jpeg", depth: str = "png", prefix: str = DEFAULT_PREFIX, progress: bool = True,
+                   max_frames: int | None = None, wait_for_subscriber: float = 0.0,
+                   kind: str | None = None, session=None) -> StreamStats:
+    """Stream every frame of `dataset` (any `Dataset`, incl. `CaptureSource`) as `robot`.
+
+    Opens a session with `settings` (default `ZenohSettings.client()`), unless an open
+    `session` is given (then it is left open). `rate` None sends as fast as the link and the
+    receiver allow; a rate sends frame k at k / rate seconds after the first (real time at that
+    rate; late frames are sent at once, never skipped). `wait_for_subscriber` seconds: wait
+    that long for a subscriber on the frame key before the first frame (then stream anyway).
+    seq counts frames from 0. `kind` defaults to the dataset's `kind` attribute if it has one
+    (CaptureSource: "mono"), else its calibration's.
+    """
+    if rate is not None and not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
+        raise ValueError(f"rate must be a positive number of frames per second, got {rate!r}")
+    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
+        raise ValueError(f"max_frames must be a positive integer, got {max_frames!r}")
+    keyspace = KeySpace(prefix)
+    kind = kind if kind is not None else getattr(dataset, "kind", None)
+    total = _length(dataset)
+    if max_frames is not None:
+        total = max_frames if total is None else min(total, max_frames)
+    own = session is None
+    if own:
+        session = open_session(settings if settings is not None else ZenohSettings.client())
+    bar = None
+    try:
+        streamer = CameraStreamer(session, robot, dataset.calibration, keyspace, color=color, depth=depth, kind=kind)
+        try:
+            if wait_for_subscriber > 0 and not streamer.wait_for_subscriber(wait_for_subscriber):
+                log.warning("no subscriber on %s after %.1f s; streaming anyway", streamer.frame_key,
+                            wait_for_subscriber)
+            if progress:
+                from tqdm import tqdm
+
+                bar = tqdm(total=total, unit="frame", desc=f"{robot} -> {streamer.frame_key}", dynamic_ncols=True)
+            t0 = time.perf_counter()
+            sent = 0
+            for frame in dataset:
+                if max_frames is not None and sent >= max_frames:
+                    break
+                if rate is not None:
+                    delay = t0 + sent / rate - time.perf_counter()
+                    if delay > 0:
+                        time.sleep(delay)
+                streamer.send(frame, sent)
+                sent += 1
+                if bar is not None:
+                    bar.update(1)
+                    if sent % 10 == 0:
+                        bar.set_postfix_str(f"{streamer.bytes_sent * 8 / 1e6 / max(time.perf_counter() - t0, 1e-9):.0f} Mbit/s")
+            seconds = time.perf_counter() - t0
+            matched = streamer.has_subscriber
+        finally:
+            streamer.close()
+    finally:
+        if bar is not None:
+            bar.close()
+        if own:
+            session.close()
+    secs = max(seconds, 1e-9)
+    return StreamStats(sent, streamer.bytes_sent, seconds, sent / secs, streamer.bytes_sent * 8 / 1e6 / secs, matched)
+
+
+# ------------------------------------------------------------------------------------------
+# CLI
+
+def add_stream_arguments(parser):
+    """Define the `mnemoslam stream` options on `parser` (an argparse (sub)parser) and set
+    `func=stream_main`. Returns the parser."""
+    from .datasets import FORMATS
+
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("dataset", nargs="?", help="dataset folder (TUM, EuRoC, KITTI, 7-Scenes) or synthetic[:loop|...]")
+    src.add_argument("--camera", metavar="DEVICE_OR_VIDEO", help="stream a camera device (index, e.g. 0) or a video file instead")
+    parser.add_argument("--format", choices=list(FORMATS), help="override dataset layout detection")
+    parser.add_argument("--robot", default="robot1", help="robot id, [A-Za-z0-9_-]{1,64} (default robot1)")
+    parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the service takes them)")
+    parser.add_argument("--encoding", choices=["jpeg", "png", "raw"], default="jpeg", help="colour image encoding (default jpeg)")
+    parser.add_argument("--depth-encoding", choices=["png", "raw"], default="png",
+                        help="depth (or stereo right image) encoding (default png, lossless)")
+    parser.add_argument("--connect", action="append", metavar="ENDPOINT",
+                        help=f"zenoh endpoint of the service, repeatable (default {DEFAULT_ENDPOINT})")
+    parser.add_argument("--mode", choices=list(MODES), default="peer", help="zenoh session mode (default peer)")
+    parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"key expression prefix (default {DEFAULT_PREFIX})")
+    parser.add_argument("--max-frames", type=int, help="stop after this many frames")
+    parser.add_argument("--wait", type=float, default=5.0,
+                        help="seconds to wait for the service to subscribe before streaming (default 5)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=stream_main)
+    return parser
+
+
+def stream_main(args) -> int:
+    """`mnemoslam stream`: returns 0 when all frames were sent and a subscriber was there,
+    1 when nobody subscribed. DatasetError / ValueError / OSError propagate for the CLI."""
+    camera = getattr(args, "camera", None)
+    dataset_spec = getattr(args, "dataset", None)
+    if (camera is None) == (dataset_spec is None):
+        raise ValueError("give either a dataset or --camera (not both)")
+    max_frames = getattr(args, "max_frames", None)
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
+    if camera is not None:
+        from .capture import CaptureSource
+
+        dataset = CaptureSource(camera, max_frames=max_frames)
+    else:
+        from .datasets import open_dataset
+
+        options = {"max_frames": max_frames} if max_frames else {}
+        dataset = open_dataset(dataset_spec, getattr(args, "format", None), **options)
+    connect = getattr(args, "connect", None) or [DEFAULT_ENDPOINT]
+    settings = ZenohSettings(mode=getattr(args, "mode", "peer") or "peer", connect=list(connect))
+    quiet = bool(getattr(args, "quiet", False))
+    robot = getattr(args, "robot", "robot1")
+    prefix = getattr(args, "prefix", DEFAULT_PREFIX)
+    KeySpace(prefix).frame(robot)  # bad robot id / prefix: one-line error before connecting
+    if not quiet:
+        total = _length(dataset)
+        print(f"stream: {dataset.name} ({total if total is not None else 'live'} frames) as {robot} "
+              f"to {', '.join(connect)} on {KeySpace(prefix).frame(robot)}", file=sys.stderr)
+    try:
+        stats = stream_dataset(dataset, robot, settings, rate=getattr(args, "rate", None),
+                               color=getattr(args, "encoding", "jpeg"), depth=getattr(args, "depth_encoding", "png"),
+                               prefix=prefix, progress=not quiet, max_frames=max_frames,
+                               wait_for_subscriber=float(getattr(args, "wait", 5.0) or 0.0))
+    finally:
+        close = getattr(dataset, "release", None)
+        if close is not None:
+            close()
+    print(stats.line())
+    return 0 if stats.subscriber else 1
+
+
+__all__ = ["CameraStreamer", "StreamStats", "stream_dataset", "add_stream_arguments", "stream_main"]
