@@ -38,23 +38,62 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    """The embedded default: the synthetic loop through the pipeline, scored against its
-    exact ground truth. (Streams over Zenoh into the service once issue #3 lands.)"""
-    from client.datasets import open_dataset
+    from .demo import run_demo
 
+    return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=not args.quiet)
+
+
+def _cmd_serve(args) -> int:
+    import signal
+
+    import uvicorn
+
+    from .api import create_app
     from .config import load_config
-    from .evaluation import evaluate
-    from .runner import run_dataset
+    from .server import SlamService
 
-    dataset = open_dataset(f"synthetic:{args.trajectory}", rate=args.rate, noise=not args.no_noise)
-    print(f"demo: {dataset.name}, {len(dataset)} frames at {args.rate:g} Hz "
-          f"({'Kinect-like depth noise' if not args.no_noise else 'noise-free'})")
-    out = run_dataset(dataset, load_config(args.config), args.out, progress=not args.quiet)
-    print(out.summary.line())
-    r = evaluate(dataset.ground_truth, out.trajectory)
-    print(f"ATE RMSE {r.ate_rmse * 100:.2f} cm over {r.matched} poses, {r.path_length:.1f} m path; "
-          f"trajectory in {args.out}/trajectory.tum")
-    return 0 if out.summary.lost == 0 else 1
+    overrides: dict = {}
+    if args.db:
+        overrides.setdefault("storage", {})["path"] = args.db
+    if args.listen:
+        overrides.setdefault("zenoh", {})["listen"] = args.listen
+    if args.port is not None:
+        overrides.setdefault("api", {})["port"] = args.port
+    config = load_config(args.config, overrides)
+    logging.getLogger("mnemoslam").setLevel(logging.INFO)
+    stop: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        # uvicorn re-raises the signal it shut down on, into this handler: we then flush
+        # the database and exit 0 instead of dying by the signal.
+        signal.signal(sig, lambda signum, _frame: stop.append(signum))
+    service = SlamService(config).start()
+    try:
+        if config.api.enabled:
+            server = uvicorn.Server(uvicorn.Config(create_app(service), host=config.api.host, port=config.api.port,
+                                                   log_level="warning", access_log=False))
+            server.run()  # returns on SIGINT / SIGTERM
+        else:
+            while not stop:
+                signal.pause()
+    finally:
+        service.stop()
+    return 0
+
+
+def _cmd_db(args) -> int:
+    from storage.cli import db_export, db_info
+
+    if args.db_command == "info":
+        print(db_info(args.db))
+    else:
+        print(db_export(args.db, args.out, args.session))
+    return 0
+
+
+def default_yaml() -> str:
+    from .config import default_yaml as text
+
+    return text()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,14 +110,37 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_run)
 
-    d = sub.add_parser("demo", help="run the embedded synthetic scene and report its accuracy")
+    d = sub.add_parser("demo", help="start the service, stream the synthetic scene into it over Zenoh, report ATE and a REST query")
     d.add_argument("--trajectory", default="loop", help="synthetic camera path (loop, figure8, walk_a, walk_b, straight)")
     d.add_argument("--rate", type=float, default=15.0, help="frames per second of the synthetic camera")
     d.add_argument("--no-noise", action="store_true", help="exact depth instead of Kinect-like noise")
     d.add_argument("--out", default="out/demo", help="output folder")
-    d.add_argument("--config", help="YAML config file")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=_cmd_demo)
+
+    sv = sub.add_parser("serve", help="run the SLAM service: Zenoh ingest, SQLite map, REST API")
+    sv.add_argument("--config", help="YAML config file (default: built-in defaults)")
+    sv.add_argument("--db", help="SQLite database (overrides storage.path)")
+    sv.add_argument("--listen", action="append", help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    sv.add_argument("--port", type=int, help="REST port (overrides api.port)")
+    sv.set_defaults(func=_cmd_serve)
+
+    from client.streamer import add_stream_arguments
+
+    add_stream_arguments(sub.add_parser("stream", help="stream a dataset, the synthetic scene or a camera to the service over Zenoh"))
+
+    db = sub.add_parser("db", help="inspect or export a map database")
+    dbs = db.add_subparsers(dest="db_command", required=True)
+    di = dbs.add_parser("info", help="schema, sessions, counts, integrity")
+    di.add_argument("db")
+    dx = dbs.add_parser("export", help="trajectory (TUM) and graph (JSON)")
+    dx.add_argument("db")
+    dx.add_argument("--out", required=True, help="output folder")
+    dx.add_argument("--session", type=int, help="only this session")
+    db.set_defaults(func=_cmd_db)
+
+    cf = sub.add_parser("config", help="print every configuration key with its default")
+    cf.set_defaults(func=lambda a: print(default_yaml(), end="") or 0)
 
     e = sub.add_parser("eval", help="ATE / RPE of an estimated trajectory against ground truth")
     e.add_argument("groundtruth", help="ground truth (TUM format, or KITTI poses)")
@@ -93,6 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from client.frames import DatasetError
 
+    from storage import StoreError
+
     from .config import ConfigError
 
     args = build_parser().parse_args(argv)
@@ -100,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
-    except (DatasetError, ConfigError, ValueError, OSError) as e:
+    except (DatasetError, ConfigError, StoreError, ValueError, OSError) as e:
         print(f"mnemoslam {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -28,6 +28,7 @@ class FrameResult:
     status: str  # "ok", "init", "lost", or "skipped" (no usable depth)
     pose: np.ndarray | None
     keyframe: str | None = None  # why it became a keyframe, if it did
+    node_id: int | None = None  # its id in the map's memory, once stored
     inliers: int = 0
     segment: int = 0
     features: int = 0
@@ -41,9 +42,10 @@ class FrameResult:
 class Pipeline:
     """One SLAM session for one camera."""
 
-    def __init__(self, calibration: Calibration, config: Config):
+    def __init__(self, calibration: Calibration, config: Config, memory=None):
         self.calibration = calibration
         self.config = config
+        self.memory = memory  # service.memory.Memory, or None for odometry alone
         self.extractor = FeatureExtractor(calibration, config.features, config.stereo)
         self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed)
         self.keyframes = KeyframePolicy(config.keyframe)
@@ -58,11 +60,14 @@ class Pipeline:
         tracked = self.odometry.track(features, frame.stamp)
         t2 = time.perf_counter()
         keyframe = self.keyframes.decide(tracked)
+        node_id = None
+        if keyframe and self.memory is not None:
+            node_id = self.memory.add_keyframe(frame, features, tracked.pose, tracked.inliers, tracked.segment)
         t3 = time.perf_counter()
         return FrameResult(
-            frame.index, frame.stamp, tracked.status, tracked.pose, keyframe, tracked.inliers,
+            frame.index, frame.stamp, tracked.status, tracked.pose, keyframe, node_id, tracked.inliers,
             tracked.segment, len(features),
-            {"features": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "keyframe": (t3 - t2) * 1e3},
+            {"features": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "memory": (t3 - t2) * 1e3},
         )
 
     def _has_geometry(self, frame: Frame) -> bool:

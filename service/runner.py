@@ -14,7 +14,10 @@ from client.datasets import Dataset
 from client.frames import DatasetError
 from client.trajectory import Trajectory, write_tum
 
+from storage import MapStore
+
 from .config import Config
+from .memory import Memory
 from .pipeline import FrameResult, Pipeline
 
 log = logging.getLogger("mnemoslam.run")
@@ -50,8 +53,34 @@ class RunOutput:
 def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = None,
                 progress: bool = True) -> RunOutput:
     """Run every frame of `dataset` through one pipeline; write `trajectory.tum`,
-    `keyframes.tum` (and `groundtruth.tum` when the dataset has it) into `out_dir`."""
-    pipeline = Pipeline(dataset.calibration, config)
+    `keyframes.tum` (and `groundtruth.tum` when the dataset has it) and the map database
+    `map.db` (the same one the service writes) into `out_dir`."""
+    store = None
+    memory = None
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        db = out_dir / "map.db"
+        for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
+            p.unlink(missing_ok=True)  # a run replaces the previous run's map
+        store = MapStore(db)
+        memory = Memory(store, dataset.name, dataset.calibration, config)
+    try:
+        out = _run(dataset, Pipeline(dataset.calibration, config, memory), progress)
+    finally:
+        if store is not None:
+            store.end_session(memory.session_id)
+            store.close()
+    if out_dir is not None:
+        write_tum(out_dir / "trajectory.tum", out.trajectory)
+        write_tum(out_dir / "keyframes.tum", out.keyframes)
+        if dataset.ground_truth is not None:
+            write_tum(out_dir / "groundtruth.tum", dataset.ground_truth)
+        (out_dir / "summary.json").write_text(json.dumps(asdict(out.summary), indent=2) + "\n")
+    return out
+
+
+def _run(dataset: Dataset, pipeline: Pipeline, progress: bool) -> RunOutput:
     results: list[FrameResult] = []
     bad = 0
     start = time.perf_counter()
@@ -75,16 +104,7 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
         sum(r.status == "lost" for r in results), sum(r.status == "skipped" for r in results), bad,
         1 + max((r.segment for r in results), default=0), seconds, len(results) / seconds if seconds else 0.0,
     )
-    out = RunOutput(summary, _trajectory(tracked), _trajectory(keyframes), results)
-    if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        write_tum(out_dir / "trajectory.tum", out.trajectory)
-        write_tum(out_dir / "keyframes.tum", out.keyframes)
-        if dataset.ground_truth is not None:
-            write_tum(out_dir / "groundtruth.tum", dataset.ground_truth)
-        (out_dir / "summary.json").write_text(json.dumps(asdict(summary), indent=2) + "\n")
-    return out
+    return RunOutput(summary, _trajectory(tracked), _trajectory(keyframes), results)
 
 
 def _trajectory(results: list[FrameResult]) -> Trajectory:

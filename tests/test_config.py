@@ -2,12 +2,14 @@ from pathlib import Path
 
 import pytest
 
-from service.config import Config, ConfigError, load_config
+from service.config import Config, ConfigError, default_yaml, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_default_yaml_equals_dataclass_defaults():
+    text = (ROOT / "configs" / "default.yaml").read_text()
+    assert text == default_yaml(), "regenerate: mnemoslam config > configs/default.yaml"
     assert load_config(ROOT / "configs" / "default.yaml") == Config()
 
 

@@ -1,10 +1,12 @@
 """A full synthetic run through the offline pipeline: exact ground truth, no real data."""
+import numpy as np
 import pytest
 
 from client.datasets import open_dataset
 from service.config import load_config
 from service.evaluation import evaluate
 from service.runner import run_dataset
+from storage import MapStore
 
 
 @pytest.mark.parametrize("noise,bound", [(False, 0.02), (True, 0.03)])
@@ -17,3 +19,7 @@ def test_synthetic_loop_first_20_seconds(noise, bound, tmp_path):
     assert ev.ate_rmse < bound
     assert (tmp_path / "trajectory.tum").read_text().count("\n") == 600
     assert 0 < out.summary.keyframes < 600
+    with MapStore(tmp_path / "map.db", create=False) as store:  # the same database the service writes
+        assert store.count_nodes() == out.summary.keyframes
+        assert store.integrity_check() == "ok"
+        np.testing.assert_allclose(store.trajectory(store.sessions()[0].id).poses, out.keyframes.poses)

@@ -1,0 +1,139 @@
+"""The main job on the embedded default: start the service as its own process, stream the
+synthetic scene into it over Zenoh as a separate client, wait for the map, print the ATE
+against the scene's exact ground truth and the answer of a REST query, stop the service."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from client.datasets import open_dataset
+from client.planner import ApiError, PlannerClient
+from client.streamer import stream_dataset
+from client.trajectory import Trajectory
+from client.transport import ZenohSettings
+
+from .evaluation import evaluate
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServiceProcess:
+    """`mnemoslam serve` in a child process with its own ports and database."""
+
+    def __init__(self, db: Path, config: dict | None = None, log_path: Path | None = None):
+        self.zenoh_port, self.http_port = free_port(), free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
+        cfg = {"zenoh": {"listen": [self.endpoint]}, "api": {"port": self.http_port},
+               "storage": {"path": str(db)}}
+        for k, v in (config or {}).items():
+            cfg.setdefault(k, {}).update(v)
+        self.dir = Path(tempfile.mkdtemp(prefix="mnemoslam-svc-"))
+        self.config_path = self.dir / "service.yaml"
+        self.config_path.write_text(yaml.safe_dump(cfg))
+        self.log_path = log_path or self.dir / "service.log"
+        self.api = PlannerClient(f"http://127.0.0.1:{self.http_port}")
+        self.proc: subprocess.Popen | None = None
+
+    def start(self, timeout: float = 60.0) -> "ServiceProcess":
+        root = Path(__file__).resolve().parents[1]
+        env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        self._log = open(self.log_path, "w")
+        self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--config", str(self.config_path)],
+                                     stdout=self._log, stderr=subprocess.STDOUT, env=env, cwd=root)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"service exited with {self.proc.returncode}; log: {self.log_path}")
+            try:
+                if self.api.health()["status"] == "ok":
+                    return self
+            except (OSError, ApiError):
+                time.sleep(0.2)
+        raise RuntimeError(f"service did not become healthy in {timeout:.0f} s; log: {self.log_path}")
+
+    def stop(self, sig=signal.SIGTERM, timeout: float = 30.0) -> int:
+        if self.proc is None:
+            return 0
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+    def wait_processed(self, robot: str, frames: int, timeout: float = 300.0) -> dict:
+        """Until every frame sent by `robot` was processed, dropped or rejected."""
+        deadline = time.monotonic() + timeout
+        r: dict = {}
+        while time.monotonic() < deadline:
+            try:
+                r = self.api.robot(robot)
+            except ApiError:
+                r = {}
+            done = r.get("frames_processed", 0) + r.get("frames_dropped", 0) + sum(r.get("frames_rejected", {}).values())
+            if r and done >= frames and r.get("queue_depth", 1) == 0:
+                return r
+            time.sleep(0.25)
+        raise TimeoutError(f"robot {robot}: {r} after {timeout:.0f} s")
+
+    def session_of(self, robot: str) -> int:
+        ids = [s["id"] for s in self.api.sessions() if s["robot"] == robot]
+        if not ids:
+            raise RuntimeError(f"no session for robot {robot}")
+        return ids[-1]
+
+
+def keyframe_trajectory(api: PlannerClient, session_id: int) -> Trajectory:
+    poses = api.trajectory(session_id)["poses"]
+    return Trajectory(np.array([p["stamp"] for p in poses]),
+                      np.array([p["pose"] for p in poses]).reshape(-1, 4, 4))
+
+
+def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, out: str = "out/demo",
+             progress: bool = True) -> int:
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    db = out_dir / "map.db"
+    for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
+        p.unlink(missing_ok=True)
+    dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=noise)
+    print(f"demo: starting the service (database {db})")
+    svc = ServiceProcess(db, {"service": {"queue_size": 10000}}, log_path=out_dir / "service.log").start()
+    try:
+        print(f"demo: streaming {dataset.name} ({len(dataset)} frames) over Zenoh to {svc.endpoint} as robot 'demo'")
+        stats = stream_dataset(dataset, "demo", ZenohSettings(connect=[svc.endpoint]), rate=None,
+                               color="jpeg", depth="png", progress=progress, wait_for_subscriber=10.0)
+        robot = svc.wait_processed("demo", stats.frames)
+        print(f"demo: service processed {robot['frames_processed']} frames "
+              f"({robot['tracked']} tracked, {robot['keyframes']} keyframes, {robot['frames_dropped']} dropped, "
+              f"{robot['fps']:.1f} frames/s); client sent {stats.mbps:.0f} Mbit/s")
+        session_id = svc.session_of("demo")
+        keyframes = keyframe_trajectory(svc.api, session_id)
+        ev = evaluate(dataset.ground_truth, keyframes)
+        print(f"demo: keyframe ATE RMSE {ev.ate_rmse * 100:.2f} cm over {ev.matched} keyframes "
+              f"({ev.path_length:.1f} m path)")
+        start = keyframes.positions[0]
+        box = (tuple(start - 1.0), tuple(start + 1.0))
+        answer = svc.api.nodes(session_id, bbox=box, limit=3)
+        print(f"demo: REST GET /sessions/{session_id}/nodes?bbox=<1 m around the start> -> "
+              f"{answer['total']} keyframes, first ids {[n['id'] for n in answer['nodes']]}")
+    finally:
+        code = svc.stop()
+    print(f"demo: service stopped (exit {code}); map in {db}")
+    return 0 if ev.matched > 0 and code == 0 else 1

@@ -1,0 +1,153 @@
+"""One robot's SLAM session inside the service: a bounded frame queue, a worker thread that
+runs the pipeline, and the counters the REST API shows.
+
+Frames arrive from Zenoh's callback thread (`submit`); when the pipeline falls behind, the
+queue drops its *oldest* frame (a camera wants the freshest pose, not a growing backlog)
+and counts the drop. Until the camera's calibration is known (its info message), frames
+wait in the same bounded queue.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+from client.frames import Calibration, Frame
+
+from .config import Config
+from .pipeline import FrameResult, Pipeline
+
+log = logging.getLogger("mnemoslam.session")
+
+
+@dataclass
+class SessionStats:
+    received: int = 0
+    processed: int = 0
+    dropped_queue: int = 0  # oldest frame dropped because the queue was full
+    rejected: dict = field(default_factory=dict)  # reason -> count, for frames this session refused
+    tracked: int = 0
+    lost: int = 0
+    keyframes: int = 0
+    last_stamp: float | None = None
+    last_status: str | None = None
+    previous_status: str | None = None  # status of the frame before the last one
+    processing_ms: float = 0.0  # exponential mean of the pipeline time per frame
+    fps: float = 0.0  # processed frames per second over the last few seconds
+
+
+class RobotSession:
+    """Owns the pipeline of one robot; `on_result(session, frame, result)` is called from
+    the worker thread after every processed frame."""
+
+    def __init__(self, robot: str, config: Config, make_pipeline: Callable[[Calibration], Pipeline],
+                 on_result: Callable[["RobotSession", Frame, FrameResult], None]):
+        self.robot = robot
+        self.config = config
+        self.calibration: Calibration | None = None
+        self.pipeline: Pipeline | None = None
+        self.stats = SessionStats()
+        self._make_pipeline = make_pipeline
+        self._on_result = on_result
+        self._queue: deque[tuple[int, Frame]] = deque()
+        self._cond = threading.Condition()
+        self._stopping = False
+        self._rate_window: deque[float] = deque(maxlen=60)
+        self._thread = threading.Thread(target=self._run, name=f"slam-{robot}", daemon=True)
+        self._thread.start()
+
+    # -- called from the transport thread --------------------------------------------
+    @property
+    def state(self) -> str:
+        if self._stopping:
+            return "stopped"
+        if self.calibration is None:
+            return "waiting_for_info"
+        return "lost" if self.stats.last_status == "lost" else "tracking"
+
+    @property
+    def session_id(self) -> int | None:
+        memory = self.pipeline.memory if self.pipeline else None
+        return memory.session_id if memory else None
+
+    @property
+    def queue_depth(self) -> int:
+        return len(self._queue)
+
+    def set_calibration(self, calibration: Calibration) -> None:
+        with self._cond:
+            if self.calibration is None:
+                self.calibration = calibration
+                self._cond.notify()
+
+    def submit(self, seq: int, frame: Frame) -> None:
+        with self._cond:
+            self.stats.received += 1
+            if len(self._queue) >= max(1, self.config.service.queue_size):
+                self._queue.popleft()
+                self.stats.dropped_queue += 1
+            self._queue.append((seq, frame))
+            self._cond.notify()
+
+    def reject(self, reason: str) -> None:
+        with self._cond:
+            self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Finish the frame in progress (the queue's backlog is dropped) and end."""
+        with self._cond:
+            self._stopping = True
+            self._cond.notify()
+        self._thread.join(timeout)
+
+    # -- worker thread -----------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._stopping and (self.calibration is None or not self._queue):
+                    self._cond.wait()
+                if self._stopping:
+                    return
+                seq, frame = self._queue.popleft()
+            try:
+                self._process(seq, frame)
+            except Exception:  # never let one frame kill the robot's session
+                log.exception("robot %s: frame %d failed", self.robot, seq)
+                self.reject("pipeline_error")
+
+    def _process(self, seq: int, frame: Frame) -> None:
+        if self.pipeline is None:
+            self.pipeline = self._make_pipeline(self.calibration)
+        cam = self.calibration.camera
+        if frame.image.shape[:2] != (cam.height, cam.width):
+            self.reject("size_mismatch")
+            return
+        t = time.perf_counter()
+        result = self.pipeline.process(frame)
+        ms = (time.perf_counter() - t) * 1e3
+        s = self.stats
+        s.processed += 1
+        s.tracked += result.tracked
+        s.lost += result.status == "lost"
+        s.keyframes += bool(result.keyframe)
+        s.previous_status = s.last_status
+        s.last_stamp, s.last_status = frame.stamp, result.status
+        s.processing_ms = ms if s.processed == 1 else 0.9 * s.processing_ms + 0.1 * ms
+        now = time.monotonic()
+        self._rate_window.append(now)
+        if len(self._rate_window) > 1:
+            s.fps = (len(self._rate_window) - 1) / max(now - self._rate_window[0], 1e-6)
+        self._on_result(self, frame, result)
+
+    def snapshot(self) -> dict:
+        s = self.stats
+        return {
+            "robot": self.robot, "state": self.state, "queue_depth": self.queue_depth,
+            "frames_received": s.received, "frames_processed": s.processed, "frames_dropped": s.dropped_queue,
+            "frames_rejected": dict(s.rejected), "tracked": s.tracked, "lost": s.lost, "keyframes": s.keyframes,
+            "fps": round(s.fps, 2), "processing_ms": round(s.processing_ms, 2), "last_stamp": s.last_stamp,
+            "session_id": self.session_id,
+        }

@@ -1,0 +1,196 @@
+"""The service end to end: `mnemoslam serve` in its own process, camera clients streaming
+over a real Zenoh session on loopback, the real SQLite file, the real uvicorn server."""
+import signal
+import sqlite3
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from client import protocol
+from client.datasets import open_dataset
+from client.planner import ApiError
+from client.streamer import stream_dataset
+from client.transport import ZenohSettings, open_session
+from service.config import load_config
+from service.demo import ServiceProcess, keyframe_trajectory
+from service.evaluation import evaluate
+from service.pipeline import Pipeline
+
+FRAMES = 90
+
+
+def _settings(svc):
+    return ZenohSettings(connect=[svc.endpoint])
+
+
+@pytest.fixture
+def service(tmp_path):
+    svc = ServiceProcess(tmp_path / "map.db", {"service": {"queue_size": 10000}}).start()
+    yield svc
+    svc.stop()
+
+
+def _offline_keyframes(dataset, color="png", depth="png"):
+    """The same frames through the same codec and pipeline, in this process."""
+    pipeline = Pipeline(dataset.calibration, load_config())
+    stamps, poses = [], []
+    for i in range(len(dataset)):
+        wire = protocol.decode_frame(protocol.encode_frame(dataset.frame(i), "x", i, color=color, depth=depth))
+        r = pipeline.process(wire.frame)
+        if r.keyframe:
+            stamps.append(r.stamp)
+            poses.append(r.pose)
+    return np.array(stamps), np.array(poses)
+
+
+def test_streamed_run_matches_offline_run_and_every_keyframe_is_stored(service):
+    ds = open_dataset("synthetic:loop", max_frames=FRAMES)
+    stats = stream_dataset(ds, "r1", _settings(service), rate=None, color="png", depth="png",
+                           progress=False, wait_for_subscriber=10.0)
+    robot = service.wait_processed("r1", stats.frames)
+    assert robot["frames_processed"] == FRAMES and robot["frames_dropped"] == 0
+    session = service.session_of("r1")
+    streamed = keyframe_trajectory(service.api, session)
+    stamps, poses = _offline_keyframes(ds)
+    assert len(streamed) == len(stamps) == robot["keyframes"]
+    np.testing.assert_allclose(streamed.stamps, stamps, atol=1e-6)
+    assert np.abs(streamed.poses[:, :3, 3] - poses[:, :3, 3]).max() < 1e-3
+    nodes = service.api.nodes(session, limit=1000)
+    assert nodes["total"] == robot["keyframes"]
+
+
+def test_three_robots_three_sessions_no_cross_talk(service):
+    paths = {"alpha": "loop", "bravo": "walk_a", "charlie": "walk_b"}
+    datasets = {r: open_dataset(f"synthetic:{p}", max_frames=45) for r, p in paths.items()}
+    threads = [threading.Thread(target=stream_dataset, args=(ds, r, _settings(service)),
+                                kwargs=dict(rate=None, color="jpeg", depth="png", progress=False, wait_for_subscriber=10.0))
+               for r, ds in datasets.items()]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for robot, ds in datasets.items():
+        r = service.wait_processed(robot, len(ds))
+        assert r["frames_processed"] == len(ds)
+        traj = keyframe_trajectory(service.api, service.session_of(robot))
+        ev = evaluate(ds.ground_truth, traj)  # each map follows its own camera
+        assert ev.ate_rmse < 0.05, (robot, ev.ate_rmse)
+    sessions = service.api.sessions()
+    assert sorted(s["robot"] for s in sessions) == sorted(paths)
+
+
+def _malformed(rng, valid: bytes):
+    kinds = ["random", "truncated", "bitflip", "version", "oversize_claim", "nan_stamp"]
+    kind = kinds[rng.integers(len(kinds))]
+    if kind == "random":
+        return rng.integers(0, 256, rng.integers(0, 4000), dtype=np.uint8).tobytes()
+    if kind == "truncated":
+        return valid[: rng.integers(0, len(valid) - 1)]
+    b = bytearray(valid)
+    if kind == "bitflip":
+        i = rng.integers(0, 64)  # somewhere in the header
+        b[i] ^= 1 << int(rng.integers(8))
+        return bytes(b) if bytes(b) != valid else b"x"
+    if kind == "version":
+        b[4] = 99
+        return bytes(b)
+    if kind == "oversize_claim":  # header claims a 65535 x 65535 image
+        b[29:33] = b"\xff\xff\xff\xff"
+        return bytes(b)
+    b[18:26] = struct.pack("<d", float("nan"))  # NaN stamp
+    return bytes(b)
+
+
+def test_malformed_flood_is_counted_and_valid_robot_unaffected(service):
+    ds = open_dataset("synthetic:loop", max_frames=60)
+    valid = protocol.encode_frame(ds.frame(0), "evil", 0, color="jpeg", depth="png")
+    rng = np.random.default_rng(0)
+    keys = protocol.KeySpace()
+    z = open_session(_settings(service))
+    sent = 0
+    try:
+        time.sleep(1.0)
+        streamer = threading.Thread(target=stream_dataset, args=(ds, "good", _settings(service)),
+                                    kwargs=dict(rate=30.0, progress=False, wait_for_subscriber=10.0))
+        streamer.start()
+        pub_evil = z.declare_publisher(keys.frame("evil"), congestion_control=zenoh.CongestionControl.BLOCK)
+        pub_other = z.declare_publisher(keys.frame("mallory"), congestion_control=zenoh.CongestionControl.BLOCK)
+        for i in range(1100):
+            payload = _malformed(rng, valid)
+            try:
+                protocol.decode_frame(payload)
+                continue  # a flip that still decodes is not malformed
+            except protocol.ProtocolError:
+                pass
+            (pub_evil if i % 2 else pub_other).put(payload)
+            sent += 1
+        # robot id in the header differs from the key: also refused
+        pub_other.put(valid)
+        sent += 1
+        streamer.join()
+    finally:
+        z.close()
+    assert sent >= 1000
+    robot = service.wait_processed("good", len(ds))
+    deadline = time.monotonic() + 30
+    while service.api.stats()["service"]["rejected_total"] < sent and time.monotonic() < deadline:
+        time.sleep(0.2)
+    stats = service.api.stats()
+    assert stats["service"]["rejected_total"] == sent
+    assert service.api.health()["status"] == "ok"
+    assert robot["frames_processed"] == len(ds) and robot["lost"] == 0
+    assert {r["robot"] for r in service.api.robots()} == {"good"}  # malformed traffic made no session
+    traj = keyframe_trajectory(service.api, service.session_of("good"))
+    assert evaluate(ds.ground_truth, traj).ate_rmse < 0.02
+
+
+def test_sigkill_mid_stream_keeps_every_reported_keyframe(tmp_path):
+    db = tmp_path / "map.db"
+    svc = ServiceProcess(db, {"service": {"queue_size": 10000}}).start()
+    reported = []
+    z = open_session(ZenohSettings(connect=[svc.endpoint]))
+    sub = z.declare_subscriber(protocol.KeySpace().events("k1"), lambda s: reported.append(
+        protocol.decode_event(s.payload.to_bytes())))
+    ds = open_dataset("synthetic:loop", max_frames=600)
+    t = threading.Thread(target=stream_dataset, args=(ds, "k1", ZenohSettings(connect=[svc.endpoint])),
+                         kwargs=dict(rate=60.0, progress=False, wait_for_subscriber=10.0), daemon=True)
+    t.start()
+    deadline = time.monotonic() + 120
+    while sum(e["kind"] == "keyframe_added" for e in reported) < 15 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    svc.proc.send_signal(signal.SIGKILL)
+    svc.proc.wait()
+    stored = [e["node_id"] for e in list(reported) if e["kind"] == "keyframe_added"]
+    sub.undeclare()
+    z.close()
+    assert len(stored) >= 15
+    with sqlite3.connect(db) as conn:
+        assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    svc2 = ServiceProcess(db).start()  # restarts on the same database
+    try:
+        ids = {n["id"] for n in svc2.api.nodes(svc2.api.sessions()[0]["id"], limit=10000)["nodes"]}
+        assert set(stored) <= ids
+    finally:
+        svc2.stop()
+
+
+@pytest.mark.parametrize("path,status", [
+    ("/sessions/999/nodes", 404),
+    ("/robots/nobody", 404),
+    ("/sessions/1/nodes?bbox=1,2,3", 400),
+    ("/sessions/1/nodes?bbox=a,b,c,d,e,f", 400),
+    ("/sessions/1/nodes?limit=0", 422),
+    ("/sessions/1/trajectory?format=xml", 422),
+    ("/sessions/abc/graph", 422),
+])
+def test_rest_bad_parameters_are_clear_4xx(service, path, status):
+    ds = open_dataset("synthetic:loop", max_frames=5)
+    stream_dataset(ds, "p1", _settings(service), rate=None, progress=False, wait_for_subscriber=10.0)
+    service.wait_processed("p1", 5)
+    with pytest.raises(ApiError) as e:
+        service.api.get(path)
+    assert e.value.status == status and e.value.detail
