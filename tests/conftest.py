@@ -18,18 +18,18 @@ def data_dir() -> Path:
     reason when it is absent, or fail when MNEMOSLAM_REQUIRE_DATA is set (as in CI)."""
     root = _data_root()
     if not root.is_dir():
-        msg = f"real data not found at {root} (set MNEMOSLAM_DATA)"
-        if os.environ.get("MNEMOSLAM_REQUIRE_DATA"):
-            pytest.fail(msg + " and MNEMOSLAM_REQUIRE_DATA is set")
-        pytest.skip(msg)
+        _missing(f"real data not found at {root} (set MNEMOSLAM_DATA)")
     return root
 
 
 def require(path: Path) -> Path:
     """A sequence inside the data folder, skipped (or failed in CI) when missing."""
     if not path.exists():
-        msg = f"sequence {path} is missing"
-        if os.environ.get("MNEMOSLAM_REQUIRE_DATA"):
-            pytest.fail(msg + " and MNEMOSLAM_REQUIRE_DATA is set")
-        pytest.skip(msg)
+        _missing(f"sequence {path} is missing")
     return path
+
+
+def _missing(msg: str):
+    if os.environ.get("MNEMOSLAM_REQUIRE_DATA"):
+        pytest.fail(msg + " and MNEMOSLAM_REQUIRE_DATA is set")
+    pytest.skip(msg)
