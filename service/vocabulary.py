@@ -1,0 +1,400 @@
+"""Incremental visual vocabulary over binary (ORB, 256-bit) descriptors.
+
+RTAB-Map's incremental dictionary (VWDictionary) searches a FLANN index and rebuilds it
+every time the dictionary doubles; its users see 500-600 ms freezes (introlab/rtabmap#982).
+This one never rebuilds: nearest neighbours come from a fixed set of bit-sampling LSH
+tables (L tables, each keyed on k sampled bits). Every table is a chained hash table held
+in numpy arrays: `head[table, key]` is the newest word of the bucket and per-word
+`next`/`prev` links (doubly linked, so removal is O(L) per word). Insertion of a batch and
+the chain walk of a query batch are vectorized over descriptors × tables; a query walks at
+most `max_chain` words per table, so its work is bounded whatever the vocabulary size, and
+the exact Hamming distances (np.bitwise_count on uint64 views) are computed on that
+candidate set only.
+
+Arrays are preallocated with `np.zeros` (calloc: pages are only touched as words arrive),
+so growth costs nothing until `capacity` is exceeded (then one doubling copy).
+
+Links store slot+1, 0 meaning "none". A word's id is its slot; ids are never reused.
+
+Word assignment (RTAB-Map's rule, `Kp/NndrRatio`): a descriptor whose nearest word is
+farther than `nndr` × the second-nearest distance, or farther than `max_distance`, or with no
+word found, makes a new word; otherwise it votes for the nearest word. Descriptors of the
+same batch that would all make new words are first matched among themselves (brute force,
+bounded by the batch size) so that repeated descriptors of one node share a word.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+_NONE_DIST = 257  # larger than any 256-bit Hamming distance
+
+
+def _as_u64(desc: np.ndarray) -> np.ndarray:
+    d = np.ascontiguousarray(desc, dtype=np.uint8)
+    if d.ndim != 2 or d.shape[1] != 32:
+        raise ValueError(f"descriptors must be N×32 uint8, got {d.shape}")
+    return d.view(np.uint64)
+
+
+def hamming(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
+    """Row-wise Hamming distance of two (n, 4) uint64 arrays (broadcasting)."""
+    return np.bitwise_count(np.bitwise_xor(a64, b64)).sum(axis=-1, dtype=np.int32)
+
+
+class Vocabulary:
+    def __init__(self, nndr: float = 0.8, max_distance: int = 70, n_tables: int = 16,
+                 key_bits: int = 16, max_chain: int = 40, capacity: int = 1 << 21, seed: int = 7):
+        self.nndr = float(nndr)
+        self.max_distance = int(max_distance)
+        self.n_tables = int(n_tables)
+        self.key_bits = int(key_bits)
+        self.max_chain = int(max_chain)
+        self.seed = int(seed)
+        rng = np.random.default_rng(seed)
+        # Bits sampled by each table (distinct within a table).
+        self._bits = np.stack([rng.choice(256, self.key_bits, replace=False) for _ in range(self.n_tables)])
+        self._pow = (1 << np.arange(self.key_bits, dtype=np.int64))
+        self._tbl_off = (np.arange(self.n_tables, dtype=np.int64) << self.key_bits)
+        self._head = np.zeros(self.n_tables << self.key_bits, np.int32)
+        self._alloc(max(int(capacity), 1024))
+        self._next_id = 0
+        self._n_live = 0
+        # Inverted index: word -> {node: count}; node -> (unique words, counts), #features.
+        self._postings: dict[int, dict[int, int]] = {}
+        self._nodes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._nfeat: dict[int, int] = {}
+        self.last_candidates = 0  # exact distance computations of the last search
+        self.last_queries = 0
+
+    # -- storage arrays -----------------------------------------------------------------
+    def _alloc(self, cap: int) -> None:
+        self._cap = cap
+        self._desc = np.zeros((cap, 4), np.uint64)
+        self._nxt = np.zeros((cap, self.n_tables), np.int32)
+        self._prv = np.zeros((cap, self.n_tables), np.int32)
+        self._live = np.zeros(cap, bool)
+
+    def _ensure(self, n_more: int) -> None:
+        need = self._next_id + n_more
+        if need <= self._cap:
+            return
+        cap = self._cap
+        while cap < need:
+            cap *= 2
+        old = (self._desc, self._nxt, self._prv, self._live)
+        n = self._next_id
+        self._alloc(cap)
+        self._desc[:n], self._nxt[:n], self._prv[:n], self._live[:n] = (a[:n] for a in old)
+
+    # -- properties ---------------------------------------------------------------------
+    def __len__(self) -> int:
+        return self._n_live
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self._nodes)
+
+    def descriptors(self, word_ids) -> np.ndarray:
+        return self._desc[np.asarray(word_ids, np.int64)].view(np.uint8).reshape(-1, 32)
+
+    # -- hashing ------------------------------------------------------------------------
+    def _keys(self, d64: np.ndarray) -> np.ndarray:
+        """(n, L) flat head indices (table offset + key)."""
+        bits = np.unpackbits(d64.view(np.uint8).reshape(-1, 32), axis=1)  # (n, 256)
+        sampled = bits[:, self._bits]  # (n, L, k)
+        return sampled.astype(np.int64) @ self._pow + self._tbl_off
+
+    def _link(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        """Push words (slots (n,), keys (n, L)) on their buckets, all tables at once."""
+        n, L = keys.shape
+        K = keys.ravel()
+        S = np.repeat(slots.astype(np.int64), L)
+        T = np.tile(np.arange(L), n)
+        order = np.argsort(K, kind="stable")
+        K, S, T = K[order], S[order], T[order]
+        brk = K[1:] != K[:-1]
+        first = np.r_[True, brk]
+        last = np.r_[brk, True]
+        old_head = self._head[K]
+        prev_elem = np.r_[0, S[:-1] + 1]
+        self._nxt[S, T] = np.where(first, old_head, prev_elem)
+        m = first & (old_head > 0)
+        self._prv[old_head[m] - 1, T[m]] = S[m] + 1
+        nf = ~first[1:]
+        self._prv[S[:-1][nf], T[:-1][nf]] = S[1:][nf] + 1
+        self._prv[S[last], T[last]] = 0
+        self._head[K[last]] = S[last] + 1
+
+    def _unlink(self, slots: np.ndarray) -> None:
+        if not len(slots):
+            return
+        keys = self._keys(self._desc[slots])
+        tables = np.arange(self.n_tables)
+        for s, k in zip(slots.tolist(), keys):  # O(L) vector ops per removed word
+            p = self._prv[s]
+            n = self._nxt[s]
+            hp = p > 0
+            self._nxt[p[hp] - 1, tables[hp]] = n[hp]
+            self._head[k[~hp]] = n[~hp]
+            hn = n > 0
+            self._prv[n[hn] - 1, tables[hn]] = p[hn]
+            self._nxt[s] = 0
+            self._prv[s] = 0
+
+    # -- search -------------------------------------------------------------------------
+    def _search(self, q64: np.ndarray):
+        """Nearest and second-nearest words of each query: (w1, d1, d2), w1 = -1 and
+        d = 257 when none was found."""
+        Q = len(q64)
+        w1 = np.full(Q, -1, np.int64)
+        d1 = np.full(Q, _NONE_DIST, np.int32)
+        d2 = np.full(Q, _NONE_DIST, np.int32)
+        self.last_queries = Q
+        self.last_candidates = 0
+        if Q == 0 or self._n_live == 0:
+            return w1, d1, d2
+        keys = self._keys(q64)  # (Q, L)
+        tables = np.broadcast_to(np.arange(self.n_tables), keys.shape)
+        cur = self._head[keys]
+        cands = np.zeros((Q, self.n_tables, self.max_chain), np.int32)
+        for step in range(self.max_chain):
+            nz = cur > 0
+            if not nz.any():
+                break
+            cands[:, :, step] = cur
+            cur = np.where(nz, self._nxt[np.maximum(cur - 1, 0), tables], 0)
+        C = cands.reshape(Q, -1)
+        # Deduplicate (a word found by several tables) so that the second-nearest is a
+        # different word and each distance is computed once.
+        C.sort(axis=1)
+        dup = np.zeros_like(C, bool)
+        dup[:, 1:] = C[:, 1:] == C[:, :-1]
+        C[dup] = 0
+        qi, ci = np.nonzero(C)
+        self.last_candidates = len(qi)
+        if not len(qi):
+            return w1, d1, d2
+        slots = C[qi, ci] - 1
+        D = np.full(C.shape, _NONE_DIST, np.int32)
+        D[qi, ci] = hamming(self._desc[slots], q64[qi])
+        j1 = np.argmin(D, axis=1)
+        rows = np.arange(Q)
+        d1 = D[rows, j1]
+        D[rows, j1] = _NONE_DIST
+        d2 = D.min(axis=1)
+        found = d1 < _NONE_DIST
+        w1[found] = C[rows, j1][found] - 1
+        return w1, d1, d2
+
+    def _accept(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        return (d1 <= self.max_distance) & (d1 <= self.nndr * d2)
+
+    def query(self, descriptors: np.ndarray) -> np.ndarray:
+        """Word of each descriptor without inserting anything: (N,) int64, -1 when the
+        descriptor matches no word (it would make a new one)."""
+        q64 = _as_u64(descriptors)
+        w1, d1, d2 = self._search(q64)
+        return np.where(self._accept(d1, d2), w1, -1)
+
+    # -- insertion ----------------------------------------------------------------------
+    def add(self, node_id: int, descriptors: np.ndarray) -> np.ndarray:
+        """Quantize a node's descriptors, creating new words as needed, and index the node.
+        Returns the word id of each descriptor (N,) int64."""
+        q64 = _as_u64(descriptors)
+        w1, d1, d2 = self._search(q64)
+        words = np.where(self._accept(d1, d2), w1, -1)
+        new = np.nonzero(words < 0)[0]
+        if len(new):
+            words[new] = self._create_words(q64[new], d1[new])
+        self.index_node(node_id, words)
+        return words
+
+    def _create_words(self, n64: np.ndarray, d_existing: np.ndarray) -> np.ndarray:
+        """New words for descriptors that matched nothing; descriptors of the batch close to
+        an earlier one of the batch share its word."""
+        # Exact duplicates first (so that they do not spoil each other's ratio test).
+        _, first, inv = np.unique(n64, axis=0, return_index=True, return_inverse=True)
+        inv = inv.ravel()
+        if len(first) < len(n64):
+            order = np.sort(first)
+            rank = np.empty(len(n64), np.int64)
+            rank[order] = np.arange(len(order))
+            ids = self._create_words(n64[order], d_existing[order])
+            return ids[rank[first[inv]]]
+        m = len(n64)
+        parent = np.arange(m)
+        if m > 1:
+            D = hamming(n64[:, None, :], n64[None, :, :])  # (m, m), bounded by the batch size
+            D[np.triu_indices(m)] = _NONE_DIST  # only earlier descriptors
+            j = np.argmin(D, axis=1)
+            dj = D[np.arange(m), j]
+            D[np.arange(m), j] = _NONE_DIST
+            dj2 = np.minimum(D.min(axis=1), d_existing)
+            ok = (dj <= self.max_distance) & (dj <= self.nndr * dj2)
+            parent = np.where(ok, j, parent)
+            while True:  # pointer jumping to the root (an earlier descriptor)
+                nxt = parent[parent]
+                if np.array_equal(nxt, parent):
+                    break
+                parent = nxt
+        roots = np.nonzero(parent == np.arange(m))[0]
+        self._ensure(len(roots))
+        ids = np.arange(self._next_id, self._next_id + len(roots), dtype=np.int64)
+        self._next_id += len(roots)
+        self._desc[ids] = n64[roots]
+        self._live[ids] = True
+        self._n_live += len(roots)
+        self._link(ids, self._keys(n64[roots]))
+        root_id = np.full(m, -1, np.int64)
+        root_id[roots] = ids
+        return root_id[parent]
+
+    def index_node(self, node_id: int, word_ids: np.ndarray) -> None:
+        """Add a node to the inverted index from word ids it already has (also used when
+        loading a map: no search needed)."""
+        node_id = int(node_id)
+        if node_id in self._nodes:
+            self.remove_node(node_id, drop_orphans=False)
+        w = np.asarray(word_ids, np.int64)
+        w = w[w >= 0]
+        uw, cnt = np.unique(w, return_counts=True)
+        self._nodes[node_id] = (uw, cnt)
+        self._nfeat[node_id] = int(len(w))
+        post = self._postings
+        for word, c in zip(uw.tolist(), cnt.tolist()):  # bounded by the node's features
+            d = post.get(word)
+            if d is None:
+                post[word] = {node_id: c}
+            else:
+                d[node_id] = c
+
+    # -- inverted index queries ---------------------------------------------------------
+    def node_words(self, node_id: int) -> tuple[np.ndarray, np.ndarray]:
+        return self._nodes[int(node_id)]
+
+    def node_size(self, node_id: int) -> int:
+        """Number of (quantized) features of a node: n_i of the tf-idf."""
+        return self._nfeat.get(int(node_id), 0)
+
+    def postings(self, word_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For the distinct given words: (words (U,), document frequency n_w (U,),
+        flat postings: index into words (P,), node ids (P,), counts (P,))."""
+        uw = np.unique(np.asarray(word_ids, np.int64))
+        uw = uw[uw >= 0]
+        df = np.zeros(len(uw), np.int64)
+        idx, nodes, counts = [], [], []
+        for i, w in enumerate(uw.tolist()):
+            d = self._postings.get(w)
+            if d:
+                df[i] = len(d)
+                idx.append(np.full(len(d), i, np.int64))
+                nodes.append(np.fromiter(d.keys(), np.int64, len(d)))
+                counts.append(np.fromiter(d.values(), np.int64, len(d)))
+        if idx:
+            return uw, df, np.concatenate(idx), np.concatenate(nodes), np.concatenate(counts)
+        e = np.zeros(0, np.int64)
+        return uw, df, e, e, e
+
+    def word_nodes(self, word_id: int) -> dict[int, int]:
+        return dict(self._postings.get(int(word_id), {}))
+
+    # -- removal ------------------------------------------------------------------------
+    def remove_node(self, node_id: int, drop_orphans: bool = True) -> np.ndarray:
+        """Take a node out of the inverted index; words no node references any more are
+        removed from the vocabulary. Returns the removed word ids."""
+        node_id = int(node_id)
+        entry = self._nodes.pop(node_id, None)
+        self._nfeat.pop(node_id, None)
+        if entry is None:
+            return np.zeros(0, np.int64)
+        orphans = []
+        for w in entry[0].tolist():
+            d = self._postings.get(w)
+            if d is None:
+                continue
+            d.pop(node_id, None)
+            if not d:
+                del self._postings[w]
+                orphans.append(w)
+        orphans = np.asarray(orphans, np.int64)
+        if drop_orphans and len(orphans):
+            self.remove_words(orphans)
+        return orphans if drop_orphans else np.zeros(0, np.int64)
+
+    def remove_words(self, word_ids) -> None:
+        w = np.unique(np.asarray(word_ids, np.int64))
+        w = w[(w >= 0) & (w < self._next_id)]
+        w = w[self._live[w]]
+        self._unlink(w)
+        self._live[w] = False
+        self._n_live -= len(w)
+        for x in w.tolist():
+            d = self._postings.pop(x, None)
+            if d:
+                for n in d:
+                    uw, cnt = self._nodes[n]
+                    keep = uw != x
+                    self._nodes[n] = (uw[keep], cnt[keep])
+
+    # -- persistence --------------------------------------------------------------------
+    def state(self) -> dict[str, np.ndarray]:
+        """Arrays to persist: live word ids (W,) int64 and descriptors (W×32 uint8), the
+        postings (word, node, count) and the parameters."""
+        ids = np.nonzero(self._live[: self._next_id])[0].astype(np.int64)
+        pw, pn, pc = [], [], []
+        for n, (uw, cnt) in self._nodes.items():
+            pw.append(uw)
+            pn.append(np.full(len(uw), n, np.int64))
+            pc.append(cnt)
+        cat = (lambda a: np.concatenate(a) if a else np.zeros(0, np.int64))
+        nodes = np.fromiter(self._nfeat.keys(), np.int64, len(self._nfeat))
+        return {
+            "word_ids": ids,
+            "descriptors": self._desc[ids].view(np.uint8).reshape(-1, 32).copy(),
+            "post_word": cat(pw), "post_node": cat(pn), "post_count": cat(pc),
+            "node_ids": nodes,
+            "node_nfeat": np.fromiter(self._nfeat.values(), np.int64, len(self._nfeat)),
+            "next_id": np.array([self._next_id], np.int64),
+            "params": np.array([self.nndr, self.max_distance, self.n_tables, self.key_bits,
+                                self.max_chain, self.seed], np.float64),
+        }
+
+    @classmethod
+    def from_state(cls, st: dict[str, np.ndarray], **overrides) -> "Vocabulary":
+        """Rebuild from `state()` arrays; the hash tables are rebuilt in one vectorized
+        O(W) pass (no search)."""
+        p = st.get("params")
+        kw = {}
+        if p is not None:
+            kw = dict(nndr=float(p[0]), max_distance=int(p[1]), n_tables=int(p[2]),
+                      key_bits=int(p[3]), max_chain=int(p[4]), seed=int(p[5]))
+        kw.update(overrides)
+        ids = np.asarray(st["word_ids"], np.int64)
+        next_id = int(st["next_id"][0]) if "next_id" in st else (int(ids.max()) + 1 if len(ids) else 0)
+        kw.setdefault("capacity", max(1 << 21, 2 * next_id))
+        v = cls(**kw)
+        v._ensure(next_id)
+        v._next_id = next_id
+        d64 = _as_u64(st["descriptors"])
+        v._desc[ids] = d64
+        v._live[ids] = True
+        v._n_live = len(ids)
+        if len(ids):
+            v._link(ids, v._keys(d64))
+        pw = np.asarray(st.get("post_word", np.zeros(0)), np.int64)
+        pn = np.asarray(st.get("post_node", np.zeros(0)), np.int64)
+        pc = np.asarray(st.get("post_count", np.zeros(0)), np.int64)
+        if len(pn):
+            order = np.argsort(pn, kind="stable")
+            pw, pn, pc = pw[order], pn[order], pc[order]
+            cuts = np.nonzero(np.diff(pn))[0] + 1
+            for w, n, c in zip(np.split(pw, cuts), np.split(pn, cuts), np.split(pc, cuts)):
+                nid = int(n[0])
+                v._nodes[nid] = (w, c)
+                for word, cnt in zip(w.tolist(), c.tolist()):
+                    v._postings.setdefault(word, {})[nid] = cnt
+        for n, f in zip(np.asarray(st.get("node_ids", []), np.int64).tolist(),
+                        np.asarray(st.get("node_nfeat", []), np.int64).tolist()):
+            v._nfeat[n] = f
+            v._nodes.setdefault(n, (np.zeros(0, np.int64), np.zeros(0, np.int64)))
+        return v
