@@ -1,0 +1,463 @@
+"""Pose graph over keyframes with GTSAM iSAM2 (RTAB-Map's graph optimisation, incremental).
+
+Nodes are keyframe ids (global ints, used directly as GTSAM keys); poses are camera-to-world 4×4
+matrices. Links are ``BetweenFactorPose3`` with the registration's 6×6 information (rotation
+first, GTSAM's Pose3 tangent order — see ``service.memory.odometry_information``):
+
+* odometry links with a plain Gaussian model;
+* loop links with a robust kernel (Huber by default, or Cauchy) around the same Gaussian;
+* the first node of the graph gets a tight prior; the first node of every later disconnected
+  segment (``odom_from=None``) gets a very loose one, so a loop link can move the whole segment.
+
+Every ``add_node`` is one iSAM2 update (a fraction of a millisecond on a chain). ``add_loop`` adds
+the loop link, iterates iSAM2 to convergence, then runs the graph-error check of RTAB-Map's
+``RGBD/OptimizeMaxError`` (3.0): the error of every link in the optimised graph, normalised by
+its σ (rotation and translation separately, the larger counts), must stay ≤ ``max_error``;
+otherwise the loop link is removed again (``removeFactorIndices``) and the estimate goes back to
+where it was. The outcome says why.
+
+Thread-safe: one re-entrant lock around every update and read (loop closure runs on a background
+thread while tracking reads poses).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+# default σ of an odometry link when none is given: 0.5° / 1 cm (rotation first)
+DEFAULT_ODOMETRY_SIGMAS = np.array([np.deg2rad(0.5)] * 3 + [0.01] * 3)
+FIRST_PRIOR_SIGMAS = np.array([1e-6] * 3 + [1e-6] * 3)
+SEGMENT_PRIOR_SIGMAS = np.array([3.0] * 3 + [10.0] * 3)  # loose: a loop link places the segment (σ 100 m makes iSAM2 report an indeterminate system)
+ROBUST_KERNELS = ("huber", "cauchy", "none")
+
+
+@dataclass
+class LoopOutcome:
+    """What happened to one loop link. Errors are normalised (σ units, RTAB-Map's ratio)."""
+
+    accepted: bool
+    reason: str  # "accepted", "max error exceeded by the loop link", ... , "check disabled"
+    error_before: float  # loop link's normalised error on the estimate before the link
+    error_after: float  # loop link's normalised error after optimisation (with the link)
+    max_normalized_error: float  # largest normalised error of any link after optimisation
+    worst_link: tuple[int, int] | None = None  # (from, to) of that link
+    iterations: int = 0  # iSAM2 updates spent on the loop
+    duration_ms: float = 0.0
+    moved: dict[int, float] = field(default_factory=dict, repr=False)  # unused; reserved
+
+
+@dataclass
+class _Link:
+    from_id: int
+    to_id: int
+    transform: np.ndarray  # T_from_to
+    information: np.ndarray  # 6×6
+    loop: bool
+    factor_index: int
+
+
+def _as_pose(m, what: str) -> np.ndarray:
+    a = np.asarray(m, dtype=np.float64)
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} must be a finite 4×4 matrix, got shape {a.shape}")
+    return a
+
+
+def _as_information(m, what: str) -> np.ndarray:
+    a = np.asarray(m, dtype=np.float64)
+    if a.shape != (6, 6) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} must be a finite 6×6 information matrix, got shape {a.shape}")
+    a = 0.5 * (a + a.T)
+    try:
+        np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"{what} must be positive definite") from None
+    return a
+
+
+def _pose3(m: np.ndarray) -> gtsam.Pose3:
+    # re-orthonormalise: GTSAM's Rot3 from a slightly non-orthogonal matrix is not a rotation
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    return gtsam.Pose3(gtsam.Rot3(r), np.asarray(m[:3, 3], dtype=np.float64))
+
+
+def _invert(t: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms, (..., 4, 4)."""
+    out = np.zeros_like(t)
+    rt = np.swapaxes(t[..., :3, :3], -1, -2)
+    out[..., :3, :3] = rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, t[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _skew(w: np.ndarray) -> np.ndarray:
+    s = np.zeros(w.shape[:-1] + (3, 3))
+    s[..., 0, 1], s[..., 0, 2] = -w[..., 2], w[..., 1]
+    s[..., 1, 0], s[..., 1, 2] = w[..., 2], -w[..., 0]
+    s[..., 2, 0], s[..., 2, 1] = -w[..., 1], w[..., 0]
+    return s
+
+
+def se3_log(t: np.ndarray) -> np.ndarray:
+    """Pose3::Logmap of rigid transforms (..., 4, 4) -> (..., 6) = [ω, u], vectorised."""
+    r = t[..., :3, :3]
+    cos = np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos)
+    vee = np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
+    sin = np.sin(theta)
+    small = theta < 1e-5
+    near_pi = theta > np.pi - 1e-4
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, sin)))
+    w = vee * k[..., None]
+    if np.any(near_pi):  # axis from the symmetric part; sign irrelevant for the error norm
+        sym = (r[near_pi] + np.eye(3)) / 2.0
+        axis = np.sqrt(np.clip(np.diagonal(sym, axis1=-2, axis2=-1), 0.0, None))
+        w[near_pi] = axis * np.pi
+    ws = _skew(w)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(small | near_pi, 1.0 / 12.0,
+                     (1.0 - theta * sin / (2.0 * (1.0 - cos))) / np.where(small, 1.0, theta**2))
+    vinv = np.eye(3) - 0.5 * ws + c[..., None, None] * (ws @ ws)
+    u = np.einsum("...ij,...j->...i", vinv, t[..., :3, 3])
+    return np.concatenate([w, u], axis=-1)
+
+
+def normalized_errors(poses_from: np.ndarray, poses_to: np.ndarray, transforms: np.ndarray,
+                      informations: np.ndarray) -> np.ndarray:
+    """Normalised error of links (n,) given the poses at both ends (n, 4, 4), the measured
+    T_from_to (n, 4, 4) and information (n, 6, 6): the BetweenFactorPose3 error
+    e = Logmap(measured⁻¹ · from⁻¹ · to), and max(√(e_rᵀ Λ_rr e_r), √(e_tᵀ Λ_tt e_t)) — rotation
+    and translation in σ, like RTAB-Map's angular/linear error ratios."""
+    e = se3_log(_invert(transforms) @ _invert(poses_from) @ poses_to)
+    er, et = e[:, :3], e[:, 3:]
+    cr = np.einsum("ni,nij,nj->n", er, informations[:, :3, :3], er)
+    ct = np.einsum("ni,nij,nj->n", et, informations[:, 3:, 3:], et)
+    return np.sqrt(np.maximum(np.maximum(cr, ct), 0.0))
+
+
+class PoseGraph:
+    """Incremental pose graph (iSAM2) with RTAB-Map's loop-link error check.
+
+    Parameters: ``max_error`` — RGBD/OptimizeMaxError, σ ratio (≤ 0 disables the check);
+    ``robust`` — default kernel of loop links, "huber", "cauchy" or "none"; ``robust_width`` —
+    kernel width in σ (whitened units); ``relinearize_threshold``/``wildfire_threshold`` —
+    iSAM2 accuracy knobs; ``max_iterations`` — iSAM2 updates per loop closure at most;
+    ``move_tolerance`` — (metres, radians) a pose must move to be reported by ``changed_poses``.
+    """
+
+    def __init__(self, max_error: float = 3.0, robust: str = "huber", robust_width: float = 3.0,
+                 relinearize_threshold: float = 1e-3, wildfire_threshold: float = 1e-6,
+                 max_iterations: int = 30, move_tolerance: tuple[float, float] = (1e-4, 1e-4)):
+        if robust not in ROBUST_KERNELS:
+            raise ValueError(f"robust must be one of {ROBUST_KERNELS}, got {robust!r}")
+        self.max_error = float(max_error)
+        self.robust = robust
+        self.robust_width = float(robust_width)
+        self.max_iterations = int(max_iterations)
+        self.move_tolerance = (float(move_tolerance[0]), float(move_tolerance[1]))
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(relinearize_threshold)
+        params.relinearizeSkip = 1
+        gn = gtsam.ISAM2GaussNewtonParams()
+        gn.setWildfireThreshold(wildfire_threshold)
+        params.setOptimizationParams(gn)
+        params.findUnusedFactorSlots = False  # factor indices stay unique (we remove by index)
+        self._params = params
+        self._isam = gtsam.ISAM2(params)
+        self._lock = threading.RLock()
+        self._nodes: list[int] = []  # insertion order
+        self._raw: dict[int, np.ndarray] = {}  # pose given to add_node (odometry frame)
+        self._links: list[_Link] = []  # active links (odometry + accepted loops)
+        self._priors: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # node -> (pose, sigmas, idx)
+        self._n_factors = 0  # factor slots used in iSAM2 (removed slots are not reused)
+        self._cache: dict[int, np.ndarray] | None = None  # full estimate, None = stale
+        self._published: dict[int, np.ndarray] = {}
+
+    # -- building -------------------------------------------------------------------------
+
+    def add_node(self, node_id: int, pose, odom_from: int | None = None, transform=None,
+                 information=None) -> np.ndarray:
+        """Add keyframe ``node_id`` and return its pose in the graph (the estimate).
+
+        ``pose``: camera-to-world 4×4 from odometry. With ``odom_from`` (a node already in the
+        graph) an odometry link from it is added with ``transform`` = T_from_to (default:
+        derived from the two odometry poses) and ``information`` (6×6, rotation first; default
+        0.5°/1 cm); the new node starts at estimate(odom_from)·T, so it follows corrections. With
+        ``odom_from=None`` the node starts a segment: a tight prior at ``pose`` for the first node
+        of the graph, a very loose one for a later segment (a loop link places it).
+        """
+        nid = int(node_id)
+        pose = _as_pose(pose, "pose")
+        with self._lock:
+            if nid in self._raw:
+                raise ValueError(f"node {nid} is already in the graph")
+            graph = gtsam.NonlinearFactorGraph()
+            values = gtsam.Values()
+            if odom_from is None:
+                if transform is not None or information is not None:
+                    raise ValueError("transform/information need odom_from")
+                sigmas = FIRST_PRIOR_SIGMAS if not self._nodes else SEGMENT_PRIOR_SIGMAS
+                graph.add(gtsam.PriorFactorPose3(nid, _pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+                new_prior = (pose.copy(), sigmas, self._n_factors)
+                new_link = None
+                initial = pose
+            else:
+                src = int(odom_from)
+                if src not in self._raw:
+                    raise ValueError(f"odom_from node {src} is not in the graph")
+                t = _invert(self._raw[src]) @ pose if transform is None else _as_pose(transform, "transform")
+                info = (np.diag(1.0 / DEFAULT_ODOMETRY_SIGMAS**2) if information is None
+                        else _as_information(information, "information"))
+                graph.add(gtsam.BetweenFactorPose3(src, nid, _pose3(t), gtsam.noiseModel.Gaussian.Information(info)))
+                new_link, new_prior = _Link(src, nid, t.copy(), info, False, self._n_factors), None
+                initial = self._pose_locked(src) @ t
+            values.insert(nid, _pose3(initial))
+            self._isam.update(graph, values)
+            self._n_factors += 1
+            if new_link is not None:
+                self._links.append(new_link)
+            else:
+                self._priors[nid] = new_prior
+            self._nodes.append(nid)
+            self._raw[nid] = pose.copy()
+            est = self._isam.calculateEstimatePose3(nid).matrix()
+            if self._cache is not None:
+                # a new leaf (one odometry link or a prior) does not move the optimum of the others
+                self._cache[nid] = est
+            return est.copy()
+
+    def add_loop(self, from_id: int, to_id: int, transform, information, robust: bool | str = True,
+                 check: bool = True) -> LoopOutcome:
+        """Add a loop link T_from_to between two graph nodes, optimise, and check the graph error.
+
+        ``robust``: True = the graph's default kernel, False/"none" = plain Gaussian, or "huber" /
+        "cauchy". ``check=False`` (or ``max_error`` ≤ 0) keeps the link whatever the error. A
+        rejected link is removed again and the estimate restored."""
+        t0 = time.perf_counter()
+        a, b = int(from_id), int(to_id)
+        t = _as_pose(transform, "transform")
+        info = _as_information(information, "information")
+        kernel = self.robust if robust is True else ("none" if robust is False else str(robust))
+        if kernel not in ROBUST_KERNELS:
+            raise ValueError(f"robust must be bool or one of {ROBUST_KERNELS}, got {robust!r}")
+        with self._lock:
+            for n in (a, b):
+                if n not in self._raw:
+                    raise ValueError(f"loop node {n} is not in the graph")
+            if a == b:
+                raise ValueError("a loop link needs two different nodes")
+            before = self._estimate_locked()
+            err_before = float(normalized_errors(before[a][None], before[b][None], t[None], info[None])[0])
+            noise = gtsam.noiseModel.Gaussian.Information(info)
+            if kernel == "huber":
+                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.robust_width), noise)
+            elif kernel == "cauchy":
+                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.robust_width), noise)
+            graph = gtsam.NonlinearFactorGraph()
+            graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), noise))
+            index = self._n_factors
+            self._isam.update(graph, gtsam.Values())
+            self._n_factors += 1
+            link = _Link(a, b, t.copy(), info, True, index)
+            self._links.append(link)
+            iterations = 1 + self._converge_locked()
+            self._cache = None
+            after = self._estimate_locked()
+            errs = self._link_errors_locked(after)
+            k = int(np.argmax(errs)) if len(errs) else -1
+            max_err = float(errs[k]) if k >= 0 else 0.0
+            worst = (self._links[k].from_id, self._links[k].to_id) if k >= 0 else None
+            err_after = float(errs[-1])
+            if not check or self.max_error <= 0:
+                accepted, reason = True, "accepted (check disabled)"
+            elif err_after > self.max_error:
+                accepted, reason = False, (f"loop link error {err_after:.2f} σ > max {self.max_error:g} σ "
+                                           "after optimisation")
+            elif max_err > self.max_error:
+                accepted, reason = False, (f"link {worst[0]}->{worst[1]} error {max_err:.2f} σ > max "
+                                           f"{self.max_error:g} σ after optimisation")
+            else:
+                accepted, reason = True, "accepted"
+            if not accepted:
+                self._remove_links_locked([link], restore=before)
+            return LoopOutcome(accepted, reason, err_before, err_after, max_err, worst, iterations,
+                               (time.perf_counter() - t0) * 1e3)
+
+    def remove_loop(self, from_id: int, to_id: int) -> int:
+        """Remove the loop link(s) between two nodes (either direction) and re-optimise.
+        Returns how many links were removed."""
+        a, b = int(from_id), int(to_id)
+        with self._lock:
+            gone = [l for l in self._links if l.loop and {l.from_id, l.to_id} == {a, b}]
+            if gone:
+                self._remove_links_locked(gone, restore=None)
+            return len(gone)
+
+    def _remove_links_locked(self, links: list[_Link], restore: dict[int, np.ndarray] | None) -> None:
+        self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [l.factor_index for l in links])
+        ids = {id(l) for l in links}
+        self._links = [l for l in self._links if id(l) not in ids]
+        self._converge_locked()
+        self._cache = None
+        if restore is not None:
+            # the optimum without the link is the estimate before it: iterate until iSAM2 is there
+            for _ in range(self.max_iterations):
+                est = self._estimate_locked()
+                if self._max_move(restore, est) < 1e-9:
+                    break
+                self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None, None, True)
+                self._cache = None
+            self._cache = {k: v.copy() for k, v in restore.items()}  # exactly as before
+
+    def _converge_locked(self) -> int:
+        """Extra iSAM2 updates until nothing is relinearised any more. Returns how many."""
+        n = 0
+        while n < self.max_iterations - 1:
+            r = self._isam.update()
+            n += 1
+            if r.getVariablesRelinearized() == 0:
+                break
+        return n
+
+    # -- reading --------------------------------------------------------------------------
+
+    def _estimate_locked(self) -> dict[int, np.ndarray]:
+        if self._cache is None:
+            values = self._isam.calculateEstimate()
+            keys = list(values.keys())
+            if keys:
+                flat = np.asarray(gtsam.utilities.extractPose3(values))  # rows: R row-major, t
+                mats = np.zeros((len(keys), 4, 4))
+                mats[:, :3, :3] = flat[:, :9].reshape(-1, 3, 3)
+                mats[:, :3, 3] = flat[:, 9:12]
+                mats[:, 3, 3] = 1.0
+                self._cache = {int(k): mats[i] for i, k in enumerate(keys)}
+            else:
+                self._cache = {}
+        return self._cache
+
+    def _pose_locked(self, node_id: int) -> np.ndarray:
+        if self._cache is not None and node_id in self._cache:
+            return self._cache[node_id]
+        return self._isam.calculateEstimatePose3(node_id).matrix()
+
+    def _link_errors_locked(self, est: dict[int, np.ndarray]) -> np.ndarray:
+        if not self._links:
+            return np.zeros(0)
+        pf = np.stack([est[l.from_id] for l in self._links])
+        pt = np.stack([est[l.to_id] for l in self._links])
+        tr = np.stack([l.transform for l in self._links])
+        inf = np.stack([l.information for l in self._links])
+        return normalized_errors(pf, pt, tr, inf)
+
+    def poses(self) -> dict[int, np.ndarray]:
+        """Current estimate of every node (copies)."""
+        with self._lock:
+            return {k: v.copy() for k, v in self._estimate_locked().items()}
+
+    def pose(self, node_id: int) -> np.ndarray:
+        with self._lock:
+            nid = int(node_id)
+            if nid not in self._raw:
+                raise KeyError(f"node {nid} is not in the graph")
+            return self._pose_locked(nid).copy()
+
+    def link_errors(self) -> list[tuple[int, int, bool, float]]:
+        """(from, to, is_loop, normalised error) of every active link on the current estimate."""
+        with self._lock:
+            errs = self._link_errors_locked(self._estimate_locked())
+            return [(l.from_id, l.to_id, l.loop, float(e)) for l, e in zip(self._links, errs)]
+
+    def loops(self) -> list[tuple[int, int]]:
+        with self._lock:
+            return [(l.from_id, l.to_id) for l in self._links if l.loop]
+
+    def changed_poses(self, tolerance: tuple[float, float] | None = None) -> dict[int, np.ndarray]:
+        """Poses that moved more than (metres, radians) since the previous call, plus nodes not
+        reported yet — what the caller writes with ``MapStore.update_poses`` before emitting
+        'map corrected'."""
+        tol_t, tol_r = self.move_tolerance if tolerance is None else tolerance
+        with self._lock:
+            est = self._estimate_locked()
+            out: dict[int, np.ndarray] = {}
+            old_ids = [k for k in est if k in self._published]
+            out.update({k: est[k].copy() for k in est if k not in self._published})
+            if old_ids:
+                cur = np.stack([est[k] for k in old_ids])
+                prev = np.stack([self._published[k] for k in old_ids])
+                dt = np.linalg.norm(cur[:, :3, 3] - prev[:, :3, 3], axis=1)
+                rel = np.einsum("nji,njk->nik", prev[:, :3, :3], cur[:, :3, :3])
+                dr = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1))
+                for i in np.nonzero((dt > tol_t) | (dr > tol_r))[0]:
+                    out[old_ids[i]] = cur[i].copy()
+            for k, v in out.items():
+                self._published[k] = v.copy()
+            return out
+
+    @staticmethod
+    def _max_move(a: dict[int, np.ndarray], b: dict[int, np.ndarray]) -> float:
+        keys = [k for k in a if k in b]
+        if not keys:
+            return 0.0
+        return float(np.max(np.abs(np.stack([a[k] for k in keys]) - np.stack([b[k] for k in keys]))))
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._nodes)
+
+    def __contains__(self, node_id) -> bool:
+        with self._lock:
+            return int(node_id) in self._raw
+
+    # -- batch ----------------------------------------------------------------------------
+
+    def factor_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The active factors (priors, odometry, loops) as one graph, for batch solvers."""
+        with self._lock:
+            return self._isam.getFactorsUnsafe().clone()
+
+    def batch_optimize(self, max_iterations: int = 100, apply: bool = False) -> dict[int, np.ndarray]:
+        """Levenberg–Marquardt over the whole graph from the current estimate; returns the poses.
+        ``apply=True`` restarts iSAM2 from the batch solution (same factors)."""
+        with self._lock:
+            graph = gtsam.NonlinearFactorGraph()
+            factors = self._isam.getFactorsUnsafe()
+            for i in range(factors.size()):
+                f = factors.at(i)
+                if f is not None:
+                    graph.add(f)
+            initial = self._isam.calculateEstimate()
+            params = gtsam.LevenbergMarquardtParams()
+            params.setMaxIterations(max_iterations)
+            params.setRelativeErrorTol(1e-12)
+            params.setAbsoluteErrorTol(1e-14)
+            result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+            if apply:
+                self._isam = gtsam.ISAM2(self._params)
+                self._isam.update(graph, result)
+                # indices are renumbered: rebuild them in factor order (priors/links kept in order)
+                self._renumber_locked()
+                self._cache = None
+            keys = list(result.keys())
+            return {int(k): result.atPose3(k).matrix() for k in keys}
+
+    def _renumber_locked(self) -> None:
+        old = sorted([(l.factor_index, "l", l) for l in self._links] +
+                     [(p[2], "p", n) for n, p in self._priors.items()], key=lambda x: x[0])
+        for new, (_, kind, obj) in enumerate(old):
+            if kind == "l":
+                obj.factor_index = new
+            else:
+                pose, sig, _ = self._priors[obj]
+                self._priors[obj] = (pose, sig, new)
+        self._n_factors = len(old)
