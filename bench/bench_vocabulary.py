@@ -1,0 +1,75 @@
+"""Vocabulary growth bench: per-node add+query time as the vocabulary grows from 10k to 1M
+words (500 descriptors per node, half uniformly random, half clustered around a fixed set of
+centres with bit noise, so that both new words and votes happen). It must grow
+sub-linearly and show no rebuild spikes (introlab/rtabmap#982).
+
+    python bench/bench_vocabulary.py            # up to 300k words
+    python bench/bench_vocabulary.py --max 1000000
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from service.vocabulary import Vocabulary  # noqa: E402
+
+
+def _noisy(rng, desc, p):
+    bits = np.unpackbits(desc, axis=1)
+    bits ^= (rng.random(bits.shape) < p).astype(np.uint8)
+    return np.packbits(bits, axis=1)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--max", type=int, default=300_000, help="vocabulary size to grow to (words)")
+    ap.add_argument("--per-node", type=int, default=500)
+    ap.add_argument("--window", type=int, default=40, help="nodes timed around each checkpoint")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args(argv)
+    rng = np.random.default_rng(a.seed)
+    checkpoints = [c for c in (10_000, 100_000, 300_000, 1_000_000) if c <= a.max]
+    v = Vocabulary(capacity=max(1 << 21, 2 * a.max))
+    centres = rng.integers(0, 256, (20_000, 32), dtype=np.uint8)
+    half = a.per_node // 2
+    times: list[tuple[int, float, float, float]] = []  # (words before, add s, query s, candidates/query)
+    node = 0
+    t_start = time.perf_counter()
+    while len(v) < a.max:
+        d = rng.integers(0, 256, (a.per_node, 32), dtype=np.uint8)
+        d[:half] = _noisy(rng, centres[rng.integers(0, len(centres), half)], 0.06)
+        w_before = len(v)
+        t0 = time.perf_counter()
+        v.add(node, d)
+        t1 = time.perf_counter()
+        v.query(_noisy(rng, d, 0.04))  # the likelihood-side lookup of a revisit
+        t2 = time.perf_counter()
+        times.append((w_before, t1 - t0, t2 - t1, v.last_candidates / max(v.last_queries, 1)))
+        node += 1
+    total = time.perf_counter() - t_start
+    arr = np.array(times)
+    print(f"grew to {len(v)} words over {node} nodes in {total:.1f} s")
+    print(f"{'words':>9} {'nodes':>6} {'add+query p50':>14} {'p99':>9} {'max':>9} {'add p50':>9} {'query p50':>10} {'cand/query':>11}")
+    for c in checkpoints:
+        # the nodes added while the vocabulary was in [c/2, c]: (lower edge at 10k: [0, 10k])
+        lo = c // 2 if c > 10_000 else 0
+        sel = (arr[:, 0] >= lo) & (arr[:, 0] < c)
+        if not sel.any():
+            continue
+        tot = (arr[sel, 1] + arr[sel, 2]) * 1e3
+        print(f"{c:>9} {int(sel.sum()):>6} {np.percentile(tot, 50):>11.1f} ms {np.percentile(tot, 99):>6.1f} ms "
+              f"{tot.max():>6.1f} ms {np.median(arr[sel, 1]) * 1e3:>6.1f} ms {np.median(arr[sel, 2]) * 1e3:>7.1f} ms "
+              f"{np.median(arr[sel, 3]):>11.0f}")
+    tot = (arr[:, 1] + arr[:, 2]) * 1e3
+    print(f"all nodes: p50 {np.percentile(tot, 50):.1f} ms, p99 {np.percentile(tot, 99):.1f} ms, max {tot.max():.1f} ms "
+          f"(max/p50 {tot.max() / np.percentile(tot, 50):.1f})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
