@@ -45,13 +45,14 @@ class LoopHypothesis:
     score: float = 0.0  # 1 - p(virtual place), compared with loop_threshold
     virtual_posterior: float = 1.0
     n_hypotheses: int = 0
+    shared: float = 0.0  # fraction of the node's distinct words also seen in best_id
 
     def to_dict(self) -> dict:
         return {
             "best_id": self.best_id, "posterior": self.posterior, "accepted": self.accepted,
             "likelihood": [[int(i), float(s)] for i, s in self.likelihood], "reason": self.reason,
             "score": self.score, "virtual_posterior": self.virtual_posterior,
-            "n_hypotheses": self.n_hypotheses,
+            "n_hypotheses": self.n_hypotheses, "shared": self.shared,
         }
 
 
@@ -59,7 +60,7 @@ class LoopDetector:
     def __init__(self, vocabulary: Vocabulary | None = None, loop_threshold: float = 0.11,
                  virtual_prior: float = 0.9, prediction=PREDICTION_LC, stm_size: int = 10,
                  tfidf: bool = True, top_k: int = 5, max_predicted: int = 64,
-                 require_evidence: bool = True, **_unused):
+                 require_evidence: bool = True, min_shared: float = 0.02, **_unused):
         self.vocabulary = vocabulary if vocabulary is not None else Vocabulary()
         self.loop_threshold = float(loop_threshold)
         self.virtual_prior = float(virtual_prior)
@@ -73,6 +74,10 @@ class LoopDetector:
         # after the robot leaves a revisited path the posterior lingers a few nodes on the
         # prediction alone; RTAB-Map leaves those to geometric verification, we reject them.
         self.require_evidence = bool(require_evidence)
+        # Absolute floor: the fraction of the node's distinct words the hypothesis shares
+        # (the mean/σ adjustment also magnifies a handful of shared words when all scores are
+        # tiny, e.g. early on with few nodes).
+        self.min_shared = float(min_shared)
         self._post_ids = np.zeros(0, np.int64)  # hypotheses (sorted ids)
         self._post = np.zeros(0, np.float64)
         self._post_virtual = 1.0
@@ -99,6 +104,7 @@ class LoopDetector:
     def raw_likelihood(self, word_ids: np.ndarray, cand: np.ndarray, node_id: int | None = None) -> np.ndarray:
         """Score of each candidate (sorted ids `cand`) against the node's words."""
         s = np.zeros(len(cand), np.float64)
+        self._last_shared = (np.zeros(len(cand), np.int64), 1)
         if not len(cand):
             return s
         voc = self.vocabulary
@@ -110,6 +116,7 @@ class LoopDetector:
         if node_id is not None:
             ok &= nodes != node_id
         pos, idx, counts, nodes = pos[ok], idx[ok], counts[ok], nodes[ok]
+        self._last_shared = (np.bincount(pos, minlength=len(cand)), max(len(uw), 1))
         n_i = np.array([max(voc.node_size(n), 1) for n in cand.tolist()], np.float64)
         if self.tfidf:
             N = max(voc.n_nodes, 1)
@@ -237,6 +244,8 @@ class LoopDetector:
         k = min(self.top_k, len(raw))
         top = np.argsort(-raw, kind="stable")[:k]
         lik = [(int(cand[i]), float(raw[i])) for i in top if raw[i] > 0]
+        shared_counts, n_words = self._last_shared
+        shared = float(shared_counts[b]) / n_words
         if len(cand) < 2:
             accepted, reason = False, "single hypothesis"
         elif best in stm:
@@ -244,8 +253,11 @@ class LoopDetector:
         elif self.require_evidence and adj[b] <= lik_virtual:
             accepted, reason = False, (f"no appearance evidence for {best} in this node "
                                        f"(score {score:.3f}, belief carried by the prediction)")
+        elif shared < self.min_shared:
+            accepted, reason = False, (f"too few shared words with {best}: {shared:.3f} < {self.min_shared} "
+                                       f"(score {score:.3f})")
         elif score >= self.loop_threshold:
             accepted, reason = True, f"accepted (score {score:.3f} >= {self.loop_threshold})"
         else:
             accepted, reason = False, f"below threshold (score {score:.3f} < {self.loop_threshold})"
-        return LoopHypothesis(best, p_best, accepted, lik, reason, float(score), float(post_v), len(cand))
+        return LoopHypothesis(best, p_best, accepted, lik, reason, float(score), float(post_v), len(cand), shared)

@@ -36,6 +36,14 @@ def _as_u64(desc: np.ndarray) -> np.ndarray:
     return d.view(np.uint64)
 
 
+def hamming_matrix(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
+    """All-pairs Hamming distances (len(a), len(b)) int32 of (n, 4) uint64 arrays."""
+    d = np.bitwise_count(np.bitwise_xor.outer(a64[:, 0], b64[:, 0])).astype(np.int32)
+    for k in range(1, a64.shape[1]):
+        d += np.bitwise_count(np.bitwise_xor.outer(a64[:, k], b64[:, k]))
+    return d
+
+
 def hamming(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
     """Row-wise Hamming distance of two (n, 4) uint64 arrays (broadcasting)."""
     return np.bitwise_count(np.bitwise_xor(a64, b64)).sum(axis=-1, dtype=np.int32)
@@ -224,7 +232,7 @@ class Vocabulary:
         m = len(n64)
         parent = np.arange(m)
         if m > 1:
-            D = hamming(n64[:, None, :], n64[None, :, :])  # (m, m), bounded by the batch size
+            D = hamming_matrix(n64, n64)  # (m, m), bounded by the batch size
             D[np.triu_indices(m)] = _NONE_DIST  # only earlier descriptors
             j = np.argmin(D, axis=1)
             dj = D[np.arange(m), j]
@@ -281,19 +289,19 @@ class Vocabulary:
         flat postings: index into words (P,), node ids (P,), counts (P,))."""
         uw = np.unique(np.asarray(word_ids, np.int64))
         uw = uw[uw >= 0]
-        df = np.zeros(len(uw), np.int64)
-        idx, nodes, counts = [], [], []
-        for i, w in enumerate(uw.tolist()):
-            d = self._postings.get(w)
-            if d:
-                df[i] = len(d)
-                idx.append(np.full(len(d), i, np.int64))
-                nodes.append(np.fromiter(d.keys(), np.int64, len(d)))
-                counts.append(np.fromiter(d.values(), np.int64, len(d)))
-        if idx:
-            return uw, df, np.concatenate(idx), np.concatenate(nodes), np.concatenate(counts)
-        e = np.zeros(0, np.int64)
-        return uw, df, e, e, e
+        nodes: list[int] = []
+        counts: list[int] = []
+        lens: list[int] = []
+        post = self._postings
+        empty: dict[int, int] = {}
+        for w in uw.tolist():  # bounded by the node's features
+            d = post.get(w, empty)
+            nodes.extend(d.keys())
+            counts.extend(d.values())
+            lens.append(len(d))
+        df = np.asarray(lens, np.int64)
+        idx = np.repeat(np.arange(len(uw), dtype=np.int64), df)
+        return uw, df, idx, np.asarray(nodes, np.int64), np.asarray(counts, np.int64)
 
     def word_nodes(self, word_id: int) -> dict[int, int]:
         return dict(self._postings.get(int(word_id), {}))
