@@ -251,3 +251,18 @@ def test_reads_while_loop_closes(scene):
         stop.set()
         th.join()
     assert not errors
+
+
+def test_batch_apply_and_rejected_factor_not_in_batch(scene):
+    truth, odo, rng = scene
+    g = build(truth, odo)
+    n = len(truth) - 1
+    assert not g.add_loop(n, 0, loop_measurement(truth, n, 0, rng) @ exp([0, 0, 0, 0, 2.0, 0]), LOOP_INFO).accepted
+    before = g.poses()
+    assert max_diff(before, g.batch_optimize()) < 1e-5  # the removed link is not in the batch graph
+    assert g.add_loop(n, 0, loop_measurement(truth, n, 0, rng), LOOP_INFO).accepted
+    batch = g.batch_optimize(apply=True)  # iSAM2 restarted from the LM solution
+    assert max_diff(batch, g.poses()) < 1e-6
+    g.add_node(n + 1, np.eye(4), odom_from=n, transform=odo[0], information=INFO)
+    assert g.remove_loop(n, 0) == 1  # factor indices were renumbered correctly
+    assert max_diff(before, {k: v for k, v in g.poses().items() if k in before}) < 1e-5
