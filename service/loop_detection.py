@@ -46,6 +46,7 @@ class LoopHypothesis:
     virtual_posterior: float = 1.0
     n_hypotheses: int = 0
     shared: float = 0.0  # fraction of the node's distinct words also seen in best_id
+    distinct: float = 0.0  # raw likelihood of best_id / best raw likelihood away from it
 
     def to_dict(self) -> dict:
         return {
@@ -53,6 +54,7 @@ class LoopHypothesis:
             "likelihood": [[int(i), float(s)] for i, s in self.likelihood], "reason": self.reason,
             "score": self.score, "virtual_posterior": self.virtual_posterior,
             "n_hypotheses": self.n_hypotheses, "shared": self.shared,
+            "distinct": self.distinct,
         }
 
 
@@ -60,7 +62,8 @@ class LoopDetector:
     def __init__(self, vocabulary: Vocabulary | None = None, loop_threshold: float = 0.11,
                  virtual_prior: float = 0.9, prediction=PREDICTION_LC, stm_size: int = 10,
                  tfidf: bool = True, top_k: int = 5, max_predicted: int = 64,
-                 require_evidence: bool = True, min_shared: float = 0.02, **_unused):
+                 require_evidence: bool = True, min_shared: float = 0.05, min_distinct: float = 2.0,
+                 distinct_depth: int = 4, **_unused):
         self.vocabulary = vocabulary if vocabulary is not None else Vocabulary()
         self.loop_threshold = float(loop_threshold)
         self.virtual_prior = float(virtual_prior)
@@ -78,6 +81,8 @@ class LoopDetector:
         # (the mean/σ adjustment also magnifies a handful of shared words when all scores are
         # tiny, e.g. early on with few nodes).
         self.min_shared = float(min_shared)
+        self.min_distinct = float(min_distinct)
+        self.distinct_depth = int(distinct_depth)
         self._post_ids = np.zeros(0, np.int64)  # hypotheses (sorted ids)
         self._post = np.zeros(0, np.float64)
         self._post_virtual = 1.0
@@ -210,6 +215,21 @@ class LoopDetector:
             np.add.at(prior, np.concatenate(dst), np.concatenate(val))
         return prior, prior_v
 
+    def _distinctiveness(self, raw, cand, best, neighbours) -> float:
+        """raw[best] / max raw over candidates farther than `distinct_depth` graph hops from
+        best (a place that looks like several unrelated places — repeated textures — is
+        not distinctive)."""
+        near = {best}
+        frontier = [best]
+        for _ in range(self.distinct_depth):
+            nxt = [b for a in frontier for b in neighbours.get(a, ()) if b not in near]
+            near.update(nxt)
+            frontier = nxt
+        far = ~np.isin(cand, np.fromiter(near, np.int64, len(near)))
+        i = int(np.searchsorted(cand, best))
+        other = float(raw[far].max()) if far.any() else 0.0
+        return float(raw[i]) / other if other > 0 else float("inf")
+
     # -- update -------------------------------------------------------------------------
     def process(self, node_id: int, word_ids, neighbours: dict[int, list[int]] | None = None,
                 candidates=None) -> LoopHypothesis:
@@ -246,6 +266,7 @@ class LoopDetector:
         lik = [(int(cand[i]), float(raw[i])) for i in top if raw[i] > 0]
         shared_counts, n_words = self._last_shared
         shared = float(shared_counts[b]) / n_words
+        distinct = self._distinctiveness(raw, cand, best, neighbours)
         if len(cand) < 2:
             accepted, reason = False, "single hypothesis"
         elif best in stm:
@@ -256,8 +277,11 @@ class LoopDetector:
         elif shared < self.min_shared:
             accepted, reason = False, (f"too few shared words with {best}: {shared:.3f} < {self.min_shared} "
                                        f"(score {score:.3f})")
+        elif distinct < self.min_distinct:
+            accepted, reason = False, (f"not distinctive: {best} scores {distinct:.2f}x the best place "
+                                       f"outside its neighbourhood < {self.min_distinct} (score {score:.3f})")
         elif score >= self.loop_threshold:
             accepted, reason = True, f"accepted (score {score:.3f} >= {self.loop_threshold})"
         else:
             accepted, reason = False, f"below threshold (score {score:.3f} < {self.loop_threshold})"
-        return LoopHypothesis(best, p_best, accepted, lik, reason, float(score), float(post_v), len(cand), shared)
+        return LoopHypothesis(best, p_best, accepted, lik, reason, float(score), float(post_v), len(cand), shared, distinct)

@@ -135,3 +135,55 @@ def test_no_candidates():
     det = LoopDetector()
     h = det.process(0, np.arange(10), {}, set())
     assert h.best_id is None and not h.accepted and h.reason == "no candidates"
+
+
+def _run_synthetic(trajectory, rate=1.0):
+    from client.synthetic import SyntheticDataset
+    from service.config import load_config
+    from service.features import FeatureExtractor
+
+    ds = SyntheticDataset(trajectory, rate=rate, noise=True, width=320, height=240, fx=262.5)
+    cfg = load_config()
+    fe = FeatureExtractor(ds.calibration, cfg.features, cfg.stereo)
+    voc = Vocabulary()
+    det = LoopDetector(voc)
+    neighbours: dict[int, list[int]] = {}
+    out = []
+    for i in range(len(ds)):
+        w = voc.add(i, fe.extract(ds.frame(i)).descriptors)
+        neighbours[i] = [i - 1] if i else []
+        if i:
+            neighbours[i - 1].append(i)
+        out.append(det.process(i, w, neighbours, None))
+    return ds, out
+
+
+def _close(poses, i, j, dist, angle):
+    d = np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3])
+    c = np.clip(poses[i, :3, 2] @ poses[j, :3, 2], -1, 1)
+    return d < dist and np.degrees(np.arccos(c)) < angle
+
+
+@pytest.mark.slow
+def test_synthetic_figure8_recall_and_precision():
+    """Keyframes at 1 Hz over two laps of the figure eight: every accepted hypothesis shows
+    the same part of the scene (< 2.5 m, < 45°: the views overlap) and ≥ 80% of the keyframes
+    that revisit a place seen ≥ 10 s earlier (< 0.5 m, < 30°) are accepted with a right node."""
+    ds, hyps = _run_synthetic("figure8")
+    poses, stamps = ds.ground_truth.poses, ds.ground_truth.stamps
+    revisits = [i for i in range(len(ds))
+                if any(stamps[i] - stamps[j] >= 10 and _close(poses, i, j, 0.5, 30) for j in range(i))]
+    assert len(revisits) > 30
+    wrong = [(i, h.best_id) for i, h in enumerate(hyps) if h.accepted and not _close(poses, i, h.best_id, 2.5, 45)]
+    assert not wrong
+    hit = [i for i in revisits if hyps[i].accepted and _close(poses, i, hyps[i].best_id, 2.5, 45)]
+    assert len(hit) >= 0.8 * len(revisits), (len(hit), len(revisits))
+
+
+@pytest.mark.slow
+def test_synthetic_straight_walk_past_repeated_posters_no_loop():
+    """No revisit: nothing accepted at 1 Hz. (At 2 Hz two keyframes facing the same poster
+    3.1 m apart are accepted: identical appearance with one earlier look-alike, which only the
+    geometric / graph-consistency checks downstream can reject.)"""
+    ds, hyps = _run_synthetic("straight", rate=1.0)
+    assert not [i for i, h in enumerate(hyps) if h.accepted]
