@@ -16,8 +16,10 @@ its σ (rotation and translation separately, the larger counts), must stay ≤ `
 otherwise the loop link is removed again (``removeFactorIndices``) and the estimate goes back to
 where it was. The outcome says why.
 
-Thread-safe: one re-entrant lock around every update and read (loop closure runs on a background
-thread while tracking reads poses).
+Thread-safe: one re-entrant lock serialises the updates (add_node waits while a loop closure
+optimises — call it from the mapping thread); ``poses()``/``pose()`` read a snapshot under a
+separate short lock and never wait for an optimisation (tracking reads poses while loop closure
+runs on a background thread).
 """
 from __future__ import annotations
 
@@ -87,6 +89,11 @@ def _pose3(m: np.ndarray) -> gtsam.Pose3:
         u[:, -1] *= -1
         r = u @ vt
     return gtsam.Pose3(gtsam.Rot3(r), np.asarray(m[:3, 3], dtype=np.float64))
+
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
 
 
 def _invert(t: np.ndarray) -> np.ndarray:
@@ -185,6 +192,10 @@ class PoseGraph:
         self._priors: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # node -> (pose, sigmas, idx)
         self._n_factors = 0  # factor slots used in iSAM2 (removed slots are not reused)
         self._cache: dict[int, np.ndarray] | None = None  # full estimate, None = stale
+        # what readers see: replaced (never mutated in place, arrays read-only) after every
+        # update, under its own short lock, so poses()/pose() never wait for an optimisation
+        self._snap: dict[int, np.ndarray] = {}
+        self._snap_lock = threading.Lock()
         self._published: dict[int, np.ndarray] = {}
 
     # -- building -------------------------------------------------------------------------
@@ -237,8 +248,10 @@ class PoseGraph:
             est = self._isam.calculateEstimatePose3(nid).matrix()
             if self._cache is not None:
                 # a new leaf (one odometry link or a prior) does not move the optimum of the others
-                self._cache[nid] = est
-            return est.copy()
+                self._cache[nid] = _ro(est.copy())
+            with self._snap_lock:
+                self._snap[nid] = _ro(est.copy())
+            return est
 
     def add_loop(self, from_id: int, to_id: int, transform, information, robust: bool | str = True,
                  check: bool = True) -> LoopOutcome:
@@ -294,6 +307,7 @@ class PoseGraph:
                 accepted, reason = True, "accepted"
             if not accepted:
                 self._remove_links_locked([link], restore=before)
+            self._publish_locked()
             return LoopOutcome(accepted, reason, err_before, err_after, max_err, worst, iterations,
                                (time.perf_counter() - t0) * 1e3)
 
@@ -305,6 +319,7 @@ class PoseGraph:
             gone = [l for l in self._links if l.loop and {l.from_id, l.to_id} == {a, b}]
             if gone:
                 self._remove_links_locked(gone, restore=None)
+                self._publish_locked()
             return len(gone)
 
     def _remove_links_locked(self, links: list[_Link], restore: dict[int, np.ndarray] | None) -> None:
@@ -321,7 +336,7 @@ class PoseGraph:
                     break
                 self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None, None, True)
                 self._cache = None
-            self._cache = {k: v.copy() for k, v in restore.items()}  # exactly as before
+            self._cache = {k: _ro(v.copy()) for k, v in restore.items()}  # exactly as before
 
     def _converge_locked(self, tolerance: float = 1e-5) -> int:
         """Extra iSAM2 updates (each one Gauss-Newton step on the relinearised part) until
@@ -360,6 +375,7 @@ class PoseGraph:
                 mats[:, :3, :3] = flat[:, :9].reshape(-1, 3, 3)
                 mats[:, :3, 3] = flat[:, 9:12]
                 mats[:, 3, 3] = 1.0
+                mats.setflags(write=False)
                 self._cache = {int(k): mats[i] for i, k in enumerate(keys)}
             else:
                 self._cache = {}
@@ -379,17 +395,25 @@ class PoseGraph:
         inf = np.stack([l.information for l in self._links])
         return normalized_errors(pf, pt, tr, inf)
 
+    def _publish_locked(self) -> None:
+        est = self._estimate_locked()
+        with self._snap_lock:
+            self._snap = dict(est)
+
     def poses(self) -> dict[int, np.ndarray]:
-        """Current estimate of every node (copies)."""
-        with self._lock:
-            return {k: v.copy() for k, v in self._estimate_locked().items()}
+        """Current estimate of every node: a new dict of read-only 4×4 arrays. Never waits for
+        an optimisation in progress (it sees the estimate from before it)."""
+        with self._snap_lock:
+            return dict(self._snap)
 
     def pose(self, node_id: int) -> np.ndarray:
-        with self._lock:
-            nid = int(node_id)
-            if nid not in self._raw:
-                raise KeyError(f"node {nid} is not in the graph")
-            return self._pose_locked(nid).copy()
+        """Current estimate of one node (a copy); never waits for an optimisation."""
+        nid = int(node_id)
+        with self._snap_lock:
+            p = self._snap.get(nid)
+        if p is None:
+            raise KeyError(f"node {nid} is not in the graph")
+        return p.copy()
 
     def link_errors(self) -> list[tuple[int, int, bool, float]]:
         """(from, to, is_loop, normalised error) of every active link on the current estimate."""
@@ -467,6 +491,7 @@ class PoseGraph:
                 # indices are renumbered: rebuild them in factor order (priors/links kept in order)
                 self._renumber_locked()
                 self._cache = None
+                self._publish_locked()
             keys = list(result.keys())
             return {int(k): result.atPose3(k).matrix() for k in keys}
 

@@ -266,3 +266,17 @@ def test_batch_apply_and_rejected_factor_not_in_batch(scene):
     g.add_node(n + 1, np.eye(4), odom_from=n, transform=odo[0], information=INFO)
     assert g.remove_loop(n, 0) == 1  # factor indices were renumbered correctly
     assert max_diff(before, {k: v for k, v in g.poses().items() if k in before}) < 1e-5
+
+
+def test_readers_do_not_wait_for_an_optimisation(scene):
+    truth, odo, _ = scene
+    g = build(truth, odo)
+    got = {}
+    with g._lock:  # as if a loop closure were optimising on another thread
+        th = threading.Thread(target=lambda: got.update(poses=g.poses(), pose=g.pose(3)))
+        th.start()
+        th.join(timeout=5)
+        assert not th.is_alive()
+    assert len(got["poses"]) == len(truth) and np.allclose(got["pose"], got["poses"][3])
+    with pytest.raises(ValueError):
+        got["poses"][3][0, 0] = 5.0  # snapshot arrays are read-only
