@@ -23,6 +23,7 @@ runs on a background thread).
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from dataclasses import dataclass, field
@@ -175,6 +176,12 @@ class PoseGraph:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(relinearize_threshold)
         params.relinearizeSkip = 1
+        # check relinearisation only from the top of the Bayes tree down: checking every variable
+        # costs a full wildfire back-substitution per update, ~4-5 ms per keyframe at 8-10k nodes
+        # once loops are in (0.4-0.5 ms with this; bench_graph.py). Loop closures switch to the
+        # full check while they iterate (_full_check), else deep variables keep stale
+        # linearisation points (1 cm from batch LM at 10k nodes).
+        params.enablePartialRelinearizationCheck = True
         # QR, not the default Cholesky: Cholesky squares the condition number and reports an
         # "indeterminate system" on plain odometry chains after ~600 keyframes (σ 0.5°/1 cm, 0.5 m
         # steps: the far end's position is poorly determined); QR keeps going (bench_graph.py).
@@ -330,13 +337,23 @@ class PoseGraph:
         self._cache = None
         if restore is not None:
             # the optimum without the link is the estimate before it: iterate until iSAM2 is there
-            for _ in range(self.max_iterations):
-                est = self._estimate_locked()
-                if self._max_move(restore, est) < 1e-9:
-                    break
-                self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None, None, True)
-                self._cache = None
+            with self._full_check():
+                for _ in range(self.max_iterations):
+                    est = self._estimate_locked()
+                    if self._max_move(restore, est) < 1e-9:
+                        break
+                    self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None, None, True)
+                    self._cache = None
             self._cache = {k: _ro(v.copy()) for k, v in restore.items()}  # exactly as before
+
+    @contextlib.contextmanager
+    def _full_check(self):
+        prm = self._isam.params()  # a reference: ISAM2 reads it at every update
+        prm.enablePartialRelinearizationCheck = False
+        try:
+            yield
+        finally:
+            self._isam.params().enablePartialRelinearizationCheck = True
 
     def _converge_locked(self, tolerance: float = 1e-5) -> int:
         """Extra iSAM2 updates (each one Gauss-Newton step on the relinearised part) until
@@ -345,6 +362,10 @@ class PoseGraph:
         re-eliminates every node (~0.3 s at 10k nodes) and the steps shrink only linearly along
         the long, weakly determined chains (67 m, 0.6, 0.03, 7e-3, 5e-4, 2e-6 at 10k). Returns the
         number of updates."""
+        with self._full_check():
+            return self._iterate_locked(tolerance)
+
+    def _iterate_locked(self, tolerance: float) -> int:
         n = 0
         prev = self._stacked_estimate_locked()
         while n < self.max_iterations - 1:
