@@ -10,6 +10,12 @@ same place one lap earlier) and a "full" loop (newest node back to node 0, the w
 and prints add_loop time (iSAM2 update + iterations to convergence + the graph-error check over
 every link), iterations, acceptance, and the changed_poses() time of the correction.
 Loops stay in the graph, as in the service. --batch adds Levenberg–Marquardt over the final graph.
+
+Measured (2 cores shared with other jobs, gtsam 4.3.0, QR, 10k nodes, total 7 s): add_node p50
+0.11 ms (0-1k) growing to 0.60 ms (9-10k), p99 ≤ 0.92 ms, single spikes of 20-34 ms on the first
+keyframe after a loop; add_loop "lap" 88/175/284 ms at 1k/5k/10k, "full" (all nodes move)
+826 ms at 5k and 1,990 ms at 10k (7 iSAM2 steps, each re-eliminating every node); batch LM over
+10k nodes 633 ms; iSAM2 vs LM max difference 8.75e-5.
 """
 from __future__ import annotations
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -50,7 +50,6 @@ class LoopOutcome:
     worst_link: tuple[int, int] | None = None  # (from, to) of that link
     iterations: int = 0  # iSAM2 updates spent on the loop
     duration_ms: float = 0.0
-    moved: dict[int, float] = field(default_factory=dict, repr=False)  # unused; reserved
 
 
 @dataclass
