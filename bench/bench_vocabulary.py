@@ -66,8 +66,19 @@ def main(argv=None) -> int:
               f"{tot.max():>6.1f} ms {np.median(arr[sel, 1]) * 1e3:>6.1f} ms {np.median(arr[sel, 2]) * 1e3:>7.1f} ms "
               f"{np.median(arr[sel, 3]):>11.0f}")
     tot = (arr[:, 1] + arr[:, 2]) * 1e3
+    worst = np.argsort(-tot)[:5]
+    print("slowest nodes: " + ", ".join(f"{tot[i]:.0f} ms at {int(arr[i, 0])} words" for i in worst))
     print(f"all nodes: p50 {np.percentile(tot, 50):.1f} ms, p99 {np.percentile(tot, 99):.1f} ms, max {tot.max():.1f} ms "
           f"(max/p50 {tot.max() / np.percentile(tot, 50):.1f})")
+    t0 = time.perf_counter()
+    st = v.state()
+    t1 = time.perf_counter()
+    v2 = Vocabulary.from_state(st)
+    t2 = time.perf_counter()
+    probe = v.descriptors(st["word_ids"][:500])
+    assert np.array_equal(v2.query(probe), v.query(probe))
+    print(f"persistence at {len(v)} words / {v.n_nodes} nodes: state() {1e3 * (t1 - t0):.0f} ms, "
+          f"from_state() {1e3 * (t2 - t1):.0f} ms (hash tables rebuilt vectorized; postings dicts in Python)")
     return 0
 
 

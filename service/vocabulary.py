@@ -61,7 +61,14 @@ class Vocabulary:
         rng = np.random.default_rng(seed)
         # Bits sampled by each table (distinct within a table).
         self._bits = np.stack([rng.choice(256, self.key_bits, replace=False) for _ in range(self.n_tables)])
-        self._pow = (1 << np.arange(self.key_bits, dtype=np.int64))
+        if self.key_bits > 24:
+            raise ValueError("key_bits must be <= 24")
+        self._weights = np.zeros((256, self.n_tables), np.float32)  # bit -> 2^j in table t
+        for t in range(self.n_tables):
+            self._weights[self._bits[t], t] = 2.0 ** np.arange(self.key_bits)
+        byte_bits = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).astype(np.float64)
+        self._lut = np.stack([byte_bits @ self._weights[8 * p: 8 * p + 8].astype(np.float64)
+                              for p in range(32)]).astype(np.uint32)  # (32, 256, L)
         self._tbl_off = (np.arange(self.n_tables, dtype=np.int64) << self.key_bits)
         self._head = np.zeros(self.n_tables << self.key_bits, np.int32)
         self._alloc(max(int(capacity), 1024))
@@ -107,31 +114,37 @@ class Vocabulary:
 
     # -- hashing ------------------------------------------------------------------------
     def _keys(self, d64: np.ndarray) -> np.ndarray:
-        """(n, L) flat head indices (table offset + key)."""
-        bits = np.unpackbits(d64.view(np.uint8).reshape(-1, 32), axis=1)  # (n, 256)
-        sampled = bits[:, self._bits]  # (n, L, k)
-        return sampled.astype(np.int64) @ self._pow + self._tbl_off
+        """(n, L) flat head indices (table offset + key): per descriptor byte, one lookup of
+        its contribution to every table's key (32 vectorized gathers)."""
+        b = d64.view(np.uint8).reshape(-1, 32)
+        keys = self._lut[0][b[:, 0]].astype(np.int64)
+        for p in range(1, 32):
+            keys += self._lut[p][b[:, p]]
+        return keys + self._tbl_off
 
     def _link(self, slots: np.ndarray, keys: np.ndarray) -> None:
-        """Push words (slots (n,), keys (n, L)) on their buckets, all tables at once."""
-        n, L = keys.shape
-        K = keys.ravel()
-        S = np.repeat(slots.astype(np.int64), L)
-        T = np.tile(np.arange(L), n)
-        order = np.argsort(K, kind="stable")
-        K, S, T = K[order], S[order], T[order]
-        brk = K[1:] != K[:-1]
-        first = np.r_[True, brk]
-        last = np.r_[brk, True]
-        old_head = self._head[K]
-        prev_elem = np.r_[0, S[:-1] + 1]
-        self._nxt[S, T] = np.where(first, old_head, prev_elem)
-        m = first & (old_head > 0)
-        self._prv[old_head[m] - 1, T[m]] = S[m] + 1
-        nf = ~first[1:]
-        self._prv[S[:-1][nf], T[:-1][nf]] = S[1:][nf] + 1
-        self._prv[S[last], T[last]] = 0
-        self._head[K[last]] = S[last] + 1
+        """Push words (slots (n,), keys (n, L)) on their buckets, table by table (L is
+        small; each table is one vectorized pass, a radix sort for keys of ≤ 16 bits)."""
+        slots = slots.astype(np.int64)
+        key_dtype = np.uint16 if self.key_bits <= 16 else np.int64
+        for t in range(keys.shape[1]):
+            local = (keys[:, t] - self._tbl_off[t]).astype(key_dtype)
+            order = np.argsort(local, kind="stable")
+            K = keys[order, t]
+            S = slots[order]
+            brk = K[1:] != K[:-1]
+            first = np.r_[True, brk]
+            last = np.r_[brk, True]
+            old_head = self._head[K]
+            nxt = self._nxt[:, t]
+            prv = self._prv[:, t]
+            nxt[S] = np.where(first, old_head, np.r_[0, S[:-1] + 1])
+            m = first & (old_head > 0)
+            prv[old_head[m] - 1] = S[m] + 1
+            nf = ~first[1:]
+            prv[S[:-1][nf]] = S[1:][nf] + 1
+            prv[S[last]] = 0
+            self._head[K[last]] = S[last] + 1
 
     def _unlink(self, slots: np.ndarray) -> None:
         if not len(slots):
@@ -387,8 +400,8 @@ class Vocabulary:
         v._desc[ids] = d64
         v._live[ids] = True
         v._n_live = len(ids)
-        if len(ids):
-            v._link(ids, v._keys(d64))
+        for a in range(0, len(ids), 1 << 16):  # chunks bound the temporary bit arrays
+            v._link(ids[a:a + (1 << 16)], v._keys(d64[a:a + (1 << 16)]))
         pw = np.asarray(st.get("post_word", np.zeros(0)), np.int64)
         pn = np.asarray(st.get("post_node", np.zeros(0)), np.int64)
         pc = np.asarray(st.get("post_count", np.zeros(0)), np.int64)
