@@ -491,7 +491,10 @@ class PoseGraph:
 
     def batch_optimize(self, max_iterations: int = 100, apply: bool = False) -> dict[int, np.ndarray]:
         """Levenberg–Marquardt over the whole graph from the current estimate; returns the poses.
-        ``apply=True`` restarts iSAM2 from the batch solution (same factors)."""
+        ``apply=True`` restarts iSAM2 from the batch solution (same factors). Meant for tests and
+        comparison: a restarted iSAM2 gets a batch (COLAMD) ordering, and keyframes added after it
+        cost several times more (2-3 ms instead of 0.6 ms at 8-10k nodes); solving large loops
+        this way was also slower than iSAM2's steps (1.45 s vs 0.83 s CPU at 5k nodes)."""
         with self._lock:
             graph = gtsam.NonlinearFactorGraph()
             factors = self._isam.getFactorsUnsafe()
