@@ -105,6 +105,13 @@ class Vocabulary:
     def __len__(self) -> int:
         return self._n_live
 
+    def __contains__(self, node_id) -> bool:
+        """Whether a node is in the inverted index."""
+        return int(node_id) in self._nodes
+
+    def node_ids(self) -> list[int]:
+        return list(self._nodes)
+
     @property
     def n_nodes(self) -> int:
         return len(self._nodes)
