@@ -236,12 +236,12 @@ class LoopDetector:
         node_id = int(node_id)
         word_ids = np.asarray(word_ids, np.int64)
         voc = self.vocabulary
-        if node_id not in voc._nodes:
+        if node_id not in voc:
             voc.index_node(node_id, word_ids)
         neighbours = neighbours or {}
         stm = set(self._stm) | {node_id}
         if candidates is None:
-            candidates = [n for n in voc._nodes if n not in stm]
+            candidates = [n for n in voc.node_ids() if n not in stm]
         cand = np.unique(np.asarray([c for c in candidates if c not in stm], np.int64))
         self._stm.append(node_id)
 
