@@ -304,7 +304,7 @@ class Vocabulary:
         """Number of (quantized) features of a node: n_i of the tf-idf."""
         return self._nfeat.get(int(node_id), 0)
 
-    def postings(self, word_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def postings(self, word_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For the distinct given words: (words (U,), document frequency n_w (U,),
         flat postings: index into words (P,), node ids (P,), counts (P,))."""
         uw = np.unique(np.asarray(word_ids, np.int64))
