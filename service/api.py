@@ -103,6 +103,15 @@ def create_app(service: SlamService) -> FastAPI:
                 "links": [{"from": l.from_id, "to": l.to_id, "type": LINK_TYPES.get(l.type, str(l.type)),
                            "transform": _pose_list(l.transform)} for l in links]}
 
+    @app.get("/nodes/{node_id}/statistics")
+    def node_statistics(node_id: int):
+        """Why a loop was or wasn't closed at this keyframe: hypothesis, posterior, likelihood
+        top-k, decision, verification inliers, time per step."""
+        data = store().statistics(node_id)
+        if data is None:
+            raise HTTPException(404, f"no statistics for node {node_id}")
+        return data
+
     @app.get("/stats")
     def stats():
         st = service.status()

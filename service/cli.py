@@ -12,7 +12,7 @@ def _cmd_run(args) -> int:
     from .config import load_config
     from .runner import run_dataset
 
-    overrides = {}
+    overrides = {"loop": {"enabled": False}} if args.odometry_only else {}
     config = load_config(args.config, overrides)
     options = {"max_frames": args.max_frames} if args.max_frames else {}
     dataset = open_dataset(args.dataset, args.format, **options)
@@ -107,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--format", choices=["tum", "euroc", "kitti", "7scenes", "synthetic"], help="override layout detection")
     r.add_argument("--config", help="YAML config file (default: built-in defaults)")
     r.add_argument("--max-frames", type=int, help="stop after this many frames")
+    r.add_argument("--odometry-only", action="store_true", help="no loop closure (loop.enabled: false), the baseline")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_run)
 

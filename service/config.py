@@ -54,6 +54,10 @@ class OdometryConfig:
     max_translation: float = 0.0  # m between frames, 0 = unlimited (Odom/MaxTranslation)
     local_map_size: int = 3000  # 3-D points kept in the local map (OdomF2M/MaxSize)
     motion_model: bool = True  # predict with constant velocity (Odom/GuessMotion)
+    max_jump_factor: float = 3.0  # a pose may differ from the prediction by this × the last motion ...
+    max_jump_min_m: float = 0.15  # ... or at least this many metres ...
+    max_jump_min_rad: float = 0.15  # ... and radians
+    max_depth_residual: float = 0.05  # reject a pose when the inliers' predicted depth differs from the measured by more (median, relative)
     # The local map takes a tracked frame's features when the camera moved or turned this
     # much since the last map update, or when inliers fell below map_update_ratio × the
     # inliers of that update (OdomF2M: Odom/KeyFrameThr 0.3). Independent of graph keyframes.
@@ -72,6 +76,17 @@ class KeyframeConfig:
     angular_update: float = 0.1  # radians turned since the last keyframe (RGBD/AngularUpdate)
     min_inlier_ratio: float = 0.5  # a keyframe also when inliers drop below this × the last keyframe's
     min_inliers: int = 80  # ... or below this absolute count (Odom/KeyFrameThr-like)
+
+
+@dataclass
+class LoopConfig:
+    enabled: bool = True  # false = odometry-only baseline (mnemoslam run --odometry-only)
+    threshold: float = 0.11  # hypothesis acceptance (Rtabmap/LoopThr)
+    stm_size: int = 10  # the last keyframes are not loop candidates (Mem/STMSize) ...
+    min_age: float = 10.0  # ... nor keyframes younger than this many seconds (keyframes come faster than RTAB-Map's 1 Hz)
+    nndr_ratio: float = 0.8  # a descriptor makes a new word unless d1 < ratio·d2 (Kp/NndrRatio)
+    min_inliers: int = 20  # geometric verification (Vis/MinInliers)
+    optimize_max_error: float = 3.0  # reject a link whose graph error exceeds this many σ (RGBD/OptimizeMaxError)
 
 
 @dataclass
@@ -113,6 +128,7 @@ class Config:
     stereo: StereoConfig = field(default_factory=StereoConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)

@@ -31,6 +31,7 @@ class Memory:
         self.last_node: int | None = None
         self.last_pose: np.ndarray | None = None
         self.last_segment: int | None = None
+        self.last_link: tuple | None = None
 
     def add_keyframe(self, frame: Frame, features: FrameFeatures, pose: np.ndarray, inliers: int,
                      segment: int, statistics: dict | None = None) -> int:
@@ -44,6 +45,7 @@ class Memory:
             if frame.depth is not None:
                 mm = np.where(np.isfinite(frame.depth), frame.depth * 1000.0, 0)
                 depth_png = _encode(".png", np.clip(np.rint(mm), 0, 65535).astype(np.uint16))
+        self.last_link = link  # (previous node, T_prev_this, information) of this keyframe, or None
         node_id = self.store.add_keyframe(KeyframeRecord(
             session_id=self.session_id, stamp=frame.stamp, pose=pose, keypoints=features.keypoints,
             descriptors=features.descriptors, points=features.points, image_jpeg=image_jpeg,

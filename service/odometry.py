@@ -221,11 +221,41 @@ class Odometry:
         pose, inl = self._solve_pnp(self.map.points[m_idx], features.keypoints[q_idx], T_cw)
         if pose is None or inl.sum() < c.min_inliers:
             return None
+        if not self._depth_consistent(pose, self.map.points[m_idx[inl]], features.points[q_idx[inl]]):
+            return None
+        if not self._plausible(pose, predicted):
+            return None
         map_index = np.full(len(features), -1)
         map_index[q_idx] = m_idx
         inliers = np.zeros(len(features), bool)
         inliers[q_idx[inl]] = True
         return pose, map_index, inliers
+
+    def _plausible(self, pose: np.ndarray, predicted: np.ndarray) -> bool:
+        """A registration may correct the constant-velocity prediction, not contradict it: it
+        must stay within max_jump_factor × the last motion (at least max_jump_min_m /
+        max_jump_min_rad) of it. Rejects the rotation/translation ambiguity of a flat wall
+        with a repeated pattern, where RANSAC can prefer a slid-and-turned pose."""
+        c = self.config
+        if self._last_dt is None:  # no motion known yet in this segment: nothing to compare with
+            return True
+        delta = invert(predicted) @ pose
+        speed = np.linalg.norm(self.velocity[:3, 3])
+        turn = rotation_angle(self.velocity[:3, :3])
+        return (np.linalg.norm(delta[:3, 3]) <= max(c.max_jump_min_m, c.max_jump_factor * speed)
+                and rotation_angle(delta[:3, :3]) <= max(c.max_jump_min_rad, c.max_jump_factor * turn))
+
+    def _depth_consistent(self, pose: np.ndarray, world: np.ndarray, measured: np.ndarray) -> bool:
+        """Reprojection alone cannot see a pose slid along the line of sight when the inliers
+        are clustered (one poster of a repeated pattern); the frame's own depth can: the
+        inliers' depth under the pose must agree with the depth the sensor measured."""
+        z_meas = measured[:, 2]
+        ok = np.isfinite(z_meas)
+        if ok.sum() < 10:
+            return True  # nothing to check against (e.g. far stereo points only)
+        T_cw = invert(pose)
+        z_pred = world[ok] @ T_cw[2, :3] + T_cw[2, 3]
+        return float(np.median(np.abs(z_pred - z_meas[ok]) / z_meas[ok])) <= self.config.max_depth_residual
 
     def _solve_pnp(self, world: np.ndarray, pixels: np.ndarray, T_cw_guess: np.ndarray):
         c = self.config

@@ -14,6 +14,7 @@ from client.frames import Calibration, Frame
 from .config import Config
 from .features import FeatureExtractor
 from .keyframes import KeyframePolicy
+from .mapping import KeyframeUpdate
 from .odometry import Odometry
 
 log = logging.getLogger("mnemoslam.pipeline")
@@ -42,10 +43,11 @@ class FrameResult:
 class Pipeline:
     """One SLAM session for one camera."""
 
-    def __init__(self, calibration: Calibration, config: Config, memory=None):
+    def __init__(self, calibration: Calibration, config: Config, memory=None, mapper=None):
         self.calibration = calibration
         self.config = config
         self.memory = memory  # service.memory.Memory, or None for odometry alone
+        self.mapper = mapper  # service.mapping.Mapper (loop closure + graph), or None
         self.extractor = FeatureExtractor(calibration, config.features, config.stereo)
         self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed)
         self.keyframes = KeyframePolicy(config.keyframe)
@@ -60,15 +62,25 @@ class Pipeline:
         tracked = self.odometry.track(features, frame.stamp)
         t2 = time.perf_counter()
         keyframe = self.keyframes.decide(tracked)
-        node_id = None
-        if keyframe and self.memory is not None:
-            node_id = self.memory.add_keyframe(frame, features, tracked.pose, tracked.inliers, tracked.segment)
+        node_id = self._remember(frame, features, tracked) if keyframe else None
+        pose = self.mapper.to_map(tracked.pose) if self.mapper is not None and tracked.pose is not None else tracked.pose
         t3 = time.perf_counter()
         return FrameResult(
-            frame.index, frame.stamp, tracked.status, tracked.pose, keyframe, node_id, tracked.inliers,
+            frame.index, frame.stamp, tracked.status, pose, keyframe, node_id, tracked.inliers,
             tracked.segment, len(features),
             {"features": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "memory": (t3 - t2) * 1e3},
         )
+
+    def _remember(self, frame: Frame, features, tracked) -> int | None:
+        """Store the keyframe (memory), then hand it to the map update (loop closure)."""
+        if self.memory is None:
+            return None
+        node_id = self.memory.add_keyframe(frame, features, tracked.pose, tracked.inliers, tracked.segment)
+        if self.mapper is not None:
+            link = self.memory.last_link
+            self.mapper.submit(KeyframeUpdate(node_id, frame.stamp, tracked.pose, features,
+                                              *(link if link else (None, None, None))))
+        return node_id
 
     def _has_geometry(self, frame: Frame) -> bool:
         if self.calibration.baseline:

@@ -1,8 +1,10 @@
 """Offline runs: play a dataset through the pipeline and write the trajectories."""
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -17,6 +19,7 @@ from client.trajectory import Trajectory, write_tum
 from storage import MapStore
 
 from .config import Config
+from .mapping import Mapper
 from .memory import Memory
 from .pipeline import FrameResult, Pipeline
 
@@ -35,11 +38,12 @@ class RunSummary:
     segments: int
     seconds: float
     fps: float
+    loops: int = 0  # accepted loop closures
 
     def line(self) -> str:
         return (f"{self.dataset}: {self.frames} frames, {self.tracked} tracked, {self.keyframes} keyframes, "
                 f"{self.lost} lost, {self.skipped} skipped, {self.bad} unreadable, {self.segments} segment(s), "
-                f"{self.fps:.1f} frames/s")
+                f"{self.loops} loop(s), {self.fps:.1f} frames/s")
 
 
 @dataclass
@@ -55,22 +59,27 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
     """Run every frame of `dataset` through one pipeline; write `trajectory.tum`,
     `keyframes.tum` (and `groundtruth.tum` when the dataset has it) and the map database
     `map.db` (the same one the service writes) into `out_dir`."""
-    store = None
-    memory = None
-    if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        db = out_dir / "map.db"
+    with contextlib.ExitStack() as stack:
+        if out_dir is None:  # the map still lives in a database: a temporary one
+            out_dir_db = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="mnemoslam-run-")))
+        else:
+            out_dir = Path(out_dir)
+            out_dir.mkdir(parents=True, exist_ok=True)
+            out_dir_db = out_dir
+        db = out_dir_db / "map.db"
         for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
             p.unlink(missing_ok=True)  # a run replaces the previous run's map
-        store = MapStore(db)
+        store = stack.enter_context(MapStore(db))
         memory = Memory(store, dataset.name, dataset.calibration, config)
-    try:
-        out = _run(dataset, Pipeline(dataset.calibration, config, memory), progress)
-    finally:
-        if store is not None:
-            store.end_session(memory.session_id)
-            store.close()
+        mapper = Mapper(dataset.calibration.camera, config.loop, store) if config.loop.enabled else None
+        out = _run(dataset, Pipeline(dataset.calibration, config, memory, mapper), progress)
+        if mapper is not None:  # keyframes at their final, optimized poses
+            final = mapper.keyframe_poses()
+            ids = [r.node_id for r in out.results if r.node_id is not None]
+            out.keyframes = Trajectory(np.array([r.stamp for r in out.results if r.node_id is not None]),
+                                       np.stack([final[i] for i in ids]) if ids else np.zeros((0, 4, 4)))
+            out.summary.loops = len(mapper.loops)
+        store.end_session(memory.session_id)
     if out_dir is not None:
         write_tum(out_dir / "trajectory.tum", out.trajectory)
         write_tum(out_dir / "keyframes.tum", out.keyframes)

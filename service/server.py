@@ -18,6 +18,7 @@ from client.transport import ZenohSettings, open_session
 from storage import MapStore
 
 from .config import Config, to_dict
+from .mapping import Mapper
 from .memory import Memory
 from .pipeline import FrameResult, Pipeline
 from .session import RobotSession
@@ -66,6 +67,8 @@ class SlamService:
         self._subscribers = []
         for s in list(self.sessions.values()):
             s.stop()
+            if s.pipeline is not None and s.pipeline.mapper is not None:
+                s.pipeline.mapper.close()  # finish the queued map updates before the database closes
             memory = s.pipeline.memory if s.pipeline else None
             if memory is not None:
                 self.store.end_session(memory.session_id)
@@ -160,7 +163,12 @@ class SlamService:
         self._publish(self.keys.events(robot), protocol.encode_event(robot, "session_started", session_id=memory.session_id))
         log.info("session started robot=%s session=%d camera=%dx%d kind=%s", robot, memory.session_id,
                  calibration.camera.width, calibration.camera.height, calibration.kind)
-        return Pipeline(calibration, self.config, memory)
+        mapper = None
+        if self.config.loop.enabled:
+            events = self.keys.events(robot)
+            mapper = Mapper(calibration.camera, self.config.loop, self.store, background=True,
+                            on_event=lambda kind, data: self._publish(events, protocol.encode_event(robot, kind, **data)))
+        return Pipeline(calibration, self.config, memory, mapper)
 
     def _on_result(self, session: RobotSession, frame: Frame, result: FrameResult) -> None:
         robot = session.robot

@@ -12,7 +12,16 @@ import numpy as np
 from client.frames import PinholeCamera
 from client.geometry import invert, make_pose
 
-from .memory import odometry_information
+
+
+def loop_information(inliers: int) -> np.ndarray:
+    """6×6 information (rotation first) of a loop link from one PnP registration between two
+    distant keyframes: σ 3 cm and 0.6° at 100 inliers, shrinking as 1/√inliers. Looser than
+    odometry, whose local-map registrations are steadier; measured loop-link errors on the
+    synthetic scene are 0.5–4.5 cm."""
+    k = np.sqrt(100.0 / max(inliers, 10))
+    sigmas = np.array([0.01] * 3 + [0.03] * 3) * k
+    return np.diag(1.0 / sigmas**2)
 from .odometry import _match
 
 
@@ -52,4 +61,4 @@ def verify(camera: PinholeCamera, new_keypoints: np.ndarray, new_descriptors: np
     rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], camera.K, None, rvec, tvec)
     R, _ = cv2.Rodrigues(rvec)
     T_new_cand = make_pose(R, tvec.ravel())  # candidate camera frame -> new camera frame
-    return Verification(True, "ok", len(q), len(inl), invert(T_new_cand), odometry_information(len(inl)))
+    return Verification(True, "ok", len(q), len(inl), invert(T_new_cand), loop_information(len(inl)))

@@ -799,6 +799,18 @@ class MapStore:
             if cur.rowcount == 0:
                 raise UnknownIdError(f"no node {nid}")
 
+    def set_statistics(self, node_id: int, statistics: dict) -> None:
+        """Replace a node's statistics (e.g. the loop-closure decision made after it was stored)."""
+        nid = _as_int(node_id, "node_id")
+        if not isinstance(statistics, Mapping):
+            raise ValueError(f"statistics must be a dict, got {type(statistics).__name__}")
+        data = _to_json(statistics, "statistics")
+        with self._write("set_statistics") as c:
+            if c.execute("SELECT 1 FROM nodes WHERE id = ?", (nid,)).fetchone() is None:
+                raise UnknownIdError(f"no node {nid}")
+            c.execute("INSERT INTO statistics (node_id, data) VALUES (?, ?) "
+                      "ON CONFLICT(node_id) DO UPDATE SET data = excluded.data", (nid, data))
+
     def set_word_ids(self, node_id: int, word_ids: np.ndarray | None) -> None:
         """Attach (or clear) the visual-word id of each feature of a node."""
         nid = _as_int(node_id, "node_id")
