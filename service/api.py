@@ -73,7 +73,7 @@ def create_app(service: SlamService) -> FastAPI:
 
     @app.get("/sessions")
     def sessions():
-        return [s.__dict__ if not hasattr(s, "to_dict") else s.to_dict() for s in store().sessions()]
+        return [s.to_dict() for s in store().sessions()]
 
     @app.get("/sessions/{session_id}/nodes")
     def nodes(session_id: int, bbox: str | None = Query(None, description="xmin,ymin,zmin,xmax,ymax,zmax (metres)"),

@@ -29,6 +29,8 @@ import time
 from dataclasses import dataclass
 
 import gtsam
+
+from client.geometry import invert
 import numpy as np
 
 # default σ of an odometry link when none is given: 0.5° / 1 cm (rotation first)
@@ -96,16 +98,6 @@ def _ro(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _invert(t: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms, (..., 4, 4)."""
-    out = np.zeros_like(t)
-    rt = np.swapaxes(t[..., :3, :3], -1, -2)
-    out[..., :3, :3] = rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, t[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def _skew(w: np.ndarray) -> np.ndarray:
     s = np.zeros(w.shape[:-1] + (3, 3))
     s[..., 0, 1], s[..., 0, 2] = -w[..., 2], w[..., 1]
@@ -145,7 +137,7 @@ def normalized_errors(poses_from: np.ndarray, poses_to: np.ndarray, transforms: 
     T_from_to (n, 4, 4) and information (n, 6, 6): the BetweenFactorPose3 error
     e = Logmap(measured⁻¹ · from⁻¹ · to), and max(√(e_rᵀ Λ_rr e_r), √(e_tᵀ Λ_tt e_t)) — rotation
     and translation in σ, like RTAB-Map's angular/linear error ratios."""
-    e = se3_log(_invert(transforms) @ _invert(poses_from) @ poses_to)
+    e = se3_log(invert(transforms) @ invert(poses_from) @ poses_to)
     er, et = e[:, :3], e[:, 3:]
     cr = np.einsum("ni,nij,nj->n", er, informations[:, :3, :3], er)
     ct = np.einsum("ni,nij,nj->n", et, informations[:, 3:, 3:], et)
@@ -236,7 +228,7 @@ class PoseGraph:
                 src = int(odom_from)
                 if src not in self._raw:
                     raise ValueError(f"odom_from node {src} is not in the graph")
-                t = _invert(self._raw[src]) @ pose if transform is None else _as_pose(transform, "transform")
+                t = invert(self._raw[src]) @ pose if transform is None else _as_pose(transform, "transform")
                 info = (np.diag(1.0 / DEFAULT_ODOMETRY_SIGMAS**2) if information is None
                         else _as_information(information, "information"))
                 graph.add(gtsam.BetweenFactorPose3(src, nid, _pose3(t), gtsam.noiseModel.Gaussian.Information(info)))
