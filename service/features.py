@@ -79,13 +79,12 @@ class FeatureExtractor:
         return FrameFeatures(xy, desc, points, octave, frame.depth if rgbd else None, grey if rgbd else None)
 
     # -- detection ----------------------------------------------------------------------
-    def _detect(self, grey: np.ndarray, orb=None):
-        orb = orb or self._orb
-        kps = orb.detect(grey, None)
-        if len(kps) < self.config.max_features // 2 and orb is self._orb:
+    def _detect(self, grey: np.ndarray):
+        kps = self._orb.detect(grey, None)
+        if len(kps) < self.config.max_features // 2:
             kps = self._orb_low.detect(grey, None)  # low-texture image: lower FAST threshold
         kps = self._spread(kps, grey.shape)
-        kps, desc = orb.compute(grey, kps)
+        kps, desc = self._orb.compute(grey, kps)
         if desc is None or not len(kps):
             return [], np.zeros((0, 32), np.uint8), np.zeros((0, 2), np.float32), np.zeros(0, np.int8)
         xy, _, octave = _keypoint_arrays(kps)

@@ -24,10 +24,12 @@ from .features import FrameFeatures
 
 
 class _DepthReference:
-    """The depth image of the last map update, its pyramid built on first use."""
+    """A frame's depth (and grey) image, its pyramid built once on first use: for the frame
+    being registered and, when that frame updates the map, as the next reference."""
 
-    def __init__(self, pose: np.ndarray, depth: np.ndarray, grey: np.ndarray | None):
-        self.pose, self.depth, self.grey, self._levels = pose, depth, grey, None
+    def __init__(self, depth: np.ndarray, grey: np.ndarray | None):
+        self.pose: np.ndarray | None = None
+        self.depth, self.grey, self._levels = depth, grey, None
 
     def levels(self, camera: PinholeCamera) -> list:
         if self._levels is None:
@@ -110,6 +112,7 @@ class Odometry:
         self.lost_in_row = 0
         self._last_dt: float | None = None
         self._reference: _DepthReference | None = None
+        self._pending_reference: _DepthReference | None = None
         self._updates = 0
         self._map_pose = np.eye(4)
         self._map_inliers = 0
@@ -151,7 +154,11 @@ class Odometry:
         self.map.update(self._updates, features, pose, map_index)
         self._map_pose, self._map_inliers = pose, inliers
         if features.depth is not None:
-            self._reference = _DepthReference(pose, features.depth, features.grey)
+            pending = self._pending_reference  # this frame's pyramid, if ICP already built it
+            ref = pending if pending is not None and pending.depth is features.depth else \
+                _DepthReference(features.depth, features.grey)
+            ref.pose = pose
+            self._reference = ref
 
     def _register_depth(self, features: FrameFeatures, predicted: np.ndarray):
         """Point-to-plane ICP of this frame's depth against the last map update's depth."""
@@ -159,8 +166,8 @@ class Odometry:
         if ref is None or features.depth is None:
             return None
         c = self.config
-        levels = icp.depth_pyramid(features.depth, self.camera, icp.STEPS, grey=features.grey)
-        res = icp.register(levels, ref.levels(self.camera), invert(ref.pose) @ predicted,
+        current = self._pending_reference = _DepthReference(features.depth, features.grey)
+        res = icp.register(current.levels(self.camera), ref.levels(self.camera), invert(ref.pose) @ predicted,
                            min_inlier_ratio=c.icp_min_inlier_ratio, min_conditioning=c.icp_min_conditioning)
         if not res.ok:
             return None

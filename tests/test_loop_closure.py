@@ -1,6 +1,5 @@
 """Loop closure on the synthetic scene, whose exact poses tell true links from false ones."""
 import numpy as np
-import pytest
 
 from client.datasets import open_dataset
 from client.geometry import invert, rotation_angle

@@ -1,7 +1,6 @@
 """Incremental vocabulary: word assignment (NNDR), inverted index, removal, persistence,
 sub-linear search."""
 import numpy as np
-import pytest
 
 from service.vocabulary import Vocabulary
 
