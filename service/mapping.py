@@ -64,7 +64,10 @@ class Mapper:
         self.config = config
         self.store = store
         self.on_event = on_event or (lambda kind, data: None)
-        self.vocabulary = Vocabulary(nndr=config.nndr_ratio)
+        # The map's vocabulary: loaded from the store when the map is reopened, shared by every
+        # mapper (robot) of that store, persisted with each keyframe.
+        self.vocabulary = (Vocabulary.for_store(store, nndr=config.nndr_ratio) if store is not None
+                           else Vocabulary(nndr=config.nndr_ratio))
         self.detector = LoopDetector(self.vocabulary, loop_threshold=config.threshold, stm_size=config.stm_size)
         self.graph = PoseGraph(max_error=config.optimize_max_error)
         self._features: dict[int, FrameFeatures] = {}  # working memory's features (bounded later by the memory manager)
@@ -116,13 +119,12 @@ class Mapper:
         self.graph.add_node(u.node_id, u.odom_pose, u.odom_from, u.transform, u.information)
         self._remember(u)
         t1 = time.perf_counter()
-        words = self.vocabulary.add(u.node_id, u.features.descriptors)
-        if self.store is not None:
-            self.store.set_word_ids(u.node_id, np.asarray(words, np.int32))
+        words = self.vocabulary.add(u.node_id, u.features.descriptors, store=self.store)  # + its new words, one commit
         t2 = time.perf_counter()
         stm = set(self._order[-self.config.stm_size:])
         candidates = {n for n in self._order if u.stamp - self._stamps[n] >= self.config.min_age} - stm
-        hyp = self.detector.process(u.node_id, words, self._neighbours, candidates)
+        with self.vocabulary.lock:  # other robots' mappers add to the same vocabulary
+            hyp = self.detector.process(u.node_id, words, self._neighbours, candidates)
         t3 = time.perf_counter()
         stats = LoopStatistics(u.node_id, hyp.best_id, float(hyp.posterior),
                                [(int(i), float(s)) for i, s in hyp.likelihood[:5]])

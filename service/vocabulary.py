@@ -21,8 +21,18 @@ farther than `nndr` × the second-nearest distance, or farther than `max_distanc
 word found, makes a new word; otherwise it votes for the nearest word. Descriptors of the
 same batch that would all make new words are first matched among themselves (brute force,
 bounded by the batch size) so that repeated descriptors of one node share a word.
+
+Persistence with the map (`storage.MapStore`, passed in duck-typed: storage never imports
+the service): `add(..., store=)` commits the node's word ids and the words it created in
+one transaction, `from_store` rebuilds the vocabulary of a reopened map from the `words`
+table and the nodes' word ids without any search, and `for_store` gives the one vocabulary
+that every mapper of a map shares (word ids are the map's, so two vocabularies must not
+write to one file). Callers sharing a vocabulary between threads hold its `lock`.
 """
 from __future__ import annotations
+
+import threading
+import weakref
 
 import numpy as np
 
@@ -34,6 +44,12 @@ def _as_u64(desc: np.ndarray) -> np.ndarray:
     if d.ndim != 2 or d.shape[1] != 32:
         raise ValueError(f"descriptors must be N×32 uint8, got {d.shape}")
     return d.view(np.uint64)
+
+
+def _runs(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, ends) of the runs of equal values of a sorted array."""
+    cuts = np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1
+    return np.r_[0, cuts], np.r_[cuts, len(sorted_keys)]
 
 
 def hamming_matrix(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
@@ -80,6 +96,8 @@ class Vocabulary:
         self._nfeat: dict[int, int] = {}
         self.last_candidates = 0  # exact distance computations of the last search
         self.last_queries = 0
+        self.last_new_words = np.zeros(0, np.int64)  # ids of the words the last add() created
+        self.lock = threading.RLock()  # for callers sharing the vocabulary between threads
 
     # -- storage arrays -----------------------------------------------------------------
     def _alloc(self, cap: int) -> None:
@@ -225,17 +243,33 @@ class Vocabulary:
         return np.where(self._accept(d1, d2), w1, -1)
 
     # -- insertion ----------------------------------------------------------------------
-    def add(self, node_id: int, descriptors: np.ndarray) -> np.ndarray:
+    def add(self, node_id: int, descriptors: np.ndarray, store=None) -> np.ndarray:
         """Quantize a node's descriptors, creating new words as needed, and index the node.
-        Returns the word id of each descriptor (N,) int64."""
-        q64 = _as_u64(descriptors)
-        w1, d1, d2 = self._search(q64)
-        words = np.where(self._accept(d1, d2), w1, -1)
-        new = np.nonzero(words < 0)[0]
-        if len(new):
-            words[new] = self._create_words(q64[new], d1[new])
-        self.index_node(node_id, words)
-        return words
+        Returns the word id of each descriptor (N,) int64; `last_new_words` holds the ids of
+        the words created. With a `store` (MapStore holding the node's features) the word
+        ids and the new words are committed in one transaction before this returns; if that
+        fails, the node and its new words are taken back out and the error propagates, so
+        the vocabulary never holds words the map does not."""
+        with self.lock:
+            q64 = _as_u64(descriptors)
+            first_new = self._next_id
+            w1, d1, d2 = self._search(q64)
+            words = np.where(self._accept(d1, d2), w1, -1)
+            new = np.nonzero(words < 0)[0]
+            if len(new):
+                words[new] = self._create_words(q64[new], d1[new])
+            created = np.arange(first_new, self._next_id, dtype=np.int64)
+            self.last_new_words = created
+            self.index_node(node_id, words)
+            if store is not None:
+                try:
+                    store.save_node_words(node_id, words, created, self.descriptors(created))
+                except BaseException:
+                    self.remove_node(node_id, drop_orphans=False)
+                    self.remove_words(created)
+                    self.last_new_words = np.zeros(0, np.int64)
+                    raise
+            return words
 
     def _create_words(self, n64: np.ndarray, d_existing: np.ndarray) -> np.ndarray:
         """New words for descriptors that matched nothing; descriptors of the batch close to
@@ -413,16 +447,49 @@ class Vocabulary:
         pn = np.asarray(st.get("post_node", np.zeros(0)), np.int64)
         pc = np.asarray(st.get("post_count", np.zeros(0)), np.int64)
         if len(pn):
-            order = np.argsort(pn, kind="stable")
+            order = np.lexsort((pw, pn))  # by node, then word
             pw, pn, pc = pw[order], pn[order], pc[order]
-            cuts = np.nonzero(np.diff(pn))[0] + 1
-            for w, n, c in zip(np.split(pw, cuts), np.split(pn, cuts), np.split(pc, cuts)):
-                nid = int(n[0])
-                v._nodes[nid] = (w, c)
-                for word, cnt in zip(w.tolist(), c.tolist()):
-                    v._postings.setdefault(word, {})[nid] = cnt
+            a, b = _runs(pn)
+            for nid, i, j in zip(pn[a].tolist(), a.tolist(), b.tolist()):  # per node
+                v._nodes[nid] = (pw[i:j], pc[i:j])
+            # word -> {node: count}, nodes ascending (the order they were added in): one dict
+            # per word from slices of the word-sorted postings, a literal for the (many)
+            # words of a single node; no per-posting dict updates.
+            order = np.lexsort((pn, pw))
+            ws, ns, cs = pw[order], pn[order].tolist(), pc[order].tolist()
+            a, b = _runs(ws)
+            one = (b - a) == 1
+            post = dict(zip(ws[a[one]].tolist(), [{ns[i]: cs[i]} for i in a[one].tolist()]))
+            for w, i, j in zip(ws[a[~one]].tolist(), a[~one].tolist(), b[~one].tolist()):
+                post[w] = dict(zip(ns[i:j], cs[i:j]))
+            v._postings = post
         for n, f in zip(np.asarray(st.get("node_ids", []), np.int64).tolist(),
                         np.asarray(st.get("node_nfeat", []), np.int64).tolist()):
             v._nfeat[n] = f
             v._nodes.setdefault(n, (np.zeros(0, np.int64), np.zeros(0, np.int64)))
         return v
+
+    @classmethod
+    def from_store(cls, store, **params) -> Vocabulary:
+        """The vocabulary of a stored map (`MapStore.load_vocabulary_state`: its words and
+        the word ids of its nodes), hash tables and inverted index rebuilt without any
+        search; empty for a map without words. `params` are the constructor's (the hashing
+        parameters are not stored: the tables are rebuilt with whatever is given)."""
+        return cls.from_state(store.load_vocabulary_state(), **params)
+
+    @classmethod
+    def for_store(cls, store, **params) -> Vocabulary:
+        """The one vocabulary of a map for this process: loaded with `from_store` by the
+        first caller, the same object for every later one while that `store` object lives (their
+        `params` are then ignored). Hold its `lock` around anything that reads it while
+        another thread may add to it."""
+        with _SHARED_LOCK:
+            v = _SHARED.get(store)
+            if v is None:
+                v = cls.from_store(store, **params)
+                _SHARED[store] = v
+            return v
+
+
+_SHARED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # store -> its Vocabulary
+_SHARED_LOCK = threading.Lock()

@@ -259,6 +259,87 @@ def test_set_word_ids(store, rng):
     assert store.load_features(a)[3] is None
 
 
+def test_save_node_words_writes_ids_and_words_in_one_transaction(store, rng, tmp_path):
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0, n=6))
+    b = store.add_keyframe(record(rng, sid, 1, n=4))
+    desc = rng.integers(0, 256, (5, 32), dtype=np.uint8)
+    store.save_node_words(a, np.array([0, 1, 2, -1, 3, 4]), np.arange(5), desc)
+    assert np.array_equal(store.load_features(a)[3], [0, 1, 2, -1, 3, 4])
+    ids, d = store.load_words()
+    assert np.array_equal(ids, np.arange(5)) and np.array_equal(d, desc)
+    assert rows(tmp_path / "map.db", "SELECT descriptor FROM words WHERE id = 3") == [(desc[3].tobytes(),)]
+    # b refers to old words and one new one (sparse ids are fine)
+    store.save_node_words(b, np.array([4, 10, 10, 0], np.int32), np.array([10]), desc[:1])
+    assert store.count_words() == 6 and store.get_info("next_word_id") == 11
+    st = store.load_vocabulary_state()
+    assert np.array_equal(st["word_ids"], [0, 1, 2, 3, 4, 10]) and st["next_id"][0] == 11
+    got = sorted(zip(st["post_node"].tolist(), st["post_word"].tolist(), st["post_count"].tolist()))
+    assert got == [(a, 0, 1), (a, 1, 1), (a, 2, 1), (a, 3, 1), (a, 4, 1), (b, 0, 1), (b, 4, 1), (b, 10, 2)]
+    assert dict(zip(st["node_ids"].tolist(), st["node_nfeat"].tolist())) == {a: 5, b: 4}
+
+    before = rows(tmp_path / "map.db", "SELECT id, descriptor FROM words ORDER BY id")
+    word_ids_b = store.load_features(b)[3]
+    bad = [
+        (ValueError, "3 word_ids for the 4 features", {"word_ids": np.array([0, 1, 2])}),
+        (ValueError, "must be integers", {"word_ids": np.zeros(4)}),
+        (ValueError, r"must be in \[-1, ", {"word_ids": np.array([0, -2, 1, 1])}),
+        (ValueError, "must be in", {"word_ids": np.array([0, 2**31, 1, 1], np.int64)}),
+        (ValueError, "go together", {"new_word_ids": np.array([11])}),
+        (ValueError, "2 new_descriptors for 1", {"new_word_ids": np.array([11]), "new_descriptors": desc[:2]}),
+        (ValueError, "must be uint8", {"new_word_ids": np.array([11]), "new_descriptors": desc[:1].astype(int)}),
+        (ValueError, "duplicates", {"new_word_ids": np.array([11, 11]), "new_descriptors": desc[:2]}),
+        (ValueError, r"in \[0, ", {"new_word_ids": np.array([-1]), "new_descriptors": desc[:1]}),
+        # a word id that is neither stored nor new: nothing of it is written
+        (ValueError, r"1 word\(s\) not in the map \(12\)",
+         {"word_ids": np.array([11, 12, 0, 0]), "new_word_ids": np.array([11]), "new_descriptors": desc[:1]}),
+        # ids are never reused
+        (StoreError, r"word id\(s\) 3, 10 already stored",
+         {"word_ids": np.array([3, 3, 3, 3]), "new_word_ids": np.array([3, 10, 11]), "new_descriptors": desc[:3]}),
+    ]
+    for exc, match, kw in bad:
+        args = {"word_ids": np.array([0, 0, 0, 0])}
+        args.update(kw)
+        with pytest.raises(exc, match=match):
+            store.save_node_words(b, args.pop("word_ids"), **args)
+    with pytest.raises(UnknownIdError, match="no node 999"):
+        store.save_node_words(999, np.zeros(4, np.int64))
+    assert rows(tmp_path / "map.db", "SELECT id, descriptor FROM words ORDER BY id") == before
+    assert np.array_equal(store.load_features(b)[3], word_ids_b) and store.get_info("next_word_id") == 11
+
+
+def test_delete_and_prune_words(store, rng):
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0, n=3))
+    desc = rng.integers(0, 256, (6, 32), dtype=np.uint8)
+    store.save_node_words(a, np.array([0, 1, 2]), np.arange(6), desc)  # 3, 4, 5: nobody's
+    assert store.delete_words([5, 77]) == 1 and store.delete_words(np.zeros(0, np.int64)) == 0
+    with pytest.raises(ValueError, match="must be integers"):
+        store.delete_words([1.5])
+    assert sorted(store.prune_words().tolist()) == [3, 4]
+    assert np.array_equal(store.load_words()[0], [0, 1, 2])
+    store.save_node_words(a, np.array([-1, 1, -1]))
+    assert store.prune_words().tolist() == [0, 2]
+    st = store.load_vocabulary_state()
+    assert st["word_ids"].tolist() == [1] and st["next_id"][0] == 6  # ids 3..5 stay used
+    assert st["node_nfeat"].tolist() == [1]
+
+
+def test_vocabulary_state_skips_words_that_are_gone(store, rng):
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0, n=4))
+    store.add_keyframe(record(rng, sid, 1, n=4))  # no word ids: not indexed
+    store.save_node_words(a, np.array([0, 1, 1, 2]), np.arange(3), rng.integers(0, 256, (3, 32), dtype=np.uint8))
+    store.delete_words([1])  # e.g. deleted by hand: the node's references to it are skipped
+    st = store.load_vocabulary_state()
+    assert st["post_word"].tolist() == [0, 2] and st["post_count"].tolist() == [1, 1]
+    assert st["node_ids"].tolist() == [a] and st["node_nfeat"].tolist() == [4]
+    empty = MapStore(store.path.with_name("empty.db"))
+    with empty:
+        st = empty.load_vocabulary_state()
+        assert st["descriptors"].shape == (0, 32) and st["next_id"][0] == 0 and len(st["node_ids"]) == 0
+
+
 # -- queries --------------------------------------------------------------------------------
 
 
