@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 
 def _cmd_run(args) -> int:
@@ -27,6 +28,10 @@ def _cmd_run(args) -> int:
                   f"({r.ate_percent_of_path:.2f}% of {r.path_length:.2f} m)")
         except ValueError as e:
             print(f"no ATE: {e}")
+        if args.out and config.loop.enabled:
+            from .evaluation import evaluate_map_loops
+
+            print(evaluate_map_loops(dataset.ground_truth, Path(args.out) / "map.db", config.loop.min_age).format())
     return 0 if out.summary.tracked else 1
 
 

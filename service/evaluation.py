@@ -211,3 +211,75 @@ def evaluate_files(gt_path: str | Path, est_path: str | Path, align: str = "se3"
     res = evaluate(read_trajectory(gt_path), read_trajectory(est_path), align=align, max_dt=max_dt,
                    rpe_delta=rpe_delta)
     return json.dumps(res.to_dict(), indent=2) if as_json else res.format()
+
+
+@dataclass
+class LoopReport:
+    """Loop links against ground truth: precision (true links / links) and recall (keyframes
+    that revisit a place seen ≥ `min_age` s earlier and got a true link)."""
+
+    links: int
+    false_links: int
+    precision: float
+    revisits: int
+    recalled: int
+    recall: float
+    link_error_median: float  # metres
+    link_error_max: float
+
+    def format(self) -> str:
+        return (f"loops        {self.links} links, {self.false_links} false (precision {self.precision:.3f}); "
+                f"recall {self.recall:.3f} ({self.recalled}/{self.revisits} revisiting keyframes); "
+                f"link error median {self.link_error_median * 100:.2f} cm, max {self.link_error_max * 100:.2f} cm")
+
+
+def evaluate_loops(gt: Trajectory, node_ids, node_stamps, links, min_age: float = 10.0,
+                   revisit_radius: float = 0.5, revisit_angle_deg: float = 30.0, max_dt: float = 0.02,
+                   true_link: tuple[float, float] = (0.10, 3.0)) -> LoopReport:
+    """Score loop links `links` = [(from_id, to_id, T_from_to)] between keyframes
+    (`node_ids`, `node_stamps`) against ground truth.
+
+    A link is true when its transform is within `true_link` (metres, degrees) of the true
+    relative pose. A keyframe revisits when an older keyframe (by `min_age` s or more) has
+    its true camera within `revisit_radius` and its optical axis within `revisit_angle_deg`.
+    Keyframes without a ground-truth pose within `max_dt` count as neither."""
+    ids = np.asarray(node_ids, np.int64)
+    stamps = np.asarray(node_stamps, np.float64)
+    gi, ei = associate_stamps(gt.stamps, stamps, max_dt)
+    P = np.full((len(ids), 4, 4), np.nan)
+    P[ei] = gt.poses[gi]
+    index = {int(i): k for k, i in enumerate(ids)}
+    errors, true, linked = [], [], np.zeros(len(ids), bool)
+    for a, b, T in links:
+        ka, kb = index.get(int(a)), index.get(int(b))
+        if ka is None or kb is None or np.isnan(P[ka, 0, 0]) or np.isnan(P[kb, 0, 0]):
+            continue
+        e = invert(invert(P[ka]) @ P[kb]) @ np.asarray(T, np.float64)
+        errors.append(float(np.linalg.norm(e[:3, 3])))
+        true.append(errors[-1] < true_link[0] and np.degrees(_angle(e[:3, :3])) < true_link[1])
+        if true[-1]:
+            linked[ka] = linked[kb] = True
+    err, n = np.array(errors), len(errors)
+    false = n - int(np.sum(true))
+    has = ~np.isnan(P[:, 0, 0])
+    pos, fwd = P[:, :3, 3], P[:, :3, 2]
+    dist = np.linalg.norm(pos[:, None] - pos[None], axis=2)
+    with np.errstate(invalid="ignore"):
+        ang = np.degrees(np.arccos(np.clip(fwd @ fwd.T, -1, 1)))
+        older = stamps[None, :] <= stamps[:, None] - min_age
+        revisit = ((dist < revisit_radius) & (ang < revisit_angle_deg) & older & has[None, :]).any(axis=1) & has
+    recalled = int((revisit & linked).sum())
+    return LoopReport(n, false, (n - false) / n if n else 1.0, int(revisit.sum()), recalled,
+                      recalled / revisit.sum() if revisit.any() else 1.0,
+                      float(np.median(err)) if n else float("nan"), float(err.max()) if n else float("nan"))
+
+
+def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.0) -> LoopReport:
+    """`evaluate_loops` over every loop link (appearance and proximity) of a map database."""
+    from storage import LinkType, MapStore
+
+    with MapStore(db_path, create=False) as store:
+        nodes = store.nodes(limit=None)
+        links = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)
+    return evaluate_loops(gt, [n.id for n in nodes], [n.stamp for n in nodes],
+                          [(x.from_id, x.to_id, x.transform) for x in links], min_age=min_age)

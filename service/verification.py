@@ -10,8 +10,10 @@ import cv2
 import numpy as np
 
 from client.frames import PinholeCamera
-from client.geometry import invert, make_pose
+from client.geometry import invert, make_pose, rotation_angle
 
+from . import icp
+from .odometry import _match
 
 
 def loop_information(inliers: int) -> np.ndarray:
@@ -22,7 +24,12 @@ def loop_information(inliers: int) -> np.ndarray:
     k = np.sqrt(100.0 / max(inliers, 10))
     sigmas = np.array([0.01] * 3 + [0.03] * 3) * k
     return np.diag(1.0 / sigmas**2)
-from .odometry import _match
+
+
+def dense_information(sigma_translation: float, sigma_rotation_deg: float) -> np.ndarray:
+    """6×6 information (rotation first) of a loop link refined by dense registration."""
+    sigmas = np.array([np.radians(sigma_rotation_deg)] * 3 + [sigma_translation] * 3)
+    return np.diag(1.0 / sigmas**2)
 
 
 @dataclass
@@ -33,6 +40,70 @@ class Verification:
     inliers: int = 0
     transform: np.ndarray | None = None  # T_candidate_new (pose of the new keyframe in the candidate's frame)
     information: np.ndarray | None = None  # 6×6, rotation first
+    refined: bool = False  # the transform was refined by dense registration
+    inlier_points: np.ndarray | None = None  # (n, 3) candidate-frame points of the PnP inliers
+    inlier_pixels: np.ndarray | None = None  # (n, 2) their pixels in the new keyframe
+
+
+class DenseView:
+    """What dense registration needs of a keyframe, kept small: its depth and grey image
+    reduced `factor` times (a 640×480 frame keeps 160×120, ~150 kB instead of 1.5 MB).
+    The reduced images give exactly the coarse pyramid levels `icp.depth_pyramid` builds
+    from the full ones (depth sampled every `factor` pixels, grey by Gaussian pyramid)."""
+
+    def __init__(self, depth: np.ndarray, grey: np.ndarray, camera: PinholeCamera, factor: int = 4):
+        if factor & (factor - 1) or factor > min(icp.STEPS):
+            raise ValueError(f"factor must be a power of two <= {min(icp.STEPS)}, got {factor}")
+        g = np.asarray(grey)
+        if g.ndim == 3:
+            g = cv2.cvtColor(g, cv2.COLOR_BGR2GRAY)
+        g = g.astype(np.float32) / 255.0 if g.dtype == np.uint8 else g.astype(np.float32)
+        f = 1
+        while f < factor:
+            g, f = cv2.pyrDown(g), f * 2
+        self.depth = np.ascontiguousarray(depth[::factor, ::factor], dtype=np.float32)
+        self.grey = g[: self.depth.shape[0], : self.depth.shape[1]]
+        self.camera = PinholeCamera(camera.fx / factor, camera.fy / factor, camera.cx / factor,
+                                    camera.cy / factor, self.depth.shape[1], self.depth.shape[0])
+        self.steps = tuple(s // factor for s in icp.STEPS)
+        self.factor = factor
+
+    def levels(self) -> list:
+        return icp.depth_pyramid(self.depth, self.camera, self.steps, grey=self.grey)
+
+
+def refine(v: Verification, new: DenseView, candidate: DenseView, *, max_correction: tuple[float, float] = (0.1, 5.0),
+           min_overlap: float = 0.1, max_reprojection: float = 2.0,
+           sigma: tuple[float, float] = (0.005, 0.25)) -> Verification:
+    """Refine an accepted PnP link by dense photometric + point-to-plane registration of the
+    two keyframes' depth and grey images (thousands of points against the PnP's tens), from
+    the PnP transform. The refined transform replaces it when the registration converged,
+    moved it by at most `max_correction` (metres, degrees) and still explains the PnP's
+    inliers (median reprojection error ≤ `max_reprojection` px); otherwise the PnP link
+    stays. (Real RGB-D cameras whose depth is not registered to colour, or surfaces that
+    changed, can pull the dense solution off the visual one; the check catches that.)
+    `min_overlap`: the share of the new keyframe's points associated in the candidate (loop
+    keyframes are often half a metre apart: odometry's 0.3 would refuse them). `sigma` (metres, degrees) is the refined link's standard deviation."""
+    if not v.accepted:
+        return v
+    res = icp.register(new.levels(), candidate.levels(), v.transform, hypotheses=False, min_inlier_ratio=min_overlap)
+    if not res.ok:
+        return v
+    delta = invert(v.transform) @ res.pose
+    if (np.linalg.norm(delta[:3, 3]) > max_correction[0]
+            or np.degrees(rotation_angle(delta[:3, :3])) > max_correction[1]):
+        return v
+    if v.inlier_points is not None and len(v.inlier_points):
+        T_new_cand = invert(res.pose)
+        p = v.inlier_points @ T_new_cand[:3, :3].T + T_new_cand[:3, 3]
+        K = new.camera.K * np.array([[new.factor], [new.factor], [1.0]])  # full-resolution pixels
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (p @ K.T)[:, :2] / p[:, 2:3]
+        err = np.linalg.norm(uv - v.inlier_pixels, axis=1)
+        if not np.nanmedian(np.where(p[:, 2] > 0, err, np.inf)) <= max_reprojection:
+            return v
+    return Verification(True, v.reason, v.matches, v.inliers, res.pose, dense_information(*sigma), True,
+                        v.inlier_points, v.inlier_pixels)
 
 
 def verify(camera: PinholeCamera, new_keypoints: np.ndarray, new_descriptors: np.ndarray,
@@ -61,4 +132,24 @@ def verify(camera: PinholeCamera, new_keypoints: np.ndarray, new_descriptors: np
     rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], camera.K, None, rvec, tvec)
     R, _ = cv2.Rodrigues(rvec)
     T_new_cand = make_pose(R, tvec.ravel())  # candidate camera frame -> new camera frame
-    return Verification(True, "ok", len(q), len(inl), invert(T_new_cand), loop_information(len(inl)))
+    return Verification(True, "ok", len(q), len(inl), invert(T_new_cand), loop_information(len(inl)),
+                        inlier_points=obj[inl], inlier_pixels=img[inl])
+
+
+def register_dense(new: DenseView, candidate: DenseView, prior: np.ndarray, *, min_overlap: float = 0.3,
+                   max_correction: tuple[float, float] = (0.2, 10.0),
+                   sigma: tuple[float, float] = (0.01, 1.0)) -> Verification:
+    """Verify a proximity candidate without features: dense registration of the two
+    keyframes from `prior` (T_candidate_new from the graph), for textureless places where
+    PnP finds too few matches (RTAB-Map registers proximity links by ICP, Reg/Strategy=1).
+    Accepted when the registration converged with at least `min_overlap` of the new
+    keyframe's points associated, a well-conditioned problem, and a correction of the prior
+    within `max_correction` (metres, degrees: the drift the graph may have)."""
+    res = icp.register(new.levels(), candidate.levels(), prior, hypotheses=False, min_inlier_ratio=min_overlap)
+    if not res.ok:
+        return Verification(False, "dense_failed")
+    delta = invert(prior) @ res.pose
+    if (np.linalg.norm(delta[:3, 3]) > max_correction[0]
+            or np.degrees(rotation_angle(delta[:3, :3])) > max_correction[1]):
+        return Verification(False, "dense_jump")
+    return Verification(True, "dense", transform=res.pose, information=dense_information(*sigma), refined=True)

@@ -218,3 +218,23 @@ def test_evaluate_files_kitti_ground_truth(tmp_path):
     write_tum(tmp_path / "est.txt", Trajectory(np.arange(20) * 0.1, gt.poses))
     d = json.loads(evaluate_files(tmp_path / "00.txt", tmp_path / "est.txt", "se3", 0.02, True))
     assert d["matched"] == 20 and d["ate_rmse"] < 1e-5
+
+
+def test_loop_links_are_scored_against_ground_truth():
+    from client.geometry import look_at
+    from service.evaluation import evaluate_loops
+    # A camera that goes round a 2 m circle in 40 s (1 Hz keyframes) and comes back.
+    t = np.arange(41.0)
+    ang = 2 * np.pi * t / 40
+    eye = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)
+    poses = np.stack([look_at(e, e + [-np.sin(a), np.cos(a), 0]) for e, a in zip(eye, ang)])
+    gt = Trajectory(t, poses)
+    rel = lambda a, b: invert(poses[a]) @ poses[b]  # noqa: E731
+    off = make_pose(np.eye(3), [0.3, 0, 0])  # a 30 cm error: a false link
+    links = [(0, 40, rel(0, 40)), (1, 39, rel(1, 39) @ make_pose(np.eye(3), [0.01, 0, 0])), (5, 20, rel(5, 20) @ off)]
+    r = evaluate_loops(gt, np.arange(41), t, links, min_age=10.0)
+    assert (r.links, r.false_links) == (3, 1) and r.precision == pytest.approx(2 / 3)
+    # revisits (≥ 10 s after a keyframe within 0.5 m and 30°; 0.16 m and 9° per step): 37-40
+    assert r.revisits == 4 and r.recalled == 2 and r.recall == pytest.approx(0.5)
+    assert r.link_error_median == pytest.approx(0.01, abs=1e-9) and r.link_error_max == pytest.approx(0.3)
+    assert "precision" in r.format()
