@@ -141,11 +141,15 @@ class Vocabulary:
     def _keys(self, d64: np.ndarray) -> np.ndarray:
         """(n, L) flat head indices (table offset + key): per descriptor byte, one lookup of
         its contribution to every table's key (32 vectorized gathers)."""
+        return self._local_keys(d64).astype(np.int64) + self._tbl_off
+
+    def _local_keys(self, d64: np.ndarray) -> np.ndarray:
+        """(n, L) uint32 keys within each table (summed in uint32: keys have ≤ 24 bits)."""
         b = d64.view(np.uint8).reshape(-1, 32)
-        keys = self._lut[0][b[:, 0]].astype(np.int64)
+        keys = self._lut[0][b[:, 0]]
         for p in range(1, 32):
             keys += self._lut[p][b[:, p]]
-        return keys + self._tbl_off
+        return keys
 
     def _link(self, slots: np.ndarray, keys: np.ndarray) -> None:
         """Push words (slots (n,), keys (n, L)) on their buckets, table by table (L is
@@ -170,6 +174,37 @@ class Vocabulary:
             prv[S[:-1][nf]] = S[1:][nf] + 1
             prv[S[last]] = 0
             self._head[K[last]] = S[last] + 1
+
+    def _link_all(self, slots: np.ndarray, d64: np.ndarray, group: int = 4) -> None:
+        """Link words (ascending slots, descriptors d64) into empty hash tables: exactly what
+        `_link` in id order builds, but a few tables at a time in table-major scratch arrays
+        (contiguous scatters instead of ones strided by the row length), copied into the
+        per-word links once per group. 4-5x faster than `_link` for a whole vocabulary."""
+        n, L = len(slots), self.n_tables
+        if n == 0:
+            return
+        local = np.empty((L, n), np.uint16 if self.key_bits <= 16 else np.uint32)
+        for a in range(0, n, 1 << 16):  # chunks bound _keys' temporaries
+            local[:, a:a + (1 << 16)] = self._local_keys(d64[a:a + (1 << 16)]).T
+        s1 = slots.astype(np.int32) + 1  # link values are slot + 1
+        rows = slice(int(slots[0]), int(slots[-1]) + 1) if slots[-1] - slots[0] + 1 == n else slots
+        for t0 in range(0, L, group):
+            g = min(group, L - t0)
+            nxt = np.zeros((g, n), np.int32)
+            prv = np.zeros((g, n), np.int32)
+            for j in range(g):
+                t = t0 + j
+                order = np.argsort(local[t], kind="stable")
+                K = local[t][order]
+                brk = K[1:] != K[:-1]
+                # a bucket's words come in ascending slots: each points at the previous (older)
+                # one, the bucket's head is its last (newest)
+                nxt[j, order[1:]] = np.where(brk, 0, s1[order[:-1]])
+                prv[j, order[:-1]] = np.where(brk, 0, s1[order[1:]])
+                last = np.r_[brk, True]
+                self._head[self._tbl_off[t] + K[last].astype(np.int64)] = s1[order[last]]
+            self._nxt[rows, t0:t0 + g] = nxt.T
+            self._prv[rows, t0:t0 + g] = prv.T
 
     def _unlink(self, slots: np.ndarray) -> None:
         if not len(slots):
@@ -441,26 +476,32 @@ class Vocabulary:
         v._desc[ids] = d64
         v._live[ids] = True
         v._n_live = len(ids)
-        for a in range(0, len(ids), 1 << 16):  # chunks bound the temporary bit arrays
-            v._link(ids[a:a + (1 << 16)], v._keys(d64[a:a + (1 << 16)]))
+        if len(ids) > 1 and np.any(ids[1:] <= ids[:-1]):
+            order = np.argsort(ids, kind="stable")
+            ids, d64 = ids[order], d64[order]
+        v._link_all(ids, d64)
         pw = np.asarray(st.get("post_word", np.zeros(0)), np.int64)
         pn = np.asarray(st.get("post_node", np.zeros(0)), np.int64)
         pc = np.asarray(st.get("post_count", np.zeros(0)), np.int64)
         if len(pn):
-            order = np.lexsort((pw, pn))  # by node, then word
-            pw, pn, pc = pw[order], pn[order], pc[order]
+            same = pn[1:] == pn[:-1]
+            if not (np.all(pn[1:] >= pn[:-1]) and np.all(pw[1:][same] > pw[:-1][same])):
+                order = np.lexsort((pw, pn))  # by node, then word (as state() and the store give them)
+                pw, pn, pc = pw[order], pn[order], pc[order]
             a, b = _runs(pn)
             for nid, i, j in zip(pn[a].tolist(), a.tolist(), b.tolist()):  # per node
                 v._nodes[nid] = (pw[i:j], pc[i:j])
             # word -> {node: count}, nodes ascending (the order they were added in): one dict
-            # per word from slices of the word-sorted postings, a literal for the (many)
-            # words of a single node; no per-posting dict updates.
-            order = np.lexsort((pn, pw))
+            # per word from the word-sorted postings, literals for the (many) words of one or
+            # two nodes; no per-posting dict updates.
+            order = np.argsort((pw << 32) | pn)  # (word, node) pairs are distinct
             ws, ns, cs = pw[order], pn[order].tolist(), pc[order].tolist()
             a, b = _runs(ws)
-            one = (b - a) == 1
-            post = dict(zip(ws[a[one]].tolist(), [{ns[i]: cs[i]} for i in a[one].tolist()]))
-            for w, i, j in zip(ws[a[~one]].tolist(), a[~one].tolist(), b[~one].tolist()):
+            df = b - a
+            post = dict(zip(ws[a[df == 1]].tolist(), [{ns[i]: cs[i]} for i in a[df == 1].tolist()]))
+            post.update(zip(ws[a[df == 2]].tolist(),
+                            [{ns[i]: cs[i], ns[i + 1]: cs[i + 1]} for i in a[df == 2].tolist()]))
+            for w, i, j in zip(ws[a[df > 2]].tolist(), a[df > 2].tolist(), b[df > 2].tolist()):
                 post[w] = dict(zip(ns[i:j], cs[i:j]))
             v._postings = post
         for n, f in zip(np.asarray(st.get("node_ids", []), np.int64).tolist(),

@@ -156,6 +156,26 @@ def test_state_round_trip():
     assert np.array_equal(v.add(99, new), v2.add(99, new))
 
 
+def test_rebuilt_hash_tables_equal_the_incrementally_grown_ones():
+    # from_state links all words in one table-major pass; the buckets' chains must be the
+    # ones add() built node by node (same order, removed words left out), or a query
+    # walking at most max_chain words could find different candidates after a reload.
+    rng = np.random.default_rng(11)
+    centres = _rand(rng, 300)
+    for key_bits in (16, 20):
+        v = Vocabulary(key_bits=key_bits, n_tables=8, capacity=1 << 14)
+        for n in range(40):
+            d = _rand(rng, 200)
+            d[:100] = _flip(rng, centres[rng.integers(0, 300, 100)], 8)
+            v.add(n, d)
+        v.remove_node(7)
+        v.remove_node(30)
+        v2 = Vocabulary.from_state(v.state(), capacity=1 << 14)
+        k = v.state()["next_id"][0]
+        assert np.array_equal(v._head, v2._head)
+        assert np.array_equal(v._nxt[:k], v2._nxt[:k]) and np.array_equal(v._prv[:k], v2._prv[:k])
+
+
 def test_search_is_sublinear_at_50k_words():
     rng = np.random.default_rng(8)
     v = Vocabulary()
