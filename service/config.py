@@ -87,6 +87,18 @@ class LoopConfig:
     nndr_ratio: float = 0.8  # a descriptor makes a new word unless d1 < ratio·d2 (Kp/NndrRatio)
     min_inliers: int = 20  # geometric verification (Vis/MinInliers)
     optimize_max_error: float = 3.0  # reject a link whose graph error exceeds this many σ (RGBD/OptimizeMaxError)
+    proximity_by_space: bool = True  # also verify older keyframes the graph places near the new one (RGBD/ProximityBySpace)
+    proximity_radius: float = 1.0  # m, camera centres at most this far apart are proximity candidates
+    proximity_angle: float = 45.0  # deg, ... and optical axes at most this far apart (RGBD/ProximityAngle)
+    proximity_max_candidates: int = 3  # nearest candidates verified per keyframe; the first that passes is linked
+    proximity_dense: bool = True  # when PnP refuses the nearest candidate, register it densely from the graph's pose (RTAB-Map: Reg/Strategy=1)
+    proximity_dense_min_overlap: float = 0.3  # share of the new keyframe's points that must be associated
+    proximity_max_correction: float = 0.2  # m; the dense result may move the graph's relative pose this much ...
+    proximity_max_rotation: float = 10.0  # deg; ... and turn it this much
+    refine_dense: bool = True  # refine RGB-D loop links by dense photometric + point-to-plane registration
+    refine_min_overlap: float = 0.1  # share of the new keyframe's points the registration must associate
+    refine_max_correction: float = 0.1  # m; a refinement that moves the PnP link more is not used ...
+    refine_max_rotation: float = 5.0  # deg; ... nor one that turns it more
 
 
 @dataclass

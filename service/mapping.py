@@ -26,7 +26,8 @@ from .config import LoopConfig
 from .features import FrameFeatures
 from .graph import PoseGraph
 from .loop_detection import LoopDetector
-from .verification import verify
+from .proximity import nearby
+from .verification import DenseView, Verification, refine, register_dense, verify
 from .vocabulary import Vocabulary
 
 log = logging.getLogger("mnemoslam.mapping")
@@ -54,6 +55,8 @@ class LoopStatistics:
     decision: str = "none"  # "none", "rejected: …", "accepted"
     matches: int = 0
     inliers: int = 0
+    refined: bool = False  # the accepted link was refined by dense registration
+    proximity: list = field(default_factory=list)  # [{node, decision, inliers, refined}] spatial candidates
     timings_ms: dict = field(default_factory=dict)
 
 
@@ -71,6 +74,7 @@ class Mapper:
         self.detector = LoopDetector(self.vocabulary, loop_threshold=config.threshold, stm_size=config.stm_size)
         self.graph = PoseGraph(max_error=config.optimize_max_error)
         self._features: dict[int, FrameFeatures] = {}  # working memory's features (bounded later by the memory manager)
+        self._views: dict[int, DenseView] = {}  # reduced depth + grey of RGB-D keyframes, for dense link refinement
         self._order: list[int] = []
         self._stamps: dict[int, float] = {}
         self._neighbours: dict[int, list[int]] = {}
@@ -130,10 +134,16 @@ class Mapper:
                                [(int(i), float(s)) for i, s in hyp.likelihood[:5]])
         stats.decision = "none" if hyp.best_id is None else ("accepted" if hyp.accepted else f"rejected: {hyp.reason}")
         if hyp.accepted:
-            self._close_loop(u, hyp.best_id, stats)
+            stats.decision, v = self._close_loop(u, hyp.best_id, LinkType.GLOBAL_CLOSURE)
+            if v is not None:
+                stats.matches, stats.inliers, stats.refined = v.matches, v.inliers, v.refined
         t4 = time.perf_counter()
+        if self.config.proximity_by_space:
+            self._close_nearby(u, candidates, stats)
+        t5 = time.perf_counter()
         stats.timings_ms = {"graph": (t1 - t0) * 1e3, "vocabulary": (t2 - t1) * 1e3,
-                            "detection": (t3 - t2) * 1e3, "verification_optimization": (t4 - t3) * 1e3}
+                            "detection": (t3 - t2) * 1e3, "verification_optimization": (t4 - t3) * 1e3,
+                            "proximity": (t5 - t4) * 1e3}
         self.statistics[u.node_id] = stats
         if self.store is not None:
             self.store.set_statistics(u.node_id, stats.__dict__)
@@ -141,7 +151,10 @@ class Mapper:
             self._correction = self.graph.pose(u.node_id) @ invert(u.odom_pose)
 
     def _remember(self, u: KeyframeUpdate) -> None:
-        self._features[u.node_id] = u.features
+        f = u.features
+        self._features[u.node_id] = FrameFeatures(f.keypoints, f.descriptors, f.points, f.octaves)  # no images
+        if self.config.refine_dense and f.depth is not None and f.grey is not None:
+            self._views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
         self._stamps[u.node_id] = u.stamp
         self._order.append(u.node_id)
         self._neighbours.setdefault(u.node_id, [])
@@ -149,27 +162,58 @@ class Mapper:
             self._neighbours[u.node_id].append(u.odom_from)
             self._neighbours.setdefault(u.odom_from, []).append(u.node_id)
 
-    def _close_loop(self, u: KeyframeUpdate, candidate: int, stats: LoopStatistics) -> None:
+    def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics) -> None:
+        """Proximity detection: verify the nearest older keyframes the graph places around this
+        one (looking the same way) and link the first that passes."""
+        c = self.config
+        ids = np.fromiter(sorted(candidates - set(self._neighbours[u.node_id])), np.int64)
+        if not len(ids):
+            return
+        poses = self.graph.poses()
+        near = nearby(np.stack([poses[i] for i in ids.tolist()]), ids, poses[u.node_id], c.proximity_radius,
+                      c.proximity_angle, c.proximity_max_candidates)
+        for k, candidate in enumerate(near.tolist()):
+            prior = invert(poses[candidate]) @ poses[u.node_id] if k == 0 and c.proximity_dense else None
+            decision, v = self._close_loop(u, candidate, LinkType.LOCAL_SPACE, prior)
+            stats.proximity.append({"node": candidate, "decision": decision,
+                                    "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined)})
+            if decision == "accepted":
+                return
+
+    def _close_loop(self, u: KeyframeUpdate, candidate: int, kind: LinkType,
+                    prior: np.ndarray | None = None) -> tuple[str, Verification | None]:
+        """Verify a candidate (PnP, then dense refinement) and add the link to the graph.
+        With a `prior` (T_candidate_new from the graph) a candidate PnP refuses is also
+        registered densely from it. Returns the decision ("accepted" or "rejected: why")
+        and the verification."""
+        c = self.config
         cand = self._features[candidate]
         v = verify(self.camera, u.features.keypoints, u.features.descriptors, cand.descriptors, cand.points,
-                   min_inliers=self.config.min_inliers)
-        stats.matches, stats.inliers = v.matches, v.inliers
+                   min_inliers=c.min_inliers)
+        dense = u.node_id in self._views and candidate in self._views
+        if not v.accepted and prior is not None and dense:
+            v = register_dense(self._views[u.node_id], self._views[candidate], prior,
+                               min_overlap=c.proximity_dense_min_overlap,
+                               max_correction=(c.proximity_max_correction, c.proximity_max_rotation))
+            dense = False  # already dense
         if not v.accepted:
-            stats.decision = f"rejected: verification {v.reason}"
-            return
+            return f"rejected: verification {v.reason}", v
+        if dense:
+            v = refine(v, self._views[u.node_id], self._views[candidate], min_overlap=c.refine_min_overlap,
+                       max_correction=(c.refine_max_correction, c.refine_max_rotation))
         outcome = self.graph.add_loop(candidate, u.node_id, v.transform, v.information)
         if not outcome.accepted:
-            stats.decision = f"rejected: graph {outcome.reason}"
-            return
-        stats.decision = "accepted"
+            return f"rejected: graph {outcome.reason}", v
         self.loops.append((candidate, u.node_id))
         self._neighbours[u.node_id].append(candidate)
         self._neighbours[candidate].append(u.node_id)
         moved = self.graph.changed_poses()
         if self.store is not None:
-            self.store.add_link(candidate, u.node_id, LinkType.GLOBAL_CLOSURE, v.transform, v.information)
+            self.store.add_link(candidate, u.node_id, kind, v.transform, v.information)
             if moved:
                 self.store.update_poses(moved)
-        self.on_event("loop_closed", {"from": candidate, "to": u.node_id, "inliers": v.inliers})
+        self.on_event("loop_closed", {"from": candidate, "to": u.node_id, "inliers": v.inliers,
+                                      "kind": "proximity" if kind == LinkType.LOCAL_SPACE else "appearance"})
         if moved:
             self.on_event("map_corrected", {"nodes": len(moved)})
+        return "accepted", v
