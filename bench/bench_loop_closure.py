@@ -7,7 +7,7 @@ alone — both runs in this process on the same frames.
 
 Scoring is service.evaluation.evaluate_loops: a keyframe "revisits" when a keyframe at least
 `loop.min_age` seconds older has its ground truth within 0.5 m and 30° of view direction
-(places seen ≥ 10 s earlier); a link is true when within 10 cm / 3° of the truth.
+(places seen ≥ 10 s earlier); a link is true when within 10 cm / 5° of the truth.
 """
 from __future__ import annotations
 

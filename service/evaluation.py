@@ -235,7 +235,7 @@ class LoopReport:
 
 def evaluate_loops(gt: Trajectory, node_ids, node_stamps, links, min_age: float = 10.0,
                    revisit_radius: float = 0.5, revisit_angle_deg: float = 30.0, max_dt: float = 0.02,
-                   true_link: tuple[float, float] = (0.10, 3.0)) -> LoopReport:
+                   true_link: tuple[float, float] = (0.10, 5.0)) -> LoopReport:
     """Score loop links `links` = [(from_id, to_id, T_from_to)] between keyframes
     (`node_ids`, `node_stamps`) against ground truth.
 
@@ -274,12 +274,13 @@ def evaluate_loops(gt: Trajectory, node_ids, node_stamps, links, min_age: float 
                       float(np.median(err)) if n else float("nan"), float(err.max()) if n else float("nan"))
 
 
-def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.0) -> LoopReport:
-    """`evaluate_loops` over every loop link (appearance and proximity) of a map database."""
+def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.0, **options) -> LoopReport:
+    """`evaluate_loops` (with `options`) over every loop link (appearance and proximity) of a
+    map database."""
     from storage import LinkType, MapStore
 
     with MapStore(db_path, create=False) as store:
         nodes = store.nodes(limit=None)
         links = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)
     return evaluate_loops(gt, [n.id for n in nodes], [n.stamp for n in nodes],
-                          [(x.from_id, x.to_id, x.transform) for x in links], min_age=min_age)
+                          [(x.from_id, x.to_id, x.transform) for x in links], min_age=min_age, **options)

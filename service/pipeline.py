@@ -34,6 +34,7 @@ class FrameResult:
     segment: int = 0
     features: int = 0
     timings: dict = field(default_factory=dict)  # ms per step
+    odometry_pose: np.ndarray | None = None  # the odometry's pose (before the map correction in `pose`)
 
     @property
     def tracked(self) -> bool:
@@ -68,7 +69,7 @@ class Pipeline:
         return FrameResult(
             frame.index, frame.stamp, tracked.status, pose, keyframe, node_id, tracked.inliers,
             tracked.segment, len(features),
-            {"features": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "memory": (t3 - t2) * 1e3},
+            {"features": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "memory": (t3 - t2) * 1e3}, tracked.pose,
         )
 
     def _remember(self, frame: Frame, features, tracked) -> int | None:

@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from client.datasets import Dataset
 from client.frames import DatasetError
+from client.geometry import invert
 from client.trajectory import Trajectory, write_tum
 
 from storage import MapStore
@@ -49,9 +50,14 @@ class RunSummary:
 @dataclass
 class RunOutput:
     summary: RunSummary
-    trajectory: Trajectory  # every tracked frame
-    keyframes: Trajectory
+    trajectory: Trajectory  # every tracked frame at its final map pose (anchored on its keyframe)
+    keyframes: Trajectory  # keyframes at their final (optimized) poses
     results: list[FrameResult]
+    online: Trajectory | None = None  # every tracked frame as published while running (map at that time)
+
+    def __post_init__(self):
+        if self.online is None:
+            self.online = self.trajectory
 
 
 def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = None,
@@ -73,15 +79,18 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
         memory = Memory(store, dataset.name, dataset.calibration, config)
         mapper = Mapper(dataset.calibration.camera, config.loop, store) if config.loop.enabled else None
         out = _run(dataset, Pipeline(dataset.calibration, config, memory, mapper), progress)
-        if mapper is not None:  # keyframes at their final, optimized poses
+        if mapper is not None:  # keyframes, and every frame through its keyframe, at their final poses
             final = mapper.keyframe_poses()
             ids = [r.node_id for r in out.results if r.node_id is not None]
             out.keyframes = Trajectory(np.array([r.stamp for r in out.results if r.node_id is not None]),
                                        np.stack([final[i] for i in ids]) if ids else np.zeros((0, 4, 4)))
+            out.online = out.trajectory
+            out.trajectory = _anchored(out.results, final)
             out.summary.loops = len(mapper.loops)
         store.end_session(memory.session_id)
     if out_dir is not None:
         write_tum(out_dir / "trajectory.tum", out.trajectory)
+        write_tum(out_dir / "trajectory_online.tum", out.online)
         write_tum(out_dir / "keyframes.tum", out.keyframes)
         if dataset.ground_truth is not None:
             write_tum(out_dir / "groundtruth.tum", dataset.ground_truth)
@@ -114,6 +123,23 @@ def _run(dataset: Dataset, pipeline: Pipeline, progress: bool) -> RunOutput:
         1 + max((r.segment for r in results), default=0), seconds, len(results) / seconds if seconds else 0.0,
     )
     return RunOutput(summary, _trajectory(tracked), _trajectory(keyframes), results)
+
+
+def _anchored(results: list[FrameResult], keyframe_poses: dict[int, np.ndarray]) -> Trajectory:
+    """Every tracked frame at its final map pose: its keyframe's optimized pose composed with
+    the odometry from that keyframe (the last one of the same segment before it), as ORB-SLAM
+    saves its trajectories. A frame without such a keyframe keeps its published pose."""
+    stamps, poses = [], []
+    ref = None  # (segment, T_map_odom of the keyframe: final pose · odometry pose⁻¹)
+    for r in results:
+        if not r.tracked:
+            continue
+        if r.node_id is not None and r.node_id in keyframe_poses and r.odometry_pose is not None:
+            ref = (r.segment, keyframe_poses[r.node_id] @ invert(r.odometry_pose))
+        use = ref is not None and ref[0] == r.segment and r.odometry_pose is not None
+        stamps.append(r.stamp)
+        poses.append(ref[1] @ r.odometry_pose if use else r.pose)
+    return Trajectory(np.array(stamps), np.stack(poses)) if poses else _trajectory([])
 
 
 def _trajectory(results: list[FrameResult]) -> Trajectory:

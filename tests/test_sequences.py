@@ -11,7 +11,7 @@ import pytest
 
 from client.datasets import open_dataset
 from service.config import load_config
-from service.evaluation import evaluate
+from service.evaluation import evaluate, evaluate_map_loops
 from service.runner import run_dataset
 
 from conftest import require
@@ -25,17 +25,49 @@ def _run(path, **options):
     return ds, out, evaluate(ds.ground_truth, out.trajectory)
 
 
-def test_7scenes_redkitchen_no_frame_lost(data_dir):
-    ds, out, ev = _run(require(data_dir / "7scenes_redkitchen"))
+def test_7scenes_redkitchen_no_frame_lost_and_revisits_closed(data_dir, tmp_path):
+    ds = open_dataset(require(data_dir / "7scenes_redkitchen"))
+    cfg = load_config()
+    out = run_dataset(ds, cfg, tmp_path, progress=False)
     assert out.summary.frames == 1000 and out.summary.lost == 0 and out.summary.segments == 1
+    ev = evaluate(ds.ground_truth, out.trajectory)
     assert ev.matched == 1000
-    assert ev.ate_rmse < 0.075  # measured 5.7 cm; issue target < 6 cm (odometry only)
+    # Loop links join true revisits. The KinectFusion ground truth drifts itself and the
+    # colour camera is modelled with the depth camera's intrinsics (the usual approximation),
+    # so relative poses between revisits disagree with it by up to ~10° / 12 cm even for
+    # near-identical views; a false link (another place) would be off by metres.
+    loops = evaluate_map_loops(ds.ground_truth, tmp_path / "map.db", cfg.loop.min_age, true_link=(0.2, 12.0))
+    assert out.summary.loops >= 5 and loops.false_links == 0, loops.format()
+    # measured (se3 ATE, every frame at its final pose): odometry alone 5.7 cm, with loops 4.1 cm
+    # (keyframes); issue #4 target < 4.5 cm, ORB-SLAM3 4.7 cm
+    assert ev.ate_rmse < 0.045, ev.ate_rmse
 
 
 def test_tum_cabinet_keyframes_all_tracked(data_dir):
     ds, out, ev = _run(require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes"))
     assert out.summary.tracked == 58 and out.summary.lost == 0
     assert ev.ate_rmse < 0.05  # measured 2.35 cm (dense photometric + geometric registration)
+
+
+def test_tum_cabinet_loop_back_to_the_start_is_closed(data_dir, tmp_path):
+    """Textureless: bag-of-words finds nothing, proximity detection (dense registration from
+    the graph's pose) links the last keyframes to the first ones."""
+    from storage import LinkType, MapStore
+
+    path = require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes")
+    ate = {}
+    for enabled in (False, True):
+        ds = open_dataset(path)
+        cfg = load_config(overrides={"loop": {"enabled": enabled}})
+        out = run_dataset(ds, cfg, tmp_path / str(enabled), progress=False)
+        ate[enabled] = evaluate(ds.ground_truth, out.keyframes).ate_rmse
+    with MapStore(tmp_path / "True" / "map.db", create=False) as store:
+        n = store.count_nodes()
+        links = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)
+    assert any(x.from_id <= 5 and x.to_id >= n - 10 for x in links), [(x.from_id, x.to_id) for x in links]
+    report = evaluate_map_loops(ds.ground_truth, tmp_path / "True" / "map.db", cfg.loop.min_age)
+    assert report.false_links == 0, report.format()  # measured: link errors 1-4 cm, <= 3.3°
+    assert ate[True] < ate[False], ate  # measured keyframe ATE 2.40 -> 1.98 cm
 
 
 @pytest.mark.parametrize("name,max_percent,min_tracked", [("a", 1.0, 51), ("b", 3.0, 45)])
