@@ -21,7 +21,7 @@ import yaml
 
 @dataclass
 class FeatureConfig:
-    max_features: int = 1000  # ORB keypoints per image (Vis/MaxFeatures)
+    max_features: int = 1000  # ORB keypoints per 640×480 image, more in proportion on larger images (Vis/MaxFeatures)
     grid_rows: int = 4  # keypoints are spread over a grid of cells ...
     grid_cols: int = 6  # ... each cell keeps its best max_features/(rows*cols)
     fast_threshold: int = 12  # FAST threshold; cells retry at min_fast_threshold if empty
@@ -30,6 +30,7 @@ class FeatureConfig:
     levels: int = 8
     min_depth: float = 0.2  # metres; nearer / farther depth readings are ignored
     max_depth: float = 6.0  # (Vis/MaxDepth is 0 = inf in RTAB-Map; Kinect noise grows as z^2)
+    depth_noise: float = 0.003  # RGB-D depth std. dev. = this × z² (m; Kinect noise plus colour/depth misregistration), weighs depth in pose refinement
 
 
 @dataclass
@@ -39,6 +40,7 @@ class StereoConfig:
     max_disparity: float = 0.4  # fraction of image width
     max_hamming: int = 60  # descriptor distance for a stereo match
     max_depth: float = 40.0  # metres; farther stereo depth is biased (1/disparity is convex) and skews scale
+    disparity_sigma: float = 1.0  # px, disparity std. dev.: depth std. dev. = z² σ / (f·baseline), weighs far points in pose refinement
 
 
 @dataclass
@@ -231,7 +233,7 @@ def default_yaml() -> str:
         body = body[: body.find("\n\n\n")] if "\n\n\n" in body else body
         out.append(f"{f.name}:")
         for g in dataclasses.fields(value):
-            m = re.search(rf"^\s+{g.name}: .*?(#.*)?$", body, re.M)
+            m = re.search(rf"^\s+{g.name}: .*?(#.*)?$", body, re.MULTILINE)
             comment = f"  {m.group(1)}" if m and m.group(1) else ""
             out.append(f"  {g.name}: {yaml.safe_dump(getattr(value, g.name), default_flow_style=True).strip().removesuffix('...').strip()}{comment}")
         out.append("")

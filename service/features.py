@@ -25,6 +25,8 @@ class FrameFeatures:
     octaves: np.ndarray  # (N,) int8 pyramid level of each keypoint
     depth: np.ndarray | None = None  # the frame's depth image (RGB-D), for dense registration
     grey: np.ndarray | None = None  # the frame's grey image (RGB-D), for dense registration
+    depth_sigma: np.ndarray | None = None  # (N,) float32 std. dev. of each point's depth (m), NaN when unknown
+    level_scale: float = 1.2  # pyramid scale factor: a keypoint at octave k is known to level_scale**k px
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -33,8 +35,20 @@ class FrameFeatures:
     def has_depth(self) -> np.ndarray:
         return np.isfinite(self.points[:, 2])
 
-    def subset(self, idx) -> "FrameFeatures":
-        return FrameFeatures(self.keypoints[idx], self.descriptors[idx], self.points[idx], self.octaves[idx], self.depth, self.grey)
+    def subset(self, idx) -> FrameFeatures:
+        return FrameFeatures(self.keypoints[idx], self.descriptors[idx], self.points[idx], self.octaves[idx], self.depth,
+                             self.grey, None if self.depth_sigma is None else self.depth_sigma[idx], self.level_scale)
+
+    def pixel_sigmas(self) -> np.ndarray:
+        """(N,) keypoint position std. dev. in pixels (1 at level 0, growing per octave)."""
+        return self.level_scale ** self.octaves.astype(np.float64)
+
+    def depth_sigmas(self, nan: bool = False) -> np.ndarray:
+        """(N,) depth standard deviations; where the extractor gave none, 0 (or NaN with `nan`)."""
+        if self.depth_sigma is None:
+            return np.full(len(self), np.nan if nan else 0.0)
+        s = self.depth_sigma.astype(np.float64)
+        return s if nan else np.nan_to_num(s, nan=0.0)
 
 
 def _keypoint_arrays(kps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -56,32 +70,41 @@ class FeatureExtractor:
         self.config = config
         self.stereo = stereo
         c = config
+        cam = calibration.camera
+        # max_features is for a 640×480 image; larger images (a 1241×376 KITTI frame) get more
+        self.max_features = n = round(c.max_features * max(1.0, cam.width * cam.height / (640 * 480)))
         self._orb = cv2.ORB_create(
-            nfeatures=c.max_features * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
+            nfeatures=n * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
             edgeThreshold=19, patchSize=31, fastThreshold=c.fast_threshold,
         )
         self._orb_low = cv2.ORB_create(
-            nfeatures=c.max_features * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
+            nfeatures=n * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
             edgeThreshold=19, patchSize=31, fastThreshold=c.min_fast_threshold,
         )
 
     # -- public -------------------------------------------------------------------------
     def extract(self, frame: Frame) -> FrameFeatures:
         grey = frame.grey
-        kps, desc, xy, octave = self._detect(grey)
+        _, desc, xy, octave = self._detect(grey)
+        z_sigma = None
         if self.calibration.baseline and frame.right is not None:
             points = self._stereo_points(grey, frame.right, xy, desc, octave)
+            # σ_z = z² σ_d / (f b): depth uncertainty of a disparity known to σ_d pixels
+            cam = self.calibration.camera
+            z_sigma = points[:, 2] ** 2 * np.float32(self.stereo.disparity_sigma / (cam.fx * self.calibration.baseline))
         elif frame.depth is not None:
             points = self._depth_points(frame.depth, xy)
+            z_sigma = points[:, 2] ** 2 * np.float32(self.config.depth_noise)
         else:
             points = np.full((len(xy), 3), np.nan, np.float32)
         rgbd = not self.calibration.baseline and frame.depth is not None
-        return FrameFeatures(xy, desc, points, octave, frame.depth if rgbd else None, grey if rgbd else None)
+        return FrameFeatures(xy, desc, points, octave, frame.depth if rgbd else None, grey if rgbd else None, z_sigma,
+                             self.config.scale_factor)
 
     # -- detection ----------------------------------------------------------------------
     def _detect(self, grey: np.ndarray):
         kps = self._orb.detect(grey, None)
-        if len(kps) < self.config.max_features // 2:
+        if len(kps) < self.max_features // 2:
             kps = self._orb_low.detect(grey, None)  # low-texture image: lower FAST threshold
         kps = self._spread(kps, grey.shape)
         kps, desc = self._orb.compute(grey, kps)
@@ -94,7 +117,8 @@ class FeatureExtractor:
         """Keep the strongest max_features/(rows*cols) keypoints of every grid cell (cells
         with fewer donate their quota to the global ranking)."""
         c = self.config
-        if len(kps) <= c.max_features:
+        n = self.max_features
+        if len(kps) <= n:
             return kps
         xy, response, _ = _keypoint_arrays(kps)
         h, w = shape[:2]
@@ -104,11 +128,11 @@ class FeatureExtractor:
         cell_sorted = cell[order]
         first = np.searchsorted(cell_sorted, cell_sorted, side="left")
         rank = np.arange(len(order)) - first  # rank inside its cell
-        quota = max(1, c.max_features // (c.grid_rows * c.grid_cols))
+        quota = max(1, n // (c.grid_rows * c.grid_cols))
         keep = order[rank < quota]
-        if len(keep) < c.max_features:  # fill up with the best of the rest
+        if len(keep) < n:  # fill up with the best of the rest
             rest = order[rank >= quota]
-            rest = rest[np.argsort(-response[rest], kind="stable")][: c.max_features - len(keep)]
+            rest = rest[np.argsort(-response[rest], kind="stable")][: n - len(keep)]
             keep = np.concatenate([keep, rest])
         keep.sort()
         return [kps[i] for i in keep]

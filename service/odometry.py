@@ -18,9 +18,10 @@ import numpy as np
 from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rotation_angle
 
-from .config import OdometryConfig
 from . import icp
+from .config import OdometryConfig
 from .features import FrameFeatures
+from .refinement import mahalanobis2, refine_pose
 
 
 class _DepthReference:
@@ -63,6 +64,8 @@ class LocalMap:
         self.descriptors = np.zeros((0, 32), np.uint8)
         self.observations = np.zeros(0, np.int32)
         self.last_seen = np.zeros(0, np.int64)
+        self.rays = np.zeros((0, 3), np.float64)  # unit world direction of the first sighting ...
+        self.sigma = np.zeros(0, np.float64)  # ... along which the point is uncertain by this (m)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -87,14 +90,19 @@ class LocalMap:
         seen_only = (map_index >= 0) & ~has_depth
         self.last_seen[map_index[seen_only]] = stamp_id
         new = (map_index < 0) & has_depth
+        rays = world[new] - pose[:3, 3]
+        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
         self.points = np.concatenate([self.points, world[new]])
         self.descriptors = np.concatenate([self.descriptors, features.descriptors[new]])
         self.observations = np.concatenate([self.observations, np.ones(int(new.sum()), np.int32)])
         self.last_seen = np.concatenate([self.last_seen, np.full(int(new.sum()), stamp_id, np.int64)])
+        self.rays = np.concatenate([self.rays, rays])
+        self.sigma = np.concatenate([self.sigma, features.depth_sigmas()[new]])
         if len(self.points) > self.capacity:
             keep = np.sort(np.argsort(-self.last_seen, kind="stable")[: self.capacity])
             self.points, self.descriptors = self.points[keep], self.descriptors[keep]
             self.observations, self.last_seen = self.observations[keep], self.last_seen[keep]
+            self.rays, self.sigma = self.rays[keep], self.sigma[keep]
 
 
 class Odometry:
@@ -225,7 +233,10 @@ class Odometry:
             q_idx, m_idx = q_idx[near], m_idx[near]
         if len(q_idx) < c.min_inliers:
             return None
-        pose, inl = self._solve_pnp(self.map.points[m_idx], features.keypoints[q_idx], T_cw)
+        sigma_px = features.pixel_sigmas()[q_idx]
+        pose, inl = self._solve_pnp(self.map.points[m_idx], features.keypoints[q_idx], T_cw,
+                                    sigma_px, self.map.rays[m_idx], self.map.sigma[m_idx],
+                                    features.points[q_idx, 2], features.depth_sigmas(nan=True)[q_idx])
         if pose is None or inl.sum() < c.min_inliers:
             return None
         if not self._depth_consistent(pose, self.map.points[m_idx[inl]], features.points[q_idx[inl]]):
@@ -264,7 +275,13 @@ class Odometry:
         z_pred = world[ok] @ T_cw[2, :3] + T_cw[2, 3]
         return float(np.median(np.abs(z_pred - z_meas[ok]) / z_meas[ok])) <= self.config.max_depth_residual
 
-    def _solve_pnp(self, world: np.ndarray, pixels: np.ndarray, T_cw_guess: np.ndarray):
+    def _solve_pnp(self, world: np.ndarray, pixels: np.ndarray, T_cw_guess: np.ndarray, sigma_px: np.ndarray,
+                   rays: np.ndarray, sigma_ray: np.ndarray, depth: np.ndarray, depth_sigma: np.ndarray):
+        """AP3P + RANSAC, then Gauss–Newton on the inliers weighted by their keypoint level
+        and the map points' depth uncertainty, with this frame's measured depth as a third
+        residual (`refinement.refine_pose`); the inliers are selected again under the refined
+        pose (within pnp_reprojection_error pixels at level 0, scaled by the level and
+        widened along an uncertain point's ray)."""
         c = self.config
         rvec0, _ = cv2.Rodrigues(T_cw_guess[:3, :3])
         tvec0 = T_cw_guess[:3, 3].reshape(3, 1).copy()
@@ -279,15 +296,15 @@ class Odometry:
             return None, np.zeros(len(world), bool)
         mask = np.zeros(len(world), bool)
         mask[inl.ravel()] = True
-        rvec, tvec = cv2.solvePnPRefineLM(world[mask], pixels[mask].astype(np.float64), self.K, None, rvec, tvec)
-        # Re-select inliers under the refined pose (RANSAC's set came from a minimal sample).
-        proj, _ = cv2.projectPoints(world, rvec, tvec, self.K, None)
-        err = np.linalg.norm(proj.reshape(-1, 2) - pixels, axis=1)
-        mask = err <= c.pnp_reprojection_error
-        if mask.sum() >= 4:
-            rvec, tvec = cv2.solvePnPRefineLM(world[mask], pixels[mask].astype(np.float64), self.K, None, rvec, tvec)
         R, _ = cv2.Rodrigues(rvec)
-        pose = invert(make_pose(R, tvec.ravel()))
+        T_cw = refine_pose(make_pose(R, tvec.ravel()), self.K, world[mask], pixels[mask], sigma_px[mask],
+                           rays[mask], sigma_ray[mask], depth[mask], depth_sigma[mask])
+        # Re-select inliers under the refined pose (RANSAC's set came from a minimal sample).
+        mask = mahalanobis2(T_cw, self.K, world, pixels, sigma_px, rays, sigma_ray) <= c.pnp_reprojection_error ** 2
+        if mask.sum() >= 4:
+            T_cw = refine_pose(T_cw, self.K, world[mask], pixels[mask], sigma_px[mask], rays[mask], sigma_ray[mask],
+                               depth[mask], depth_sigma[mask])
+        pose = invert(T_cw)
         if c.max_translation > 0 and self.pose is not None and \
                 np.linalg.norm(pose[:3, 3] - self.pose[:3, 3]) > c.max_translation:
             return None, np.zeros(len(world), bool)

@@ -1,0 +1,125 @@
+"""Motion-only pose refinement with per-observation uncertainty (ORB-SLAM's pose
+optimization, with the map points' own depth uncertainty).
+
+Each local-map point is observed at a pixel whose noise grows with the keypoint's pyramid
+level (σ = scale_factor^octave px). The point itself is only as good as the depth it was
+created from: a stereo point 30 m away may be metres off along the ray it was seen on. That
+error moves its projection along one image direction (the image of that ray), so it adds a
+rank-one term to the pixel covariance:
+
+    Σ = σ_px² I + σ_ray² m mᵀ,   m = ∂π(R X + t)/∂X · d  (d: unit ray of the first sighting)
+
+A far point seen from almost the same direction has m ≈ 0 and keeps its full weight (it
+fixes the rotation); once the camera has moved, its uncertain depth no longer pulls the
+translation. The pose is refined by Gauss–Newton on the whitened residuals with Huber
+weights, vectorized over the points.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from client.geometry import make_pose
+
+HUBER_CHI = float(np.sqrt(5.991))  # Huber threshold on the Mahalanobis distance (χ², 2 dof, 95 %)
+
+
+class _Observations:
+    """Per-observation terms of the whitened problem at a pose: residuals r (n, k), Jacobians
+    J (n, k, 6) with respect to a left perturbation ξ = (ω, τ), and the information
+    Λ = diag(d) − c (d∘m)(d∘m)ᵀ (Sherman–Morrison of diag(1/d) + σ_ray² m mᵀ) kept factored.
+    k = 2 (pixels) or 3 (pixels and the measured depth, weight 0 where none)."""
+
+    def __init__(self, T_cw, K, X, px, sigma_px, rays, sigma_ray, z_meas=None, z_weight=None):
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        p = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        x, y = p[:, 0], p[:, 1]
+        z = np.maximum(p[:, 2], 1e-6)
+        self.front = p[:, 2] > 1e-6
+        iz = 1.0 / z
+        xz, yz = x * iz, y * iz
+        a, b = fx * iz, fy * iz
+        rc = rays @ T_cw[:3, :3].T  # ray directions in the camera
+        k = 2 if z_weight is None else 3
+        n = len(p)
+        r = np.empty((n, k))
+        r[:, 0] = fx * xz + cx - px[:, 0]
+        r[:, 1] = fy * yz + cy - px[:, 1]
+        J = np.zeros((n, k, 6))
+        J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = -fx * xz * yz, fx * (1 + xz * xz), -fx * yz
+        J[:, 0, 3], J[:, 0, 5] = a, -a * xz
+        J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = -fy * (1 + yz * yz), fy * xz * yz, fy * xz
+        J[:, 1, 4], J[:, 1, 5] = b, -b * yz
+        m = np.empty((n, k))
+        m[:, 0] = a * (rc[:, 0] - xz * rc[:, 2])
+        m[:, 1] = b * (rc[:, 1] - yz * rc[:, 2])
+        d = np.empty((n, k))
+        d[:, :2] = (1.0 / sigma_px ** 2)[:, None]
+        if k == 3:
+            r[:, 2] = p[:, 2] - z_meas
+            J[:, 2, 0], J[:, 2, 1], J[:, 2, 5] = y, -x, 1.0
+            m[:, 2] = rc[:, 2]
+            d[:, 2] = z_weight
+        self.r, self.J, self.d = r, J, d
+        self.dm = d * m
+        self.c = sigma_ray ** 2 / (1.0 + sigma_ray ** 2 * np.einsum("ni,ni->n", m, self.dm))
+
+    def chi2(self) -> np.ndarray:
+        r = self.r
+        q = np.einsum("ni,ni->n", self.dm, r)
+        return np.where(self.front, np.einsum("ni,ni,ni->n", self.d, r, r) - self.c * q * q, np.inf)
+
+    def normal_equations(self, w: np.ndarray):
+        """H, b of Σ w Jᵀ Λ J ξ = −Σ w Jᵀ Λ r."""
+        dJ = self.d[:, :, None] * self.J  # (n, k, 6)
+        g = np.einsum("nk,nkj->nj", self.dm, self.J)  # Jᵀ d∘m
+        q = np.einsum("ni,ni->n", self.dm, self.r)
+        wc = w * self.c
+        H = np.einsum("n,nki,nkj->ij", w, dJ, self.J) - np.einsum("n,ni,nj->ij", wc, g, g)
+        b = np.einsum("n,nki,nk->i", w, dJ, self.r) - np.einsum("n,ni->i", wc * q, g)
+        return H, b
+
+
+def mahalanobis2(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
+                 rays: np.ndarray, sigma_ray: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distances (n,) of the pixel observations under the pose T_cw."""
+    return _Observations(T_cw, K, np.asarray(world, np.float64), np.asarray(pixels, np.float64),
+                         sigma_px, rays, sigma_ray).chi2()
+
+
+def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
+                rays: np.ndarray, sigma_ray: np.ndarray, depth: np.ndarray | None = None,
+                depth_sigma: np.ndarray | None = None, iterations: int = 10) -> np.ndarray:
+    """Gauss–Newton refinement of the world-to-camera pose T_cw from 2-D observations of
+    world points. `sigma_px` (n,) pixel noise, `rays` (n, 3) unit world directions along
+    which each point is uncertain with `sigma_ray` (n,) metres. With `depth` (n,) and
+    `depth_sigma` (n,) the depth this frame measured for an observation (NaN: none) is a
+    third residual, as ORB-SLAM's stereo/RGB-D pose optimization uses it. Returns T_cw."""
+    T = np.asarray(T_cw, np.float64).copy()
+    X = np.asarray(world, np.float64)
+    px = np.asarray(pixels, np.float64)
+    if len(X) < 4:
+        return T
+    z_meas = zw = None
+    chi = np.full(len(X), HUBER_CHI)
+    if depth is not None:
+        z_meas = np.asarray(depth, np.float64)
+        sz = np.asarray(depth_sigma, np.float64)
+        has = np.isfinite(z_meas) & np.isfinite(sz) & (sz > 0)
+        zw = np.where(has, 1.0 / np.where(has, sz, 1.0) ** 2, 0.0)
+        z_meas = np.where(has, z_meas, 0.0)
+        chi[has] = np.sqrt(7.815)  # χ², 3 dof, 95 %
+    for _ in range(iterations):
+        obs = _Observations(T, K, X, px, sigma_px, rays, sigma_ray, z_meas, zw)
+        e = np.sqrt(np.maximum(obs.chi2(), 0.0))
+        w = np.where(obs.front, np.where(e <= chi, 1.0, chi / np.maximum(e, 1e-12)), 0.0)
+        H, b = obs.normal_equations(w)
+        try:
+            xi = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), b)
+        except np.linalg.LinAlgError:
+            break
+        dR, _ = cv2.Rodrigues(xi[:3].reshape(3, 1))
+        T = make_pose(dR, xi[3:]) @ T
+        if np.linalg.norm(xi[:3]) < 1e-6 and np.linalg.norm(xi[3:]) < 1e-6:  # µrad, µm: converged
+            break
+    return T
