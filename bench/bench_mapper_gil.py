@@ -37,13 +37,15 @@ ratios against scenario 1 of the same process.
    waits up to one switch interval while a Python thread runs). OpenCV runs on 1 thread
    during the probe ("cores" = the op's CPU / wall).
 
---process-mapper adds scenario 4: the same mapper in a child process (its own GIL).
+4. + the service's mapping process (service/mapping_process.py, loop.process): the same
+   mapper in one spawned child at nice loop.process_nice (--mapper-nice), its own GIL and
+   its own connection to the map; tracking gets the corrections it sends back.
 --switch-interval S runs everything with sys.setswitchinterval(S) (e.g. 0.0005).
 """
 from __future__ import annotations
 
 import argparse
-import multiprocessing
+import dataclasses
 import os
 import statistics
 import subprocess
@@ -68,12 +70,13 @@ from client.synthetic import SyntheticDataset
 from service.config import Config, load_config
 from service.graph import PoseGraph
 from service.mapping import Mapper
+from service.mapping_process import MappingProcess
 from service.memory import Memory
 from service.odometry import _match
 from service.pipeline import Pipeline
 from service.verification import verify
 from service.vocabulary import Vocabulary
-from storage import MapStore
+from storage import LinkType, MapStore
 
 PREFILL_NODE = 10_000_000  # ids of the pre-filled vocabulary nodes / graph nodes: never the store's
 PREFILL_GRAPH = 20_000_000
@@ -203,49 +206,11 @@ class Run:
         return np.maximum(self.wall - self.cpu - self.runq, 0.0)
 
 
-def _mapper_process(camera, loop_config, inbox, outbox, nice: int) -> None:
-    """Child process of the --process-mapper control: the same Mapper, inline, on its own GIL."""
-    if nice:
-        os.nice(nice)
-    mapper = Mapper(camera, loop_config, None)
-    outbox.put("ready")
-    while (update := inbox.get()) is not None:
-        mapper.submit(update)
-    outbox.put(([s.timings_ms for s in mapper.statistics.values()], len(mapper.loops)))
-
-
-class ProcessMapper:
-    """The mapper in a child process (spawned): keyframe updates are pickled through a queue
-    (by its feeder thread). Control for the GIL, and the shape of a fix: no correction comes
-    back and the child writes nothing to the database here (a real one would send T_map_odom
-    and events back over a pipe and open its own connection to the map)."""
-
-    def __init__(self, camera, loop_config, nice: int = 0):
-        ctx = multiprocessing.get_context("spawn")
-        self._in, self._out = ctx.Queue(), ctx.Queue()
-        self._proc = ctx.Process(target=_mapper_process, args=(camera, loop_config, self._in, self._out, nice),
-                                 name="mapper-process", daemon=True)
-        self._proc.start()
-        self._out.get(timeout=300)  # imported and ready before the clock starts
-
-    def submit(self, update) -> None:
-        self._in.put(update)
-
-    def to_map(self, pose):
-        return pose
-
-    def close(self) -> tuple[list[dict], int]:
-        self._in.put(None)
-        ms, loops = self._out.get(timeout=600)
-        self._proc.join(30)
-        return ms, loops
-
-
 def run_scenario(name: str, kind: str, calibration, frames, config: Config, rate: float, pace: bool,
-                 large=None, nice: int = 0):
+                 large=None, nice: int | None = None):
     """One pass of the frames through a fresh pipeline and a fresh map database, on this thread.
     kind: "tracking" (no map update), "thread" (Mapper on its thread, as the service), "large"
-    (the same with `large()`'s vocabulary and graph), "process" (ProcessMapper)."""
+    (the same with `large()`'s vocabulary and graph), "process" (the service's MappingProcess)."""
     with tempfile.TemporaryDirectory(prefix="bench-gil-") as tmp:
         store = MapStore(Path(tmp) / "map.db")
         try:
@@ -253,7 +218,11 @@ def run_scenario(name: str, kind: str, calibration, frames, config: Config, rate
             if kind == "tracking":
                 mapper = KeyframeRecorder()
             elif kind == "process":
-                mapper = ProcessMapper(calibration.camera, config.loop, nice)
+                loop = config.loop if nice is None else dataclasses.replace(config.loop, process_nice=nice)
+                owner = MappingProcess(Path(tmp) / "map.db", loop)
+                if not owner.wait_ready(300):  # imported and ready before the clock starts
+                    raise RuntimeError("the mapping process did not start")
+                mapper = owner.mapper("bench", calibration.camera)
             else:
                 mapper = Mapper(calibration.camera, config.loop, store, background=True)
                 if kind == "large":
@@ -289,12 +258,18 @@ def run_scenario(name: str, kind: str, calibration, frames, config: Config, rate
                 run.drain_s = time.perf_counter() - t0
                 run.stages = [s.timings_ms for s in list(mapper.statistics.values())]
                 run.loops = len(mapper.loops)
-            elif isinstance(mapper, ProcessMapper):
+            elif kind == "process":
+                run.mapped = mapper.mapped
                 t0 = time.perf_counter()
-                run.stages, run.loops = mapper.close()
+                mapper.close(timeout=600)
                 run.drain_s = time.perf_counter() - t0
-                run.mapped = len(run.stages)
-                run.mapper_busy = float(run.mapper_ms.sum()) / 1e3 / elapsed
+                owner.close()
+                if owner.failures:
+                    raise RuntimeError("the mapping process died")
+                nodes = store.nodes(session_id=memory.session_id, limit=None)
+                run.stages = [st["timings_ms"] for n in nodes if (st := store.statistics(n.id))]
+                run.loops = len(store.links(type=LinkType.GLOBAL_CLOSURE)) + len(store.links(type=LinkType.LOCAL_SPACE))
+                run.mapper_busy = float(run.mapper_ms[:run.mapped].sum()) / 1e3 / elapsed
             store.end_session(memory.session_id)
             return run, mapper
         finally:
@@ -601,10 +576,9 @@ def main() -> int:
     ap.add_argument("--probe-repeats", type=int, default=3)
     ap.add_argument("--7scenes", dest="sevenscenes", type=int, nargs="?", const=600, default=0, metavar="N",
                     help="also run scenarios 1-2 on N frames of 7-Scenes redkitchen from MNEMOSLAM_DATA")
-    ap.add_argument("--process-mapper", action="store_true",
-                    help="also run scenario 4: the mapper in a child process (its own GIL)")
-    ap.add_argument("--mapper-nice", type=int, default=0, metavar="N",
-                    help="scenario 4: the child process runs at this nice value (lower CPU priority)")
+    ap.add_argument("--process-mapper", action="store_true", help=argparse.SUPPRESS)  # scenario 4 always runs now
+    ap.add_argument("--mapper-nice", type=int, default=None, metavar="N",
+                    help="scenario 4: the mapping process's nice increment (default: loop.process_nice)")
     ap.add_argument("--config", help="YAML config (default: the defaults)")
     ap.add_argument("--switch-interval", type=float, default=None, metavar="S",
                     help="sys.setswitchinterval for the whole run (CPython's default: 0.005)")
@@ -629,9 +603,8 @@ def main() -> int:
 
     scenarios = [("1 tracking only", "tracking"), ("2 + background mapper", "thread"),
                  (f"3 + bg mapper, {args.words // 1000}k words/{args.graph_nodes // 1000}k nodes", "large")]
-    if args.process_mapper:
-        scenarios.append((f"4 mapper in a child process{f' (nice {args.mapper_nice})' if args.mapper_nice else ''}",
-                          "process"))
+    nice = config.loop.process_nice if args.mapper_nice is None else args.mapper_nice
+    scenarios.append((f"4 + mapping process (nice {nice})", "process"))
     runs: dict[str, list[Run]] = {name: [] for name, _ in scenarios}
     kept: dict[str, object] = {}
     t_runs0 = time.perf_counter()

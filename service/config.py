@@ -101,6 +101,8 @@ class LoopConfig:
     refine_min_overlap: float = 0.1  # share of the new keyframe's points the registration must associate
     refine_max_correction: float = 0.1  # m; a refinement that moves the PnP link more is not used ...
     refine_max_rotation: float = 5.0  # deg; ... nor one that turns it more
+    process: bool = True  # service: every robot's map update in one child process (its own GIL), so a slow update never slows tracking; false = a thread of the service (offline runs are always inline)
+    process_nice: int = 10  # that child's nice increment (lower CPU priority than tracking); 0 = same priority
 
 
 @dataclass

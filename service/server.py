@@ -19,6 +19,7 @@ from storage import MapStore
 
 from .config import Config, to_dict
 from .mapping import Mapper
+from .mapping_process import MappingProcess
 from .memory import Memory
 from .pipeline import FrameResult, Pipeline
 from .session import RobotSession
@@ -35,6 +36,7 @@ class SlamService:
             max_width=config.service.max_image_side, max_height=config.service.max_image_side,
         )
         self.store: MapStore | None = None
+        self.mapping: MappingProcess | None = None  # every robot's map update (loop.process)
         self.zenoh = None
         self.sessions: dict[str, RobotSession] = {}
         self.rejected: Counter = Counter()  # reason -> messages refused before reaching a session
@@ -47,6 +49,8 @@ class SlamService:
     def start(self) -> "SlamService":
         z = self.config.zenoh
         self.store = MapStore(self.config.storage.path)
+        if self.config.loop.enabled and self.config.loop.process:
+            self.mapping = MappingProcess(self.config.storage.path, self.config.loop)
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
                                                 z.multicast_scouting, z.gossip_scouting))
         self._subscribers = [
@@ -72,6 +76,8 @@ class SlamService:
             memory = s.pipeline.memory if s.pipeline else None
             if memory is not None:
                 self.store.end_session(memory.session_id)
+        if self.mapping is not None:
+            self.mapping.close()  # every robot's updates are done: stop the child before the database closes
         if self.zenoh is not None:
             self.zenoh.close()
             self.zenoh = None
@@ -166,8 +172,11 @@ class SlamService:
         mapper = None
         if self.config.loop.enabled:
             events = self.keys.events(robot)
-            mapper = Mapper(calibration.camera, self.config.loop, self.store, background=True,
-                            on_event=lambda kind, data: self._publish(events, protocol.encode_event(robot, kind, **data)))
+            on_event = lambda kind, data: self._publish(events, protocol.encode_event(robot, kind, **data))
+            if self.mapping is not None:
+                mapper = self.mapping.mapper(robot, calibration.camera, on_event)
+            else:
+                mapper = Mapper(calibration.camera, self.config.loop, self.store, background=True, on_event=on_event)
         return Pipeline(calibration, self.config, memory, mapper)
 
     def _on_result(self, session: RobotSession, frame: Frame, result: FrameResult) -> None:
@@ -200,5 +209,6 @@ class SlamService:
             "robots": len(self.sessions),
             "rejected": dict(self.rejected),
             "rejected_total": sum(self.rejected.values()),
+            "mapping_process": self.mapping.stats() if self.mapping is not None else None,
             "config": to_dict(self.config),
         }

@@ -1,0 +1,155 @@
+"""The service's map update in a child process (service/mapping_process.py): a real spawned
+child, the real SQLite file written by two processes, the real mapper."""
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from client.datasets import open_dataset
+from service.config import load_config
+from service.mapping import Mapper
+from service.mapping_process import MappingProcess
+from service.memory import Memory
+from service.pipeline import Pipeline
+from storage import LinkType, MapStore
+
+# figure-8 walked in 40 s at 10 Hz: the second lap revisits the first (loops from ~frame 280)
+SEQUENCE = dict(rate=10, noise=True, duration=40)
+
+
+class _Tee:
+    """The pipeline's mapper: the mapping process's proxy (whose corrections the pipeline
+    uses), with every update also given to an in-process, synchronous Mapper."""
+
+    def __init__(self, proxy, reference):
+        self.proxy, self.reference = proxy, reference
+
+    def submit(self, update):
+        self.proxy.submit(update)
+        self.reference.submit(update)
+
+    def to_map(self, pose):
+        return self.proxy.to_map(pose)
+
+
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory):
+    ds = open_dataset("synthetic:figure8", **SEQUENCE)
+    cfg = load_config()
+    db = tmp_path_factory.mktemp("mp") / "map.db"
+    store = MapStore(db)
+    events = []
+    mp = MappingProcess(db, cfg.loop)
+    try:
+        proxy = mp.mapper("r1", ds.calibration.camera, lambda kind, data: events.append((kind, data)))
+        reference = Mapper(ds.calibration.camera, cfg.loop, None)
+        memory = Memory(store, "r1", ds.calibration, cfg)
+        pipeline = Pipeline(ds.calibration, cfg, memory, _Tee(proxy, reference))
+        results = [pipeline.process(ds.frame(i)) for i in range(len(ds))]
+        assert proxy.close(timeout=600)
+        correction = proxy.correction
+        stats = mp.stats()
+        store.end_session(memory.session_id)
+    finally:
+        mp.close()
+    assert mp.failures == 0 and not mp.alive
+    yield dict(ds=ds, db=db, store=store, events=events, reference=reference, results=results,
+               correction=correction, stats=stats, pid=mp.pid)
+    store.close()
+
+
+def test_child_closes_the_same_loops_as_the_inprocess_mapper(mapped):
+    store, reference = mapped["store"], mapped["reference"]
+    closed = [d for kind, d in mapped["events"] if kind == "loop_closed"]
+    assert closed, "the second lap closes loops"
+    assert any(kind == "map_corrected" for kind, _ in mapped["events"])
+    links = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)
+    assert {(a.from_id, a.to_id) for a in links} == {(d["from"], d["to"]) for d in closed}
+    assert sorted((a.from_id, a.to_id) for a in links) == sorted(reference.loops)  # identical to in-process
+    assert {d["kind"] for d in closed} <= {"appearance", "proximity"}
+    # the child wrote words, statistics and corrected poses into the service's database
+    nodes = store.nodes(limit=None)
+    assert mapped["stats"]["mapped"] == mapped["stats"]["submitted"] == len(nodes)
+    assert all(store.statistics(n.id) is not None for n in nodes)
+
+
+def test_corrections_reach_to_map(mapped):
+    c = mapped["correction"]
+    last = [r for r in mapped["results"] if r.node_id is not None][-1]
+    ref = mapped["reference"]
+    expected = ref.keyframe_poses()[last.node_id] @ np.linalg.inv(last.odometry_pose)
+    np.testing.assert_allclose(c, expected, atol=1e-9)
+    assert np.abs(c - np.eye(4)).max() > 1e-4  # the loops moved the map against odometry
+    late = mapped["results"][-1]
+    assert not np.allclose(late.pose, late.odometry_pose)  # published poses are map poses
+
+
+def test_killed_child_leaves_tracking_running(tmp_path):
+    ds = open_dataset("synthetic:loop", rate=15, noise=True, max_frames=80)
+    cfg = load_config()
+    store = MapStore(tmp_path / "map.db")
+    mp = MappingProcess(tmp_path / "map.db", cfg.loop)
+    try:
+        proxy = mp.mapper("k1", ds.calibration.camera)
+        pipeline = Pipeline(ds.calibration, cfg, Memory(store, "k1", ds.calibration, cfg), proxy)
+        results = []
+        for i in range(len(ds)):
+            if i == 40:
+                deadline = time.monotonic() + 120
+                while proxy.mapped == 0 and time.monotonic() < deadline:  # the child has mapped something
+                    time.sleep(0.1)
+                assert proxy.mapped > 0
+                os.kill(mp.pid, signal.SIGKILL)
+                deadline = time.monotonic() + 30
+                while mp.alive and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                assert not mp.alive
+            results.append(pipeline.process(ds.frame(i)))
+        assert all(r.tracked for r in results)
+        assert len(store.nodes(limit=None)) == sum(r.node_id is not None for r in results)  # memory goes on
+        assert mp.failures == 1 and mp.stats()["failures"] == 1 and mp.stats()["dropped_updates"] > 0
+        assert proxy.close(timeout=5) is False  # nobody waits for a dead child
+    finally:
+        mp.close(timeout=5)
+        store.close()
+
+
+def test_child_exits_when_its_parent_is_killed(tmp_path):
+    script = textwrap.dedent(f"""
+        import sys, time
+        sys.path.insert(0, {os.getcwd()!r})
+        from service.config import load_config
+        from service.mapping_process import MappingProcess
+        from storage import MapStore
+        MapStore({str(tmp_path / 'map.db')!r}).close()
+        mp = MappingProcess({str(tmp_path / 'map.db')!r}, load_config().loop)
+        print(mp.pid, flush=True)
+        time.sleep(600)
+    """)
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                              cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    child = int(parent.stdout.readline())
+    time.sleep(1.0)
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 120  # the child may still be importing (loaded machine)
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        try:
+            with open(f"/proc/{child}/stat") as f:
+                if f.read().split(")")[-1].split()[0] == "Z":  # exited, not reaped yet
+                    break
+        except FileNotFoundError:
+            break
+        time.sleep(0.2)
+    else:
+        os.kill(child, signal.SIGKILL)
+        pytest.fail("the mapping process outlived its parent")
