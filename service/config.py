@@ -41,6 +41,12 @@ class StereoConfig:
     max_hamming: int = 60  # descriptor distance for a stereo match
     max_depth: float = 40.0  # metres; farther stereo depth is biased (1/disparity is convex) and skews scale
     disparity_sigma: float = 1.0  # px, disparity std. dev.: depth std. dev. = z² σ / (f·baseline), weighs far points in pose refinement
+    disparity_offset: float = 0.0  # px added to every measured disparity (a rectification yaw error shifts them all alike); the start of the online estimate
+    self_calibrate: bool = True  # estimate that offset online, as a 7th parameter of each frame's refined pose
+    calib_window: int = 10  # tracked frames whose estimates are averaged (weighted by their information)
+    calib_min_frames: int = 3  # fewer frames in the window: keep the last estimate
+    calib_max_sigma: float = 0.2  # px; the window's estimate is used when its std. dev. is below this
+    calib_max_offset: float = 5.0  # px, the estimate is limited to ± this
 
 
 @dataclass

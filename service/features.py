@@ -27,6 +27,7 @@ class FrameFeatures:
     grey: np.ndarray | None = None  # the frame's grey image (RGB-D), for dense registration
     depth_sigma: np.ndarray | None = None  # (N,) float32 std. dev. of each point's depth (m), NaN when unknown
     level_scale: float = 1.2  # pyramid scale factor: a keypoint at octave k is known to level_scale**k px
+    disparity: np.ndarray | None = None  # (N,) float32 stereo: measured disparity (px, before the offset correction), NaN when none
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -37,7 +38,8 @@ class FrameFeatures:
 
     def subset(self, idx) -> FrameFeatures:
         return FrameFeatures(self.keypoints[idx], self.descriptors[idx], self.points[idx], self.octaves[idx], self.depth,
-                             self.grey, None if self.depth_sigma is None else self.depth_sigma[idx], self.level_scale)
+                             self.grey, None if self.depth_sigma is None else self.depth_sigma[idx], self.level_scale,
+                             None if self.disparity is None else self.disparity[idx])
 
     def pixel_sigmas(self) -> np.ndarray:
         """(N,) keypoint position std. dev. in pixels (1 at level 0, growing per octave)."""
@@ -81,14 +83,17 @@ class FeatureExtractor:
             nfeatures=n * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
             edgeThreshold=19, patchSize=31, fastThreshold=c.min_fast_threshold,
         )
+        # px added to every measured disparity (a rectification error: the odometry estimates
+        # it online, stereo.self_calibrate, and the pipeline sets it here)
+        self.disparity_offset = stereo.disparity_offset
 
     # -- public -------------------------------------------------------------------------
     def extract(self, frame: Frame) -> FrameFeatures:
         grey = frame.grey
         _, desc, xy, octave = self._detect(grey)
-        z_sigma = None
+        z_sigma = disparity = None
         if self.calibration.baseline and frame.right is not None:
-            points = self._stereo_points(grey, frame.right, xy, desc, octave)
+            points, disparity = self._stereo_points(grey, frame.right, xy, desc, octave)
             # σ_z = z² σ_d / (f b): depth uncertainty of a disparity known to σ_d pixels
             cam = self.calibration.camera
             z_sigma = points[:, 2] ** 2 * np.float32(self.stereo.disparity_sigma / (cam.fx * self.calibration.baseline))
@@ -99,7 +104,7 @@ class FeatureExtractor:
             points = np.full((len(xy), 3), np.nan, np.float32)
         rgbd = not self.calibration.baseline and frame.depth is not None
         return FrameFeatures(xy, desc, points, octave, frame.depth if rgbd else None, grey if rgbd else None, z_sigma,
-                             self.config.scale_factor)
+                             self.config.scale_factor, disparity)
 
     # -- detection ----------------------------------------------------------------------
     def _detect(self, grey: np.ndarray):
@@ -160,17 +165,19 @@ class FeatureExtractor:
         return np.stack([x, y, z], axis=1).astype(np.float32)
 
     # -- 3-D from rectified stereo ------------------------------------------------------
-    def _stereo_points(self, left, right, xy_l, desc_l, octave_l) -> np.ndarray:
+    def _stereo_points(self, left, right, xy_l, desc_l, octave_l) -> tuple[np.ndarray, np.ndarray]:
         """Match left keypoints to right keypoints on the same rectified row, refine the
-        disparity to sub-pixel with a SAD patch search, and triangulate."""
+        disparity to sub-pixel with a SAD patch search, correct it by the disparity offset and
+        triangulate. Returns the points and the measured (uncorrected) disparities."""
         s = self.stereo
         cam = self.calibration.camera
         out = np.full((len(xy_l), 3), np.nan, np.float32)
+        measured = np.full(len(xy_l), np.nan, np.float32)
         right = right if right.ndim == 2 else cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
         kps_r = self._orb_low.detect(right, None)
         kps_r, desc_r = self._orb.compute(right, kps_r)
         if desc_r is None or not len(kps_r) or not len(xy_l):
-            return out
+            return out, measured
         xy_r, _, _ = _keypoint_arrays(kps_r)
         # Hamming distance for all pairs, then the epipolar (row) and disparity constraints.
         dist = _hamming_matrix(desc_l, desc_r)
@@ -186,15 +193,18 @@ class FeatureExtractor:
         j = j[ok]
         d = xy_l[i, 0] - xy_r[j, 0]
         d = _refine_disparity(left, right, xy_l[i], d)
-        good = d >= s.min_disparity
-        i, d = i[good], d[good]
-        z = cam.fx * self.calibration.baseline / d
+        d_true = d + self.disparity_offset
+        with np.errstate(invalid="ignore"):
+            good = d_true >= s.min_disparity  # (NaN: no SAD minimum inside the search range)
+        i, d, d_true = i[good], d[good], d_true[good]
+        z = cam.fx * self.calibration.baseline / d_true
         keep = z <= s.max_depth
-        i, z = i[keep], z[keep]
+        i, z, d = i[keep], z[keep], d[keep]
         out[i, 0] = (xy_l[i, 0] - cam.cx) / cam.fx * z
         out[i, 1] = (xy_l[i, 1] - cam.cy) / cam.fy * z
         out[i, 2] = z
-        return out
+        measured[i] = d
+        return out, measured
 
 
 def _hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -237,5 +247,5 @@ def _refine_disparity(left, right, xy, disp, half=5, search=4) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(interior & (denom > 0), 0.5 * (c0 - c2) / denom, 0.0)
     refined = d0 + shifts[k] + np.clip(frac, -0.5, 0.5)
-    # Outside the image or a minimum on the search border: keep the keypoint disparity.
-    return np.where(inside & interior, refined, np.where(inside, -1.0, disp)).astype(np.float64)
+    # Outside the image: keep the keypoint disparity; a minimum on the search border: NaN (no match).
+    return np.where(inside & interior, refined, np.where(inside, np.nan, disp)).astype(np.float64)

@@ -19,9 +19,10 @@ from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rotation_angle
 
 from . import icp
-from .config import OdometryConfig
+from .config import OdometryConfig, StereoConfig
 from .features import FrameFeatures
-from .refinement import mahalanobis2, refine_pose
+from .refinement import mahalanobis2, offset_information, refine_pose
+from .stereo_calibration import DisparityOffsetEstimator
 
 
 class _DepthReference:
@@ -66,6 +67,9 @@ class LocalMap:
         self.last_seen = np.zeros(0, np.int64)
         self.rays = np.zeros((0, 3), np.float64)  # unit world direction of the first sighting ...
         self.sigma = np.zeros(0, np.float64)  # ... along which the point is uncertain by this (m)
+        self.origins = np.zeros((0, 3), np.float64)  # camera centre of the first sighting
+        self.disparity = np.zeros(0, np.float64)  # stereo: disparity measured at the first sighting (NaN: none)
+        self.cos0 = np.zeros(0, np.float64)  # cosine between the first ray and that camera's optical axis
 
     def __len__(self) -> int:
         return len(self.points)
@@ -98,17 +102,43 @@ class LocalMap:
         self.last_seen = np.concatenate([self.last_seen, np.full(int(new.sum()), stamp_id, np.int64)])
         self.rays = np.concatenate([self.rays, rays])
         self.sigma = np.concatenate([self.sigma, features.depth_sigmas()[new]])
+        n_new = int(new.sum())
+        self.origins = np.concatenate([self.origins, np.broadcast_to(pose[:3, 3], (n_new, 3))])
+        if features.disparity is None:
+            self.disparity = np.concatenate([self.disparity, np.full(n_new, np.nan)])
+            self.cos0 = np.concatenate([self.cos0, np.full(n_new, np.nan)])
+        else:
+            p = features.points[new].astype(np.float64)
+            self.disparity = np.concatenate([self.disparity, features.disparity[new].astype(np.float64)])
+            self.cos0 = np.concatenate([self.cos0, p[:, 2] / np.maximum(np.linalg.norm(p, axis=1), 1e-12)])
+        self._trim()
+
+    def place_stereo_points(self, offset: float, fb: float, disparity_sigma: float) -> None:
+        """Move every point triangulated by stereo along its first ray to the depth its
+        measured disparity gives with the disparity offset `offset` (px), so the map agrees
+        with the frames the extractor triangulates with that offset."""
+        stereo = np.isfinite(self.disparity)
+        d = self.disparity[stereo] + offset
+        ok = d > 0
+        idx = np.nonzero(stereo)[0][ok]
+        z = fb / d[ok]
+        self.points[idx] = self.origins[idx] + (z / self.cos0[idx])[:, None] * self.rays[idx]
+        self.sigma[idx] = z ** 2 * (disparity_sigma / fb)
+
+    def _trim(self) -> None:
         if len(self.points) > self.capacity:
             keep = np.sort(np.argsort(-self.last_seen, kind="stable")[: self.capacity])
             self.points, self.descriptors = self.points[keep], self.descriptors[keep]
             self.observations, self.last_seen = self.observations[keep], self.last_seen[keep]
             self.rays, self.sigma = self.rays[keep], self.sigma[keep]
+            self.origins, self.disparity, self.cos0 = self.origins[keep], self.disparity[keep], self.cos0[keep]
 
 
 class Odometry:
     """Tracks frames against a local map; owns the motion model and the segment counter."""
 
-    def __init__(self, camera: PinholeCamera, config: OdometryConfig, seed: int = 0):
+    def __init__(self, camera: PinholeCamera, config: OdometryConfig, seed: int = 0,
+                 stereo: StereoConfig | None = None, baseline: float | None = None):
         self.camera = camera
         self.config = config
         self.K = camera.K
@@ -125,6 +155,14 @@ class Odometry:
         self._map_pose = np.eye(4)
         self._map_inliers = 0
         self._seed = seed
+        # stereo: online estimate of the disparity offset (the pipeline hands it to the extractor)
+        self.calibration = DisparityOffsetEstimator(stereo, camera.fx * baseline) \
+            if stereo is not None and stereo.self_calibrate and baseline else None
+
+    @property
+    def disparity_offset(self) -> float | None:
+        """The current estimate of the stereo disparity offset (px), None when not estimated."""
+        return None if self.calibration is None else self.calibration.offset
 
     # -- tracking -----------------------------------------------------------------------
     def track(self, features: FrameFeatures, stamp: float) -> TrackResult:
@@ -143,8 +181,14 @@ class Odometry:
                 return self._start_segment(features, stamp, new_segment=True)
             return TrackResult("lost", None, segment=self.segment, map_index=np.full(len(features), -1))
         pose, map_index, inliers = result
+        offset = self.disparity_offset
+        if self.calibration is not None and features.disparity is not None:
+            self._calibrate(features, pose, np.where(inliers, map_index, -1))
         if self._needs_map_update(pose, int(inliers.sum())):
             self._update_map(features, pose, np.where(inliers, map_index, -1), int(inliers.sum()))
+        if self.disparity_offset != offset:  # the map follows the new estimate (the frames will)
+            c = self.calibration
+            self.map.place_stereo_points(c.offset, c.fb, c.config.disparity_sigma)
         self.velocity = invert(self.pose) @ pose  # motion over the last interval ...
         self._last_dt = self._dt(stamp)  # ... of this length, rescaled in _predict
         self.pose, self.last_stamp, self.lost_in_row = pose, stamp, 0
@@ -167,6 +211,25 @@ class Odometry:
                 _DepthReference(features.depth, features.grey)
             ref.pose = pose
             self._reference = ref
+
+    def _calibrate(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> None:
+        """Feed the disparity-offset estimate with this frame: its inliers' information on the
+        offset at the refined pose (stereo map points slide along their first ray by
+        ∂ρ/∂δ = −ρ²·cos/(f·b), this frame's depths by ∂z/∂δ = −z²/(f·b))."""
+        q = np.nonzero(map_index >= 0)[0]
+        m = map_index[q]
+        mp = self.map
+        fb = self.calibration.fb
+        stereo = np.isfinite(mp.disparity[m])
+        rho = np.linalg.norm(mp.points[m] - mp.origins[m], axis=1)
+        dworld = np.where(stereo, -rho ** 2 * np.nan_to_num(mp.cos0[m]) / fb, 0.0)
+        z = features.points[q, 2].astype(np.float64)
+        ddepth = np.where(np.isfinite(z), -z ** 2 / fb, 0.0)
+        grad, info = offset_information(invert(pose), self.K, mp.points[m], features.keypoints[q],
+                                        features.pixel_sigmas()[q], mp.rays[m], mp.sigma[m], dworld, z,
+                                        features.depth_sigmas(nan=True)[q], ddepth)
+        if info > 0:
+            self.calibration.add(self.calibration.offset - grad / info, info)
 
     def _register_depth(self, features: FrameFeatures, predicted: np.ndarray):
         """Point-to-plane ICP of this frame's depth against the last map update's depth."""

@@ -50,7 +50,8 @@ class Pipeline:
         self.memory = memory  # service.memory.Memory, or None for odometry alone
         self.mapper = mapper  # service.mapping.Mapper (loop closure + graph), or None
         self.extractor = FeatureExtractor(calibration, config.features, config.stereo)
-        self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed)
+        self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed, stereo=config.stereo,
+                                 baseline=calibration.baseline)
         self.keyframes = KeyframePolicy(config.keyframe)
 
     def process(self, frame: Frame) -> FrameResult:
@@ -61,6 +62,8 @@ class Pipeline:
         features = self.extractor.extract(frame)
         t1 = time.perf_counter()
         tracked = self.odometry.track(features, frame.stamp)
+        if self.odometry.disparity_offset is not None:  # stereo: the next frames use the latest estimate
+            self.extractor.disparity_offset = self.odometry.disparity_offset
         t2 = time.perf_counter()
         keyframe = self.keyframes.decide(tracked)
         node_id = self._remember(frame, features, tracked) if keyframe else None

@@ -60,7 +60,7 @@ class _Observations:
             J[:, 2, 0], J[:, 2, 1], J[:, 2, 5] = y, -x, 1.0
             m[:, 2] = rc[:, 2]
             d[:, 2] = z_weight
-        self.r, self.J, self.d = r, J, d
+        self.r, self.J, self.d, self.m = r, J, d, m
         self.dm = d * m
         self.c = sigma_ray ** 2 / (1.0 + sigma_ray ** 2 * np.einsum("ni,ni->n", m, self.dm))
 
@@ -123,3 +123,43 @@ def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.n
         if np.linalg.norm(xi[:3]) < 1e-6 and np.linalg.norm(xi[3:]) < 1e-6:  # µrad, µm: converged
             break
     return T
+
+
+def offset_information(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
+                       rays: np.ndarray, sigma_ray: np.ndarray, dworld: np.ndarray, depth: np.ndarray,
+                       depth_sigma: np.ndarray, ddepth: np.ndarray) -> tuple[float, float]:
+    """What the observations of a refined pose say about one more parameter δ that moves each
+    world point along its ray by `dworld` (n,) metres per unit and each measured depth by
+    `ddepth` (n,) (stereo: a disparity offset). Returns (g, I): the gradient and the
+    information of δ with the pose marginalized (Schur complement), so that δ − g/I is this
+    frame's estimate and I its weight. Same whitening and Huber weights as refine_pose."""
+    X = np.asarray(world, np.float64)
+    px = np.asarray(pixels, np.float64)
+    z_meas = np.asarray(depth, np.float64)
+    sz = np.asarray(depth_sigma, np.float64)
+    has = np.isfinite(z_meas) & np.isfinite(sz) & (sz > 0)
+    zw = np.where(has, 1.0 / np.where(has, sz, 1.0) ** 2, 0.0)
+    z_meas = np.where(has, z_meas, 0.0)
+    chi = np.where(has, np.sqrt(7.815), HUBER_CHI)
+    obs = _Observations(np.asarray(T_cw, np.float64), K, X, px, sigma_px, rays, sigma_ray, z_meas, zw)
+    e = np.sqrt(np.maximum(obs.chi2(), 0.0))
+    w = np.where(obs.front, np.where(e <= chi, 1.0, chi / np.maximum(e, 1e-12)), 0.0)
+    # Jacobian of the residuals in δ: the point slides along its ray (image of the ray: m),
+    # the measured depth moves too (the residual is predicted − measured).
+    Jd = obs.m * np.asarray(dworld, np.float64)[:, None]
+    Jd[:, 2] -= np.where(has, np.asarray(ddepth, np.float64), 0.0)
+    J = np.concatenate([obs.J, Jd[:, :, None]], axis=2)  # (n, 3, 7)
+    dJ = obs.d[:, :, None] * J
+    g = np.einsum("nk,nkj->nj", obs.dm, J)
+    q = np.einsum("ni,ni->n", obs.dm, obs.r)
+    wc = w * obs.c
+    H = np.einsum("n,nki,nkj->ij", w, dJ, J) - np.einsum("n,ni,nj->ij", wc, g, g)
+    b = np.einsum("n,nki,nk->i", w, dJ, obs.r) - np.einsum("n,ni->i", wc * q, g)
+    Hpp, Hpd = H[:6, :6], H[:6, 6]
+    try:
+        sol = np.linalg.solve(Hpp + 1e-9 * np.trace(Hpp) * np.eye(6), np.stack([Hpd, b[:6]], axis=1))
+    except np.linalg.LinAlgError:
+        return 0.0, 0.0
+    info = float(H[6, 6] - Hpd @ sol[:, 0])
+    grad = float(b[6] - Hpd @ sol[:, 1])
+    return grad, max(info, 0.0)

@@ -74,11 +74,12 @@ def test_tum_cabinet_loop_back_to_the_start_is_closed(data_dir, tmp_path):
     assert ate[True] < ate[False], ate  # measured keyframe ATE 2.40 -> 1.98 cm
 
 
-@pytest.mark.parametrize("name,max_percent,min_tracked", [("a", 1.0, 51), ("b", 3.0, 45)])
+@pytest.mark.parametrize("name,max_percent,min_tracked", [("a", 1.0, 51), ("b", 1.0, 51)])
 def test_kitti_stereo(data_dir, name, max_percent, min_tracked):
     ds, out, ev = _run(require(data_dir / "kitti_odometry_snippets" / "sequences" / name))
     assert out.summary.tracked >= min_tracked
-    # measured a: 0.42 %, b: 2.1 % of path (b: grass, trees and moving cars); target < 1 %
+    # measured a: 0.12 %, b: 0.43 % of path (b: grass, trees and moving cars; before the online
+    # disparity-offset estimate: 0.30 % and 1.58 %, b's stereo pair is off by ~1.5 px)
     assert ev.ate_percent_of_path < max_percent
 
 
