@@ -92,6 +92,17 @@ class ServiceProcess:
             time.sleep(0.25)
         raise TimeoutError(f"robot {robot}: {r} after {timeout:.0f} s")
 
+    def wait_mapped(self, robot: str, timeout: float = 300.0) -> dict:
+        """Until the map update (behind tracking) has done every keyframe of `robot`."""
+        deadline = time.monotonic() + timeout
+        r: dict = {}
+        while time.monotonic() < deadline:
+            r = self.api.robot(robot)
+            if r.get("map_backlog", 0) == 0:
+                return r
+            time.sleep(0.25)
+        raise TimeoutError(f"robot {robot}: map update still {r.get('map_backlog')} keyframes behind after {timeout:.0f} s")
+
     def session_of(self, robot: str) -> int:
         ids = [s["id"] for s in self.api.sessions() if s["robot"] == robot]
         if not ids:
@@ -120,6 +131,7 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
         stats = stream_dataset(dataset, "demo", ZenohSettings(connect=[svc.endpoint]), rate=None,
                                color="jpeg", depth="png", progress=progress, wait_for_subscriber=10.0)
         robot = svc.wait_processed("demo", stats.frames)
+        svc.wait_mapped("demo")  # the loop closures of the last keyframes, before the map is read
         print(f"demo: service processed {robot['frames_processed']} frames "
               f"({robot['tracked']} tracked, {robot['keyframes']} keyframes, {robot['frames_dropped']} dropped, "
               f"{robot['fps']:.1f} frames/s); client sent {stats.mbps:.0f} Mbit/s")

@@ -83,6 +83,8 @@ class Mapper:
         self.loops: list[tuple[int, int]] = []
         self.statistics: dict[int, LoopStatistics] = {}
         self._queue: queue.Queue | None = None
+        self.submitted = 0  # keyframe updates handed to the map update ...
+        self.mapped = 0  # ... and done (the difference is the backlog)
         if background:
             self._queue = queue.Queue()
             self._thread = threading.Thread(target=self._run, name="mapper", daemon=True)
@@ -90,8 +92,12 @@ class Mapper:
 
     # -- tracking side ---------------------------------------------------------------------
     def submit(self, update: KeyframeUpdate) -> None:
+        self.submitted += 1
         if self._queue is None:
-            self._update(update)
+            try:
+                self._update(update)
+            finally:
+                self.mapped += 1
         else:
             self._queue.put(update)
 
@@ -117,6 +123,8 @@ class Mapper:
                 self._update(update)
             except Exception:  # a failed map update must not stop the mapper
                 log.exception("map update of node %d failed", update.node_id)
+            finally:
+                self.mapped += 1
 
     def _update(self, u: KeyframeUpdate) -> None:
         t0 = time.perf_counter()

@@ -144,10 +144,15 @@ class RobotSession:
 
     def snapshot(self) -> dict:
         s = self.stats
+        mapper = self.pipeline.mapper if self.pipeline else None
         return {
             "robot": self.robot, "state": self.state, "queue_depth": self.queue_depth,
             "frames_received": s.received, "frames_processed": s.processed, "frames_dropped": s.dropped_queue,
             "frames_rejected": dict(s.rejected), "tracked": s.tracked, "lost": s.lost, "keyframes": s.keyframes,
             "fps": round(s.fps, 2), "processing_ms": round(s.processing_ms, 2), "last_stamp": s.last_stamp,
             "session_id": self.session_id,
+            # the map update (loop closure, graph) runs behind tracking: keyframes it has done,
+            # and those still waiting (0 = the map served over REST includes every keyframe)
+            "keyframes_mapped": mapper.mapped if mapper is not None else 0,
+            "map_backlog": mapper.submitted - mapper.mapped if mapper is not None else 0,
         }

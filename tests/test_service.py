@@ -61,6 +61,9 @@ def test_streamed_run_matches_offline_run_and_every_keyframe_is_stored(service):
     assert np.abs(streamed.poses[:, :3, 3] - poses[:, :3, 3]).max() < 1e-3
     nodes = service.api.nodes(session, limit=1000)
     assert nodes["total"] == robot["keyframes"]
+    # the map update behind tracking catches up: every keyframe mapped, no backlog
+    mapped = service.wait_mapped("r1", timeout=120)
+    assert mapped["keyframes_mapped"] == robot["keyframes"] and mapped["map_backlog"] == 0
 
 
 def test_three_robots_three_sessions_no_cross_talk(service):
