@@ -179,18 +179,16 @@ class FeatureExtractor:
         if desc_r is None or not len(kps_r) or not len(xy_l):
             return out, measured
         xy_r, _, _ = _keypoint_arrays(kps_r)
-        # Hamming distance for all pairs, then the epipolar (row) and disparity constraints.
-        dist = _hamming_matrix(desc_l, desc_r)
-        disp = xy_l[:, None, 0] - xy_r[None, :, 0]
-        max_disp = s.max_disparity * cam.width
+        # Candidate pairs on the same rectified row (within the keypoint level's tolerance)
+        # and in the disparity range, then the nearest right descriptor of each left keypoint.
         row_tol = s.max_row_diff * self.config.scale_factor ** octave_l.astype(np.float32)  # coarser levels, coarser rows
-        valid = (np.abs(xy_l[:, None, 1] - xy_r[None, :, 1]) <= row_tol[:, None]) & (disp >= s.min_disparity) & (disp <= max_disp)
-        dist = np.where(valid, dist, 255)
-        j = np.argmin(dist, axis=1)
-        best = dist[np.arange(len(j)), j]
-        ok = best <= s.max_hamming
-        i = np.nonzero(ok)[0]
-        j = j[ok]
+        li, ri = _row_candidates(xy_l, xy_r, row_tol)
+        disp = xy_l[li, 0] - xy_r[ri, 0]
+        keep = (disp >= s.min_disparity) & (disp <= s.max_disparity * cam.width)
+        li, ri = li[keep], ri[keep]
+        i, j, dist = _nearest_per_left(li, ri, _hamming_pairs(desc_l, desc_r, li, ri), len(xy_r))
+        ok = dist <= s.max_hamming
+        i, j = i[ok], j[ok]
         d = xy_l[i, 0] - xy_r[j, 0]
         d = _refine_disparity(left, right, xy_l[i], d)
         d_true = d + self.disparity_offset
@@ -207,14 +205,35 @@ class FeatureExtractor:
         return out, measured
 
 
-def _hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """All-pairs Hamming distances (len(a), len(b)) uint8 of 256-bit descriptors."""
+def _row_candidates(xy_l: np.ndarray, xy_r: np.ndarray, row_tol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All (left, right) index pairs whose rows differ by at most the left keypoint's
+    tolerance: a band of the right keypoints sorted by row per left keypoint."""
+    order = np.argsort(xy_r[:, 1], kind="stable")
+    y = xy_r[order, 1]
+    lo = np.searchsorted(y, xy_l[:, 1] - row_tol - 1e-3, "left")  # widened, then the exact test
+    hi = np.searchsorted(y, xy_l[:, 1] + row_tol + 1e-3, "right")
+    count = hi - lo
+    li = np.repeat(np.arange(len(xy_l)), count)
+    ri = order[np.repeat(lo - (np.cumsum(count) - count), count) + np.arange(count.sum())]
+    exact = np.abs(xy_l[li, 1] - xy_r[ri, 1]) <= row_tol[li]
+    return li[exact], ri[exact]  # li ascending
+
+
+def _hamming_pairs(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray) -> np.ndarray:
+    """Hamming distances (n,) int between the 256-bit descriptors a[ia] and b[ib]."""
     au = np.ascontiguousarray(a).view(np.uint64)
     bu = np.ascontiguousarray(b).view(np.uint64)
-    d = np.bitwise_count(np.bitwise_xor.outer(au[:, 0], bu[:, 0]))
-    for k in range(1, au.shape[1]):
-        d += np.bitwise_count(np.bitwise_xor.outer(au[:, k], bu[:, k]))
-    return d
+    return np.bitwise_count(au[ia] ^ bu[ib]).sum(axis=1, dtype=np.int64)
+
+
+def _nearest_per_left(li: np.ndarray, ri: np.ndarray, dist: np.ndarray, n_right: int):
+    """For each left index of the pairs (`li` ascending): the right index at the smallest
+    distance (ties: the smallest right index) and that distance."""
+    if not len(li):
+        return li, ri, dist
+    starts = np.flatnonzero(np.r_[True, li[1:] != li[:-1]])
+    best = np.minimum.reduceat(dist * n_right + ri, starts)  # distance first, then right index
+    return li[starts], best % n_right, best // n_right
 
 
 def _refine_disparity(left, right, xy, disp, half=5, search=4) -> np.ndarray:
