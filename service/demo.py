@@ -11,6 +11,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import yaml
@@ -79,6 +80,17 @@ class ServiceProcess:
 
     def wait_processed(self, robot: str, frames: int, timeout: float = 300.0) -> dict:
         """Until every frame sent by `robot` was processed, dropped or rejected."""
+        def done(r: dict) -> bool:
+            seen = r.get("frames_processed", 0) + r.get("frames_dropped", 0) + sum(r.get("frames_rejected", {}).values())
+            return seen >= frames and r.get("queue_depth", 1) == 0
+        return self._wait(robot, done, timeout)
+
+    def wait_mapped(self, robot: str, timeout: float = 300.0) -> dict:
+        """Until the map update (behind tracking) has done every keyframe of `robot`."""
+        return self._wait(robot, lambda r: r.get("map_backlog", 1) == 0, timeout)
+
+    def _wait(self, robot: str, done: Callable[[dict], bool], timeout: float) -> dict:
+        """Poll the robot's status until `done(status)`; its last status."""
         deadline = time.monotonic() + timeout
         r: dict = {}
         while time.monotonic() < deadline:
@@ -86,22 +98,10 @@ class ServiceProcess:
                 r = self.api.robot(robot)
             except ApiError:
                 r = {}
-            done = r.get("frames_processed", 0) + r.get("frames_dropped", 0) + sum(r.get("frames_rejected", {}).values())
-            if r and done >= frames and r.get("queue_depth", 1) == 0:
+            if r and done(r):
                 return r
             time.sleep(0.25)
         raise TimeoutError(f"robot {robot}: {r} after {timeout:.0f} s")
-
-    def wait_mapped(self, robot: str, timeout: float = 300.0) -> dict:
-        """Until the map update (behind tracking) has done every keyframe of `robot`."""
-        deadline = time.monotonic() + timeout
-        r: dict = {}
-        while time.monotonic() < deadline:
-            r = self.api.robot(robot)
-            if r.get("map_backlog", 0) == 0:
-                return r
-            time.sleep(0.25)
-        raise TimeoutError(f"robot {robot}: map update still {r.get('map_backlog')} keyframes behind after {timeout:.0f} s")
 
     def session_of(self, robot: str) -> int:
         ids = [s["id"] for s in self.api.sessions() if s["robot"] == robot]
