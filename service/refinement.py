@@ -69,15 +69,32 @@ class _Observations:
         q = np.einsum("ni,ni->n", self.dm, r)
         return np.where(self.front, np.einsum("ni,ni,ni->n", self.d, r, r) - self.c * q * q, np.inf)
 
-    def normal_equations(self, w: np.ndarray):
-        """H, b of Σ w Jᵀ Λ J ξ = −Σ w Jᵀ Λ r."""
-        dJ = self.d[:, :, None] * self.J  # (n, k, 6)
-        g = np.einsum("nk,nkj->nj", self.dm, self.J)  # Jᵀ d∘m
+    def weights(self, chi: np.ndarray) -> np.ndarray:
+        """Huber weights (n,) of the observations at Mahalanobis threshold `chi` (0 behind the camera)."""
+        e = np.sqrt(np.maximum(self.chi2(), 0.0))
+        return np.where(self.front, np.where(e <= chi, 1.0, chi / np.maximum(e, 1e-12)), 0.0)
+
+    def normal_equations(self, w: np.ndarray, J: np.ndarray | None = None):
+        """H, b of Σ w Jᵀ Λ J ξ = −Σ w Jᵀ Λ r; `J` (n, k, p) defaults to the pose Jacobian."""
+        J = self.J if J is None else J
+        dJ = self.d[:, :, None] * J  # (n, k, p)
+        g = np.einsum("nk,nkj->nj", self.dm, J)  # Jᵀ d∘m
         q = np.einsum("ni,ni->n", self.dm, self.r)
         wc = w * self.c
-        H = np.einsum("n,nki,nkj->ij", w, dJ, self.J) - np.einsum("n,ni,nj->ij", wc, g, g)
+        H = np.einsum("n,nki,nkj->ij", w, dJ, J) - np.einsum("n,ni,nj->ij", wc, g, g)
         b = np.einsum("n,nki,nk->i", w, dJ, self.r) - np.einsum("n,ni->i", wc * q, g)
         return H, b
+
+
+def _depth_terms(depth: np.ndarray, depth_sigma: np.ndarray):
+    """The measured depths as a third residual: (depth with 0 where none, its weight 1/σ²
+    (0 where none), Huber threshold per observation, mask of those with a depth)."""
+    z = np.asarray(depth, np.float64)
+    sz = np.asarray(depth_sigma, np.float64)
+    has = np.isfinite(z) & np.isfinite(sz) & (sz > 0)
+    weight = np.where(has, 1.0 / np.where(has, sz, 1.0) ** 2, 0.0)
+    chi = np.where(has, np.sqrt(7.815), HUBER_CHI)  # χ² 95 %: 3 dof with a depth, 2 without
+    return np.where(has, z, 0.0), weight, chi, has
 
 
 def mahalanobis2(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
@@ -103,17 +120,10 @@ def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.n
     z_meas = zw = None
     chi = np.full(len(X), HUBER_CHI)
     if depth is not None:
-        z_meas = np.asarray(depth, np.float64)
-        sz = np.asarray(depth_sigma, np.float64)
-        has = np.isfinite(z_meas) & np.isfinite(sz) & (sz > 0)
-        zw = np.where(has, 1.0 / np.where(has, sz, 1.0) ** 2, 0.0)
-        z_meas = np.where(has, z_meas, 0.0)
-        chi[has] = np.sqrt(7.815)  # χ², 3 dof, 95 %
+        z_meas, zw, chi, _ = _depth_terms(depth, depth_sigma)
     for _ in range(iterations):
         obs = _Observations(T, K, X, px, sigma_px, rays, sigma_ray, z_meas, zw)
-        e = np.sqrt(np.maximum(obs.chi2(), 0.0))
-        w = np.where(obs.front, np.where(e <= chi, 1.0, chi / np.maximum(e, 1e-12)), 0.0)
-        H, b = obs.normal_equations(w)
+        H, b = obs.normal_equations(obs.weights(chi))
         try:
             xi = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(6), b)
         except np.linalg.LinAlgError:
@@ -135,26 +145,13 @@ def offset_information(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixel
     frame's estimate and I its weight. Same whitening and Huber weights as refine_pose."""
     X = np.asarray(world, np.float64)
     px = np.asarray(pixels, np.float64)
-    z_meas = np.asarray(depth, np.float64)
-    sz = np.asarray(depth_sigma, np.float64)
-    has = np.isfinite(z_meas) & np.isfinite(sz) & (sz > 0)
-    zw = np.where(has, 1.0 / np.where(has, sz, 1.0) ** 2, 0.0)
-    z_meas = np.where(has, z_meas, 0.0)
-    chi = np.where(has, np.sqrt(7.815), HUBER_CHI)
+    z_meas, zw, chi, has = _depth_terms(depth, depth_sigma)
     obs = _Observations(np.asarray(T_cw, np.float64), K, X, px, sigma_px, rays, sigma_ray, z_meas, zw)
-    e = np.sqrt(np.maximum(obs.chi2(), 0.0))
-    w = np.where(obs.front, np.where(e <= chi, 1.0, chi / np.maximum(e, 1e-12)), 0.0)
     # Jacobian of the residuals in δ: the point slides along its ray (image of the ray: m),
     # the measured depth moves too (the residual is predicted − measured).
     Jd = obs.m * np.asarray(dworld, np.float64)[:, None]
     Jd[:, 2] -= np.where(has, np.asarray(ddepth, np.float64), 0.0)
-    J = np.concatenate([obs.J, Jd[:, :, None]], axis=2)  # (n, 3, 7)
-    dJ = obs.d[:, :, None] * J
-    g = np.einsum("nk,nkj->nj", obs.dm, J)
-    q = np.einsum("ni,ni->n", obs.dm, obs.r)
-    wc = w * obs.c
-    H = np.einsum("n,nki,nkj->ij", w, dJ, J) - np.einsum("n,ni,nj->ij", wc, g, g)
-    b = np.einsum("n,nki,nk->i", w, dJ, obs.r) - np.einsum("n,ni->i", wc * q, g)
+    H, b = obs.normal_equations(obs.weights(chi), np.concatenate([obs.J, Jd[:, :, None]], axis=2))  # (n, 3, 7)
     Hpp, Hpd = H[:6, :6], H[:6, 6]
     try:
         sol = np.linalg.solve(Hpp + 1e-9 * np.trace(Hpp) * np.eye(6), np.stack([Hpd, b[:6]], axis=1))
