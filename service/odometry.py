@@ -94,15 +94,15 @@ class LocalMap:
         seen_only = (map_index >= 0) & ~has_depth
         self.last_seen[map_index[seen_only]] = stamp_id
         new = (map_index < 0) & has_depth
+        n_new = int(new.sum())
         rays = world[new] - pose[:3, 3]
         rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
         self.points = np.concatenate([self.points, world[new]])
         self.descriptors = np.concatenate([self.descriptors, features.descriptors[new]])
-        self.observations = np.concatenate([self.observations, np.ones(int(new.sum()), np.int32)])
-        self.last_seen = np.concatenate([self.last_seen, np.full(int(new.sum()), stamp_id, np.int64)])
+        self.observations = np.concatenate([self.observations, np.ones(n_new, np.int32)])
+        self.last_seen = np.concatenate([self.last_seen, np.full(n_new, stamp_id, np.int64)])
         self.rays = np.concatenate([self.rays, rays])
         self.sigma = np.concatenate([self.sigma, features.depth_sigmas()[new]])
-        n_new = int(new.sum())
         self.origins = np.concatenate([self.origins, np.broadcast_to(pose[:3, 3], (n_new, 3))])
         if features.disparity is None:
             self.disparity = np.concatenate([self.disparity, np.full(n_new, np.nan)])
