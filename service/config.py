@@ -99,6 +99,13 @@ class LoopConfig:
     proximity_radius: float = 1.0  # m, camera centres at most this far apart are proximity candidates
     proximity_angle: float = 45.0  # deg, ... and optical axes at most this far apart (RGBD/ProximityAngle)
     proximity_max_candidates: int = 3  # nearest candidates verified per keyframe; the first that passes is linked
+    # Links along the robot's own recent path (RGBD/ProximityByTime): each keyframe is also
+    # registered to recent keyframes of its segment that see the same place (not loop
+    # candidates: in the STM or younger than min_age; not its odometry neighbour). They skip
+    # the drift the odometry chain accumulated in between (synthetic loop, first 900
+    # frames: 0.99 -> 0.2 cm).
+    proximity_by_time: bool = True  # link each keyframe to recent keyframes of its own path in view (RGBD/ProximityByTime)
+    proximity_time_links: int = 2  # at most this many per keyframe: the oldest recent keyframe in view, then halfway to it
     proximity_dense: bool = True  # when PnP refuses the nearest candidate, register it densely from the graph's pose (RTAB-Map: Reg/Strategy=1)
     proximity_dense_min_overlap: float = 0.3  # share of the new keyframe's points that must be associated
     proximity_max_correction: float = 0.2  # m; the dense result may move the graph's relative pose this much ...

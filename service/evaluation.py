@@ -274,13 +274,15 @@ def evaluate_loops(gt: Trajectory, node_ids, node_stamps, links, min_age: float 
                       float(np.median(err)) if n else float("nan"), float(err.max()) if n else float("nan"))
 
 
-def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.0, **options) -> LoopReport:
-    """`evaluate_loops` (with `options`) over every loop link (appearance and proximity) of a
-    map database."""
+def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.0, types=None,
+                       **options) -> LoopReport:
+    """`evaluate_loops` (with `options`) over the links of a map database of the given
+    `types` (LinkType values; default: every loop link, appearance and proximity by space)."""
     from storage import LinkType, MapStore
 
+    types = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE) if types is None else types
     with MapStore(db_path, create=False) as store:
         nodes = store.nodes(limit=None)
-        links = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)
+        links = [x for t in types for x in store.links(type=t)]
     return evaluate_loops(gt, [n.id for n in nodes], [n.stamp for n in nodes],
                           [(x.from_id, x.to_id, x.transform) for x in links], min_age=min_age, **options)

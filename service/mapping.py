@@ -57,6 +57,7 @@ class LoopStatistics:
     inliers: int = 0
     refined: bool = False  # the accepted link was refined by dense registration
     proximity: list = field(default_factory=list)  # [{node, decision, inliers, refined}] spatial candidates
+    path: list = field(default_factory=list)  # [{node, decision, inliers, refined}] recent keyframes of its own path
     timings_ms: dict = field(default_factory=dict)
 
 
@@ -78,9 +79,11 @@ class Mapper:
         self._order: list[int] = []
         self._stamps: dict[int, float] = {}
         self._neighbours: dict[int, list[int]] = {}
+        self._segment: dict[int, int] = {}  # node -> first node of its odometry segment
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
+        self.path_links: list[tuple[int, int]] = []  # accepted links to recent keyframes of the same path
         self.statistics: dict[int, LoopStatistics] = {}
         self._queue: queue.Queue | None = None
         self.submitted = 0  # keyframe updates handed to the map update ...
@@ -112,6 +115,13 @@ class Mapper:
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         return self.graph.poses()
+
+    def flush_poses(self) -> None:
+        """Write every pose that moved at all since it was last written (the graph reports only
+        moves above its tolerance), so that the database holds the graph's final estimate."""
+        moved = self.graph.changed_poses(tolerance=(0.0, 0.0))
+        if moved and self.store is not None:
+            self.store.update_poses(moved)
 
     # -- map update ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -149,10 +159,14 @@ class Mapper:
         if self.config.proximity_by_space:
             self._close_nearby(u, candidates, stats)
         t5 = time.perf_counter()
+        if self.config.proximity_by_time:
+            self._link_path(u, candidates, stats)
+        t6 = time.perf_counter()
         stats.timings_ms = {"graph": (t1 - t0) * 1e3, "vocabulary": (t2 - t1) * 1e3,
                             "detection": (t3 - t2) * 1e3, "verification_optimization": (t4 - t3) * 1e3,
-                            "proximity": (t5 - t4) * 1e3}
+                            "proximity": (t5 - t4) * 1e3, "path": (t6 - t5) * 1e3}
         self.statistics[u.node_id] = stats
+        self._publish(u.node_id)
         if self.store is not None:
             self.store.set_statistics(u.node_id, stats.__dict__)
         with self._lock:
@@ -166,6 +180,7 @@ class Mapper:
         self._stamps[u.node_id] = u.stamp
         self._order.append(u.node_id)
         self._neighbours.setdefault(u.node_id, [])
+        self._segment[u.node_id] = u.node_id if u.odom_from is None else self._segment.get(u.odom_from, u.odom_from)
         if u.odom_from is not None:
             self._neighbours[u.node_id].append(u.odom_from)
             self._neighbours.setdefault(u.odom_from, []).append(u.node_id)
@@ -188,12 +203,40 @@ class Mapper:
             if decision == "accepted":
                 return
 
-    def _close_loop(self, u: KeyframeUpdate, candidate: int, kind: LinkType,
-                    prior: np.ndarray | None = None) -> tuple[str, Verification | None]:
-        """Verify a candidate (PnP, then dense refinement) and add the link to the graph.
-        With a `prior` (T_candidate_new from the graph) a candidate PnP refuses is also
-        registered densely from it. Returns the decision ("accepted" or "rejected: why")
-        and the verification."""
+    def _link_path(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics) -> None:
+        """Proximity by time: register the new keyframe to recent keyframes of its own segment
+        (those that are not loop candidates) that the graph places in view of it, the oldest
+        first, then the one halfway along the path to it; each that passes becomes a link."""
+        c = self.config
+        segment = self._segment[u.node_id]
+        recent = []
+        for n in reversed(self._order[:-1]):  # the non-candidates are the newest keyframes
+            if n in candidates:
+                break
+            if self._segment[n] == segment and n not in self._neighbours[u.node_id]:
+                recent.append(n)
+        if not recent or c.proximity_time_links <= 0:
+            return
+        poses = self.graph.poses()
+        ids = np.array(recent, np.int64)
+        near = np.sort(nearby(np.stack([poses[i] for i in recent]), ids, poses[u.node_id], c.proximity_radius,
+                              c.proximity_angle, len(ids)))  # oldest first (node ids grow with time)
+        chosen = np.unique(near[(np.arange(c.proximity_time_links) * len(near)) // c.proximity_time_links]) \
+            if len(near) else near  # the oldest, then evenly towards the newest
+        for candidate in chosen.tolist():
+            decision, v = self._register(u, candidate)  # PnP: no dense-only links (a few cm off on textureless walls)
+            if decision == "ok" and not v.refined and u.node_id in self._views and candidate in self._views:
+                decision = "rejected: not refined"  # odometry is better than an unrefined PnP link
+            elif decision == "ok":
+                decision = self._add_link(u, candidate, LinkType.LOCAL_TIME, v)
+            stats.path.append({"node": candidate, "decision": decision,
+                               "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined)})
+
+    def _register(self, u: KeyframeUpdate, candidate: int,
+                  prior: np.ndarray | None = None) -> tuple[str, Verification | None]:
+        """Verify a candidate (PnP, then dense refinement). With a `prior` (T_candidate_new
+        from the graph) a candidate PnP refuses is also registered densely from it. Returns
+        ("ok" or "rejected: why", the verification)."""
         c = self.config
         cand = self._features[candidate]
         v = verify(self.camera, u.features.keypoints, u.features.descriptors, cand.descriptors, cand.points,
@@ -209,19 +252,42 @@ class Mapper:
         if dense:
             v = refine(v, self._views[u.node_id], self._views[candidate], min_overlap=c.refine_min_overlap,
                        max_correction=(c.refine_max_correction, c.refine_max_rotation))
+        return "ok", v
+
+    def _add_link(self, u: KeyframeUpdate, candidate: int, kind: LinkType, v: Verification) -> str:
+        """Add a verified link to the graph (which may refuse it) and store it with the poses
+        it moved. Returns "accepted" or "rejected: graph why"."""
         outcome = self.graph.add_loop(candidate, u.node_id, v.transform, v.information)
         if not outcome.accepted:
-            return f"rejected: graph {outcome.reason}", v
-        self.loops.append((candidate, u.node_id))
-        self._neighbours[u.node_id].append(candidate)
-        self._neighbours[candidate].append(u.node_id)
-        moved = self.graph.changed_poses()
+            return f"rejected: graph {outcome.reason}"
+        if kind == LinkType.LOCAL_TIME:
+            self.path_links.append((candidate, u.node_id))
+        else:
+            self.loops.append((candidate, u.node_id))
+            self._neighbours[u.node_id].append(candidate)
+            self._neighbours[candidate].append(u.node_id)
         if self.store is not None:
             self.store.add_link(candidate, u.node_id, kind, v.transform, v.information)
-            if moved:
-                self.store.update_poses(moved)
-        self.on_event("loop_closed", {"from": candidate, "to": u.node_id, "inliers": v.inliers,
-                                      "kind": "proximity" if kind == LinkType.LOCAL_SPACE else "appearance"})
-        if moved:
+        if kind != LinkType.LOCAL_TIME:
+            self.on_event("loop_closed", {"from": candidate, "to": u.node_id, "inliers": v.inliers,
+                                          "kind": "proximity" if kind == LinkType.LOCAL_SPACE else "appearance"})
+        return "accepted"
+
+    def _publish(self, node_id: int) -> None:
+        """Write the poses the graph moved (and the new keyframe's) to the database; a
+        `map_corrected` event when older keyframes moved. Every update, not only after a
+        link: iSAM2 keeps refining earlier poses as nodes arrive."""
+        moved = self.graph.changed_poses()
+        if moved and self.store is not None:
+            self.store.update_poses(moved)
+        if set(moved) - {node_id}:
             self.on_event("map_corrected", {"nodes": len(moved)})
-        return "accepted", v
+
+    def _close_loop(self, u: KeyframeUpdate, candidate: int, kind: LinkType,
+                    prior: np.ndarray | None = None) -> tuple[str, Verification | None]:
+        """Verify a loop candidate and add the link to the graph. Returns the decision
+        ("accepted" or "rejected: why") and the verification."""
+        decision, v = self._register(u, candidate, prior)
+        if decision == "ok":
+            decision = self._add_link(u, candidate, kind, v)
+        return decision, v

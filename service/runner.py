@@ -80,6 +80,7 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
         mapper = Mapper(dataset.calibration.camera, config.loop, store) if config.loop.enabled else None
         out = _run(dataset, Pipeline(dataset.calibration, config, memory, mapper), progress)
         if mapper is not None:  # keyframes, and every frame through its keyframe, at their final poses
+            mapper.flush_poses()
             final = mapper.keyframe_poses()
             ids = [r.node_id for r in out.results if r.node_id is not None]
             out.keyframes = Trajectory(np.array([r.stamp for r in out.results if r.node_id is not None]),

@@ -19,6 +19,7 @@ from service.config import load_config
 from service.demo import ServiceProcess, keyframe_trajectory
 from service.evaluation import evaluate
 from service.pipeline import Pipeline
+from service.runner import run_dataset
 
 FRAMES = 90
 
@@ -34,17 +35,26 @@ def service(tmp_path):
     svc.stop()
 
 
+class _Decoded:
+    """A dataset's frames as the service receives them: through the wire codec."""
+
+    def __init__(self, dataset, color, depth):
+        self.dataset, self.color, self.depth = dataset, color, depth
+        self.name, self.calibration, self.ground_truth = dataset.name, dataset.calibration, None
+
+    def __len__(self):
+        return len(self.dataset)
+
+    def frame(self, i):
+        wire = protocol.encode_frame(self.dataset.frame(i), "x", i, color=self.color, depth=self.depth)
+        return protocol.decode_frame(wire).frame
+
+
 def _offline_keyframes(dataset, color="png", depth="png"):
-    """The same frames through the same codec and pipeline, in this process."""
-    pipeline = Pipeline(dataset.calibration, load_config())
-    stamps, poses = [], []
-    for i in range(len(dataset)):
-        wire = protocol.decode_frame(protocol.encode_frame(dataset.frame(i), "x", i, color=color, depth=depth))
-        r = pipeline.process(wire.frame)
-        if r.keyframe:
-            stamps.append(r.stamp)
-            poses.append(r.pose)
-    return np.array(stamps), np.array(poses)
+    """The same frames through the same codec and an offline run in this process (map update
+    inline): the keyframes' stamps and final map poses."""
+    out = run_dataset(_Decoded(dataset, color, depth), load_config(), progress=False)
+    return out.keyframes.stamps, out.keyframes.poses
 
 
 def test_streamed_run_matches_offline_run_and_every_keyframe_is_stored(service):
@@ -53,17 +63,18 @@ def test_streamed_run_matches_offline_run_and_every_keyframe_is_stored(service):
                            progress=False, wait_for_subscriber=10.0)
     robot = service.wait_processed("r1", stats.frames)
     assert robot["frames_processed"] == FRAMES and robot["frames_dropped"] == 0
+    # the map update behind tracking catches up: every keyframe mapped, no backlog
+    mapped = service.wait_mapped("r1", timeout=120)
+    assert mapped["keyframes_mapped"] == robot["keyframes"] and mapped["map_backlog"] == 0
     session = service.session_of("r1")
     streamed = keyframe_trajectory(service.api, session)
     stamps, poses = _offline_keyframes(ds)
     assert len(streamed) == len(stamps) == robot["keyframes"]
     np.testing.assert_allclose(streamed.stamps, stamps, atol=1e-6)
+    # the same map: the service writes poses that moved by more than the graph's 0.1 mm tolerance
     assert np.abs(streamed.poses[:, :3, 3] - poses[:, :3, 3]).max() < 1e-3
     nodes = service.api.nodes(session, limit=1000)
     assert nodes["total"] == robot["keyframes"]
-    # the map update behind tracking catches up: every keyframe mapped, no backlog
-    mapped = service.wait_mapped("r1", timeout=120)
-    assert mapped["keyframes_mapped"] == robot["keyframes"] and mapped["map_backlog"] == 0
 
 
 def test_three_robots_three_sessions_no_cross_talk(service):
