@@ -384,12 +384,11 @@ def _match(query: np.ndarray, train: np.ndarray, ratio: float, max_dist: int):
     Returns (query indices, train indices)."""
     if len(train) < 2 or len(query) == 0:
         return np.zeros(0, int), np.zeros(0, int)
-    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query, train, k=2)
-    arr = np.array([(m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2], np.float64)
-    qi = np.array([m[0].queryIdx for m in knn if len(m) == 2], int)
-    if not len(arr):
-        return np.zeros(0, int), np.zeros(0, int)
-    ti, d1, d2 = arr[:, 0].astype(int), arr[:, 1], arr[:, 2]
+    # the two nearest train descriptors of each query as arrays (what BFMatcher.knnMatch
+    # computes before it wraps them in DMatch objects)
+    dist, nearest = cv2.batchDistance(query, train, -1, normType=cv2.NORM_HAMMING, K=2, update=0, crosscheck=False)
+    qi = np.arange(len(query))
+    ti, d1, d2 = nearest[:, 0].astype(int), dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
     ok = (d1 <= max_dist) & (d1 < ratio * d2)
     qi, ti, d1 = qi[ok], ti[ok], d1[ok]
     # One query per train point: keep the closest.
