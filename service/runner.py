@@ -6,6 +6,8 @@ import json
 import logging
 import tempfile
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -99,16 +101,35 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
     return out
 
 
+def _frames(dataset: Dataset, ahead: int = 2):
+    """The dataset's frames in order, each read (decoded or rendered) `ahead` frames early on
+    one reader thread, so that decoding (which releases the GIL) overlaps the pipeline's
+    work on the other core; a frame that cannot be read comes as its DatasetError. One
+    reader, in order: the frames are the same as read one by one."""
+    def read(i: int):
+        try:
+            return dataset.frame(i)
+        except DatasetError as e:
+            return e
+
+    n = len(dataset)
+    with ThreadPoolExecutor(1, thread_name_prefix="frame-reader") as pool:
+        pending = deque(pool.submit(read, i) for i in range(min(ahead, n)))
+        for i in range(n):
+            frame = pending.popleft().result()
+            if i + ahead < n:
+                pending.append(pool.submit(read, i + ahead))
+            yield frame
+
+
 def _run(dataset: Dataset, pipeline: Pipeline, progress: bool) -> RunOutput:
     results: list[FrameResult] = []
     bad = 0
     start = time.perf_counter()
     bar = tqdm(total=len(dataset), desc=dataset.name, unit="frame", disable=not progress, leave=False)
-    for i in range(len(dataset)):
-        try:
-            frame = dataset.frame(i)
-        except DatasetError as e:
-            log.error("frame %d skipped: %s", i, e)
+    for i, frame in enumerate(_frames(dataset)):
+        if isinstance(frame, DatasetError):
+            log.error("frame %d skipped: %s", i, frame)
             bad += 1
             bar.update()
             continue
