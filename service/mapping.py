@@ -83,7 +83,6 @@ class Mapper:
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
-        self.path_links: list[tuple[int, int]] = []  # accepted links to recent keyframes of the same path
         self.statistics: dict[int, LoopStatistics] = {}
         self._queue: queue.Queue | None = None
         self.submitted = 0  # keyframe updates handed to the map update ...
@@ -119,9 +118,7 @@ class Mapper:
     def flush_poses(self) -> None:
         """Write every pose that moved at all since it was last written (the graph reports only
         moves above its tolerance), so that the database holds the graph's final estimate."""
-        moved = self.graph.changed_poses(tolerance=(0.0, 0.0))
-        if moved and self.store is not None:
-            self.store.update_poses(moved)
+        self._write_moved((0.0, 0.0))
 
     # -- map update ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -208,6 +205,8 @@ class Mapper:
         (those that are not loop candidates) that the graph places in view of it, the oldest
         first, then the one halfway along the path to it; each that passes becomes a link."""
         c = self.config
+        if c.proximity_time_links <= 0:
+            return
         segment = self._segment[u.node_id]
         recent = []
         for n in reversed(self._order[:-1]):  # the non-candidates are the newest keyframes
@@ -215,7 +214,7 @@ class Mapper:
                 break
             if self._segment[n] == segment and n not in self._neighbours[u.node_id]:
                 recent.append(n)
-        if not recent or c.proximity_time_links <= 0:
+        if not recent:
             return
         poses = self.graph.poses()
         ids = np.array(recent, np.int64)
@@ -255,14 +254,12 @@ class Mapper:
         return "ok", v
 
     def _add_link(self, u: KeyframeUpdate, candidate: int, kind: LinkType, v: Verification) -> str:
-        """Add a verified link to the graph (which may refuse it) and store it with the poses
-        it moved. Returns "accepted" or "rejected: graph why"."""
+        """Add a verified link to the graph (which may refuse it) and store it (the poses it
+        moved are written at the end of the update). Returns "accepted" or "rejected: graph why"."""
         outcome = self.graph.add_loop(candidate, u.node_id, v.transform, v.information)
         if not outcome.accepted:
             return f"rejected: graph {outcome.reason}"
-        if kind == LinkType.LOCAL_TIME:
-            self.path_links.append((candidate, u.node_id))
-        else:
+        if kind != LinkType.LOCAL_TIME:
             self.loops.append((candidate, u.node_id))
             self._neighbours[u.node_id].append(candidate)
             self._neighbours[candidate].append(u.node_id)
@@ -277,11 +274,16 @@ class Mapper:
         """Write the poses the graph moved (and the new keyframe's) to the database; a
         `map_corrected` event when older keyframes moved. Every update, not only after a
         link: iSAM2 keeps refining earlier poses as nodes arrive."""
-        moved = self.graph.changed_poses()
-        if moved and self.store is not None:
-            self.store.update_poses(moved)
+        moved = self._write_moved()
         if set(moved) - {node_id}:
             self.on_event("map_corrected", {"nodes": len(moved)})
+
+    def _write_moved(self, tolerance: tuple[float, float] | None = None) -> dict[int, np.ndarray]:
+        """Write the poses the graph moved by more than `tolerance` (default: the graph's)."""
+        moved = self.graph.changed_poses(tolerance)
+        if moved and self.store is not None:
+            self.store.update_poses(moved)
+        return moved
 
     def _close_loop(self, u: KeyframeUpdate, candidate: int, kind: LinkType,
                     prior: np.ndarray | None = None) -> tuple[str, Verification | None]:
