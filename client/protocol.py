@@ -128,7 +128,19 @@ Event message (JSON, on ``<prefix>/<robot>/events``)
 ====================================================
 ``{"version": 1, "robot", "kind", "data": {...}}`` with kind one of `EVENT_KINDS`
 ("keyframe_added", "loop_closed", "tracking_lost", "map_corrected", "session_started") and
-free-form JSON data (numpy scalars / arrays are converted to numbers / lists).
+JSON data (numpy scalars / arrays are converted to numbers / lists). The service sends:
+
+==================  ==========================================================================
+kind                data
+==================  ==========================================================================
+session_started     ``session_id``: the map database's session of this robot
+keyframe_added      ``node_id``, ``seq``, ``stamp`` of the frame that became a keyframe
+tracking_lost       ``seq``, ``stamp`` of the first lost frame
+loop_closed         ``from``, ``to`` (node ids: the older keyframe, the new one), ``inliers``
+                    (verified correspondences), ``link``: "appearance" (bag-of-words loop) or
+                    "proximity" (a keyframe the graph placed near the new one)
+map_corrected       ``nodes``: how many keyframe poses the map update moved
+==================  ==========================================================================
 """
 from __future__ import annotations
 
@@ -823,8 +835,9 @@ class EventMessage:
         return {**self.data, "robot": self.robot, "kind": self.kind}
 
 
-def encode_event(robot: str, kind: str, **data) -> bytes:
-    """An event message; `data` is any JSON-serialisable keyword data (numpy allowed)."""
+def encode_event(robot: str, kind: str, /, **data) -> bytes:
+    """An event message; `data` is any JSON-serialisable keyword data (numpy allowed). `robot`
+    and `kind` are positional-only, so data keys of those names cannot collide with them."""
     if kind not in EVENT_KINDS:
         raise ProtocolError("bad_kind", f"event kind must be one of {', '.join(EVENT_KINDS)}, got {kind!r:.40}")
     return _dump({"version": PROTOCOL_VERSION, "robot": check_robot(robot), "kind": kind, "data": data})

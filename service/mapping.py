@@ -267,7 +267,7 @@ class Mapper:
             self.store.add_link(candidate, u.node_id, kind, v.transform, v.information)
         if kind != LinkType.LOCAL_TIME:
             self.on_event("loop_closed", {"from": candidate, "to": u.node_id, "inliers": v.inliers,
-                                          "kind": "proximity" if kind == LinkType.LOCAL_SPACE else "appearance"})
+                                          "link": "proximity" if kind == LinkType.LOCAL_SPACE else "appearance"})
         return "accepted"
 
     def _publish(self, node_id: int) -> None:

@@ -71,7 +71,7 @@ def test_child_closes_the_same_loops_as_the_inprocess_mapper(mapped):
     links = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)
     assert {(a.from_id, a.to_id) for a in links} == {(d["from"], d["to"]) for d in closed}
     assert sorted((a.from_id, a.to_id) for a in links) == sorted(reference.loops)  # identical to in-process
-    assert {d["kind"] for d in closed} <= {"appearance", "proximity"}
+    assert {d["link"] for d in closed} <= {"appearance", "proximity"}
     # the child wrote words, statistics and corrected poses into the service's database
     nodes = store.nodes(limit=None)
     assert mapped["stats"]["mapped"] == mapped["stats"]["submitted"] == len(nodes)

@@ -460,6 +460,9 @@ def test_event_round_trip_and_validation():
     assert json.loads(encode_event("r1", "keyframe_added", node_id=7)) == {
         "version": 1, "robot": "r1", "kind": "keyframe_added", "data": {"node_id": 7}}
     assert decode_event(encode_event("r1", "session_started")).data == {}
+    # data keys named like the positional arguments do not collide with them
+    e = decode_event(encode_event("r1", "loop_closed", **{"kind": "x", "robot": "y", "from": 1}))
+    assert (e.robot, e.kind, e.data) == ("r1", "loop_closed", {"kind": "x", "robot": "y", "from": 1})
     with pytest.raises(ProtocolError) as err:
         encode_event("r1", "exploded")
     assert err.value.reason == "bad_kind"

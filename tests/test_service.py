@@ -77,6 +77,38 @@ def test_streamed_run_matches_offline_run_and_every_keyframe_is_stored(service):
     assert nodes["total"] == robot["keyframes"]
 
 
+def test_loop_closed_and_map_corrected_events_are_published(service):
+    """A subscriber of mnemoslam/<robot>/events sees the map update's events with the fields
+    documented in client/protocol.py."""
+    events = []
+    z = open_session(_settings(service))
+    sub = z.declare_subscriber(protocol.KeySpace().events("ev"), lambda s: events.append(
+        protocol.decode_event(s.payload.to_bytes())))
+    try:
+        ds = open_dataset("synthetic:figure8", rate=10, noise=True, duration=40)  # second lap revisits the first
+        stats = stream_dataset(ds, "ev", _settings(service), rate=None, progress=False, wait_for_subscriber=10.0)
+        service.wait_processed("ev", stats.frames)
+        service.wait_mapped("ev", timeout=180)
+        time.sleep(0.5)  # the last events are on their way
+    finally:
+        sub.undeclare()
+        z.close()
+    kinds = [e.kind for e in events]
+    assert kinds[0] == "session_started" and isinstance(events[0]["session_id"], int)
+    closed = [e for e in events if e.kind == "loop_closed"]
+    assert closed, f"no loop_closed among {sorted(set(kinds))}"
+    keyframes = {e["node_id"] for e in events if e.kind == "keyframe_added"}
+    for e in closed:
+        assert e["robot"] == "ev" and e["link"] in ("appearance", "proximity")
+        assert e["from"] in keyframes and e["to"] in keyframes and e["from"] < e["to"]
+        assert isinstance(e["inliers"], int) and e["inliers"] > 0
+    corrected = [e for e in events if e.kind == "map_corrected"]
+    assert corrected and all(isinstance(e["nodes"], int) and e["nodes"] > 0 for e in corrected)
+    graph = service.api.get(f"/sessions/{service.session_of('ev')}/graph")
+    loops = {(l["from"], l["to"]) for l in graph["links"] if l["type"] in ("loop", "proximity")}
+    assert loops == {(e["from"], e["to"]) for e in closed}
+
+
 def test_three_robots_three_sessions_no_cross_talk(service):
     paths = {"alpha": "loop", "bravo": "walk_a", "charlie": "walk_b"}
     datasets = {r: open_dataset(f"synthetic:{p}", max_frames=45) for r, p in paths.items()}
