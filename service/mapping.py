@@ -108,9 +108,11 @@ class Mapper:
             return self._correction @ odom_pose
 
     def close(self, timeout: float = 30.0) -> None:
+        """Finish the queued updates (background mapper), then write the graph's final poses."""
         if self._queue is not None:
             self._queue.put(None)
             self._thread.join(timeout)
+        self.flush_poses()
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         return self.graph.poses()

@@ -115,7 +115,9 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
                 counts[key] = counts.get(key, 0) + 1
                 send(("correction", key, m.to_map(np.eye(4))))
             elif op == "close":
-                mappers.pop(key, None)
+                m = mappers.pop(key, None)
+                if m is not None:
+                    m.close()  # the graph's final poses to the database
                 cameras.pop(key, None)
                 send(("closed", key, counts.pop(key, 0)))
             if os.getppid() != parent_pid:

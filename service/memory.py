@@ -33,6 +33,10 @@ class Memory:
         self.last_segment: int | None = None
         self.last_link: tuple | None = None
 
+    def close(self) -> None:
+        """The session ended (its keyframes are all committed already)."""
+        self.store.end_session(self.session_id)
+
     def add_keyframe(self, frame: Frame, features: FrameFeatures, pose: np.ndarray, inliers: int,
                      segment: int, statistics: dict | None = None) -> int:
         """Persist a keyframe (node, features, images, odometry link) and return its id."""

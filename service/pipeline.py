@@ -54,6 +54,26 @@ class Pipeline:
                                  baseline=calibration.baseline)
         self.keyframes = KeyframePolicy(config.keyframe)
 
+    @property
+    def session_id(self) -> int | None:
+        """The map database's session of this pipeline (None without memory)."""
+        return self.memory.session_id if self.memory is not None else None
+
+    @property
+    def map_progress(self) -> tuple[int, int]:
+        """(keyframes the map update has done, keyframes handed to it); equal = no backlog."""
+        if self.mapper is None:
+            return 0, 0
+        return self.mapper.mapped, self.mapper.submitted
+
+    def close(self) -> None:
+        """End the session: the map update finishes its queued keyframes (and writes its final
+        poses), then the session is closed in the database."""
+        if self.mapper is not None:
+            self.mapper.close()
+        if self.memory is not None:
+            self.memory.close()
+
     def process(self, frame: Frame) -> FrameResult:
         t0 = time.perf_counter()
         if not self._has_geometry(frame):

@@ -21,9 +21,8 @@ from client.trajectory import Trajectory, write_tum
 
 from storage import MapStore
 
+from .builder import build_pipeline
 from .config import Config
-from .mapping import Mapper
-from .memory import Memory
 from .pipeline import FrameResult, Pipeline
 
 log = logging.getLogger("mnemoslam.run")
@@ -78,11 +77,11 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
         for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
             p.unlink(missing_ok=True)  # a run replaces the previous run's map
         store = stack.enter_context(MapStore(db))
-        memory = Memory(store, dataset.name, dataset.calibration, config)
-        mapper = Mapper(dataset.calibration.camera, config.loop, store) if config.loop.enabled else None
-        out = _run(dataset, Pipeline(dataset.calibration, config, memory, mapper), progress)
+        pipeline = build_pipeline(store, dataset.name, dataset.calibration, config)  # map update inline
+        out = _run(dataset, pipeline, progress)
+        pipeline.close()  # the graph's final poses to the database, the session ended
+        mapper = pipeline.mapper
         if mapper is not None:  # keyframes, and every frame through its keyframe, at their final poses
-            mapper.flush_poses()
             final = mapper.keyframe_poses()
             ids = [r.node_id for r in out.results if r.node_id is not None]
             out.keyframes = Trajectory(np.array([r.stamp for r in out.results if r.node_id is not None]),
@@ -90,7 +89,6 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             out.online = out.trajectory
             out.trajectory = _anchored(out.results, final)
             out.summary.loops = len(mapper.loops)
-        store.end_session(memory.session_id)
     if out_dir is not None:
         write_tum(out_dir / "trajectory.tum", out.trajectory)
         write_tum(out_dir / "trajectory_online.tum", out.online)

@@ -17,10 +17,9 @@ from client.frames import Calibration, Frame
 from client.transport import ZenohSettings, open_session
 from storage import MapStore
 
+from .builder import build_pipeline
 from .config import Config, to_dict
-from .mapping import Mapper
 from .mapping_process import MappingProcess
-from .memory import Memory
 from .pipeline import FrameResult, Pipeline
 from .session import RobotSession
 
@@ -70,12 +69,7 @@ class SlamService:
                 pass
         self._subscribers = []
         for s in list(self.sessions.values()):
-            s.stop()
-            if s.pipeline is not None and s.pipeline.mapper is not None:
-                s.pipeline.mapper.close()  # finish the queued map updates before the database closes
-            memory = s.pipeline.memory if s.pipeline else None
-            if memory is not None:
-                self.store.end_session(memory.session_id)
+            s.stop()  # its pipeline finishes the queued map updates and ends its database session
         if self.mapping is not None:
             self.mapping.close()  # every robot's updates are done: stop the child before the database closes
         if self.zenoh is not None:
@@ -165,19 +159,14 @@ class SlamService:
 
     # -- per-frame output (worker threads) ---------------------------------------------
     def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:
-        memory = Memory(self.store, robot, calibration, self.config)
-        self._publish(self.keys.events(robot), protocol.encode_event(robot, "session_started", session_id=memory.session_id))
-        log.info("session started robot=%s session=%d camera=%dx%d kind=%s", robot, memory.session_id,
+        events = self.keys.events(robot)
+        on_event = lambda kind, data: self._publish(events, protocol.encode_event(robot, kind, **data))
+        pipeline = build_pipeline(self.store, robot, calibration, self.config, mapping=self.mapping,
+                                  background=True, on_event=on_event)
+        on_event("session_started", {"session_id": pipeline.session_id})
+        log.info("session started robot=%s session=%d camera=%dx%d kind=%s", robot, pipeline.session_id,
                  calibration.camera.width, calibration.camera.height, calibration.kind)
-        mapper = None
-        if self.config.loop.enabled:
-            events = self.keys.events(robot)
-            on_event = lambda kind, data: self._publish(events, protocol.encode_event(robot, kind, **data))
-            if self.mapping is not None:
-                mapper = self.mapping.mapper(robot, calibration.camera, on_event)
-            else:
-                mapper = Mapper(calibration.camera, self.config.loop, self.store, background=True, on_event=on_event)
-        return Pipeline(calibration, self.config, memory, mapper)
+        return pipeline
 
     def _on_result(self, session: RobotSession, frame: Frame, result: FrameResult) -> None:
         robot = session.robot

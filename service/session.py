@@ -70,8 +70,7 @@ class RobotSession:
 
     @property
     def session_id(self) -> int | None:
-        memory = self.pipeline.memory if self.pipeline else None
-        return memory.session_id if memory else None
+        return self.pipeline.session_id if self.pipeline else None
 
     @property
     def queue_depth(self) -> int:
@@ -97,11 +96,14 @@ class RobotSession:
             self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
 
     def stop(self, timeout: float = 10.0) -> None:
-        """Finish the frame in progress (the queue's backlog is dropped) and end."""
+        """Finish the frame in progress (the queue's backlog is dropped) and end the pipeline's
+        session (its map update finishes the keyframes it was given)."""
         with self._cond:
             self._stopping = True
             self._cond.notify()
         self._thread.join(timeout)
+        if self.pipeline is not None:
+            self.pipeline.close()
 
     # -- worker thread -----------------------------------------------------------------
     def _run(self) -> None:
@@ -144,7 +146,7 @@ class RobotSession:
 
     def snapshot(self) -> dict:
         s = self.stats
-        mapper = self.pipeline.mapper if self.pipeline else None
+        mapped, submitted = self.pipeline.map_progress if self.pipeline else (0, 0)
         return {
             "robot": self.robot, "state": self.state, "queue_depth": self.queue_depth,
             "frames_received": s.received, "frames_processed": s.processed, "frames_dropped": s.dropped_queue,
@@ -153,6 +155,6 @@ class RobotSession:
             "session_id": self.session_id,
             # the map update (loop closure, graph) runs behind tracking: keyframes it has done,
             # and those still waiting (0 = the map served over REST includes every keyframe)
-            "keyframes_mapped": mapper.mapped if mapper is not None else 0,
-            "map_backlog": mapper.submitted - mapper.mapped if mapper is not None else 0,
+            "keyframes_mapped": mapped,
+            "map_backlog": submitted - mapped,
         }

@@ -1,0 +1,33 @@
+"""One place that assembles a robot's SLAM session — memory, map update, pipeline — for the
+offline runner (`mnemoslam run`) and the service (`serve`, and `demo` through it). How the map
+update runs is the caller's choice: inline (offline runs stay reproducible), on a thread, or
+in the service's mapping child process."""
+from __future__ import annotations
+
+from typing import Callable
+
+from client.frames import Calibration
+from storage import MapStore
+
+from .config import Config
+from .mapping import Mapper
+from .mapping_process import MappingProcess
+from .memory import Memory
+from .pipeline import Pipeline
+
+
+def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config: Config, *,
+                   mapping: MappingProcess | None = None, background: bool = False,
+                   on_event: Callable[[str, dict], None] | None = None) -> Pipeline:
+    """A new session of `robot` in the map `store`: its memory (a session in the database), its
+    map update when `config.loop.enabled` (in `mapping`'s child process when given, else a
+    Mapper on its own thread with `background`, else inline) reporting to `on_event(kind,
+    data)`, and the pipeline over both. End it with `Pipeline.close()`."""
+    memory = Memory(store, robot, calibration, config)
+    mapper = None
+    if config.loop.enabled:
+        if mapping is not None:
+            mapper = mapping.mapper(robot, calibration.camera, on_event)
+        else:
+            mapper = Mapper(calibration.camera, config.loop, store, on_event=on_event, background=background)
+    return Pipeline(calibration, config, memory, mapper)
