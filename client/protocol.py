@@ -96,7 +96,8 @@ bad_stamp         stamp NaN, infinite or negative
 bad_seq           seq not an integer in 0..2**64-1 (encoding / JSON)
 decode_failed     PNG / JPEG payload is corrupt, of the wrong format or bit depth
 size_mismatch     image dimensions in the PNG / JPEG header, or of the decoded image,
-                  differ from the message header
+                  differ from the message header; or the header's differ from
+                  `Limits.size` (the receiver's expected size, e.g. the calibration's)
 bad_frame         (encoding only) the Frame cannot be sent: wrong dtype / shape
 bad_json          JSON message not utf-8 JSON object, or a field of the wrong type
 bad_field         JSON field out of range (non-finite or non-positive focal length...)
@@ -122,7 +123,10 @@ lower-case word ``[a-z_]{1,32}`` (the pipeline uses "ok", "init", "lost", "skipp
 transform (OpenCV camera axes) in the map frame of ``segment``, or null when not tracked;
 keyframe true / false (JSON booleans only); segment an integer 0..2**31-1, the map the pose is
 expressed in (the service decides when a new one starts, e.g. after tracking was lost);
-node_id the pose-graph node of the keyframe (integer >= 0) or null.
+node_id the pose-graph node of the keyframe (integer >= 0) or null. Back-pressure, optional
+(absent = unknown): queue_depth, the robot's frames waiting in the service when the pose was
+sent, and dropped, how many of its frames the service has dropped so far because its queue was
+full (integers >= 0). A camera that sees dropped grow sends too fast for the service.
 
 Event message (JSON, on ``<prefix>/<robot>/events``)
 ====================================================
@@ -204,6 +208,7 @@ class Limits:
     max_width: int = 4096
     max_height: int = 4096
     max_json_bytes: int = 1024 * 1024
+    size: tuple[int, int] | None = None  # (width, height) the receiver expects (the camera's calibration)
 
 
 DEFAULT_LIMITS = Limits()
@@ -578,6 +583,9 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS) -> WireFrame:
         raise ProtocolError("bad_header", f"depth_scale {scale!r}")
     if not (1 <= w <= limits.max_width and 1 <= h <= limits.max_height):
         raise ProtocolError("bad_size", f"image {w}×{h} outside 1..{limits.max_width}×1..{limits.max_height}")
+    if limits.size is not None and (w, h) != tuple(limits.size):
+        raise ProtocolError("size_mismatch", f"image {w}×{h}, the camera's calibration says "
+                                             f"{limits.size[0]}×{limits.size[1]}")
     if not math.isfinite(stamp) or stamp < 0:
         raise ProtocolError("bad_stamp", f"stamp {stamp!r}")
     second_bytes_per_pixel = 2 if kname == "rgbd" else 1
@@ -745,6 +753,8 @@ class PoseMessage:
     keyframe: bool
     segment: int
     node_id: int | None
+    queue_depth: int | None = None  # frames of this robot waiting in the service when it was sent
+    dropped: int | None = None  # frames of this robot the service dropped so far (queue full)
 
 
 def _check_pose_matrix(pose: Any, what: str) -> np.ndarray | None:
@@ -770,7 +780,8 @@ def _check_status(status: Any, what: str) -> str:
 
 
 def encode_pose(robot: str, seq: int, stamp: float, status: str, pose: np.ndarray | None, keyframe: bool = False,
-                segment: int = 0, node_id: int | None = None) -> bytes:
+                segment: int = 0, node_id: int | None = None, queue_depth: int | None = None,
+                dropped: int | None = None) -> bytes:
     """The pose message for frame `seq` of `robot` (see the module documentation)."""
     what = "pose"
     obj = {"version": PROTOCOL_VERSION, "robot": check_robot(robot), "seq": _check_seq(seq),
@@ -785,6 +796,11 @@ def encode_pose(robot: str, seq: int, stamp: float, status: str, pose: np.ndarra
                                 or not 0 <= int(node_id) <= _U64_MAX):
         raise ProtocolError("bad_field", f"{what}: node_id must be None or an integer >= 0, got {node_id!r:.40}")
     obj["node_id"] = None if node_id is None else int(node_id)
+    for name, v in (("queue_depth", queue_depth), ("dropped", dropped)):
+        if v is not None:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= int(v) <= _U64_MAX:
+                raise ProtocolError("bad_field", f"{what}: {name} must be None or an integer >= 0, got {v!r:.40}")
+            obj[name] = int(v)
     return _dump(obj)
 
 
@@ -802,7 +818,10 @@ def decode_pose(data: Any, limits: Limits = DEFAULT_LIMITS) -> PoseMessage:
         raise ProtocolError("bad_json", f"{what}: keyframe must be true or false")
     segment = _integer(obj, "segment", what, 0, 2**31 - 1)
     node_id = _integer(obj, "node_id", what, 0, _U64_MAX, optional=True)
-    return PoseMessage(obj["robot"], seq, stamp, status, pose, obj["keyframe"], segment, node_id)
+    queue_depth = _integer(obj, "queue_depth", what, 0, _U64_MAX, optional=True)
+    dropped = _integer(obj, "dropped", what, 0, _U64_MAX, optional=True)
+    return PoseMessage(obj["robot"], seq, stamp, status, pose, obj["keyframe"], segment, node_id, queue_depth,
+                       dropped)
 
 
 @dataclass

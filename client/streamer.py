@@ -16,10 +16,13 @@ What goes on the wire is `client.protocol` (frame messages on `<prefix>/<robot>/
 the camera info on `<prefix>/<robot>/camera/info`).
 
 Delivery: the frame publisher uses CongestionControl.BLOCK and reliable transport, so the
-client never drops a frame silently: when the network or the service's receive queue is full,
-`send` blocks until there is room, and a client that produces faster than the service consumes
-is slowed down to the service's pace (back-pressure). Whether the service then keeps or skips
-frames is the service's decision, which it can count. Frames published while no subscriber
+client never drops a frame silently: when the network is congested `send` blocks until there
+is room. The service answers every frame it processes with a pose message that also says how
+many of this robot's frames it dropped because its queue was full (back-pressure the camera can
+see: `CameraStreamer.answered_seq` / `service_dropped`). `stream_dataset` without a rate sends
+as fast as the service takes frames (at most `window` frames in flight, so none is dropped);
+with a rate it paces the frames and, with `adapt`, lowers the rate by 10 % whenever the service
+reports new drops. Frames published while no subscriber
 matches the key are not stored anywhere: start the service first, or use
 `wait_for_subscriber`. The camera info is `put` once at start AND served by a queryable on the
 info key, so a service that starts later gets it with `session.get(keyspace.info(robot))`.
@@ -32,11 +35,12 @@ from __future__ import annotations
 import logging
 import math
 import sys
+import threading
 import time
 from dataclasses import dataclass
 
 from .frames import Calibration, Frame
-from .protocol import (DEFAULT_PREFIX, KINDS, KeySpace, ProtocolError, encode_frame, encode_info,
+from .protocol import (DEFAULT_PREFIX, KINDS, KeySpace, ProtocolError, decode_pose, encode_frame, encode_info,
                        frame_kind)
 from .transport import DEFAULT_ENDPOINT, MODES, ZenohSettings, open_session
 
@@ -78,11 +82,44 @@ class CameraStreamer:
         self.frames_sent = 0
         self.bytes_sent = 0
         self._closed = False
+        # what the service says back (its pose messages): the last frame it answered, how many
+        # it answered, how many of ours it dropped (back-pressure)
+        self.answered_seq: int | None = None
+        self.answered = 0
+        self.service_dropped = 0
+        self._answer = threading.Condition()
         self._publisher = session.declare_publisher(
             self.frame_key, congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE)
         self._queryable = session.declare_queryable(self.info_key, self._answer_info)
+        self._poses = session.declare_subscriber(self.keyspace.pose(robot), self._on_pose)
         session.put(self.info_key, self.info, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _on_pose(self, sample) -> None:
+        try:
+            msg = decode_pose(sample.payload.to_bytes())
+        except ProtocolError as e:
+            log.debug("bad pose message: %s", e)
+            return
+        with self._answer:
+            self.answered += 1
+            self.answered_seq = msg.seq if self.answered_seq is None else max(self.answered_seq, msg.seq)
+            if msg.dropped is not None:
+                self.service_dropped = max(self.service_dropped, msg.dropped)
+            self._answer.notify_all()
+
+    def wait_for_room(self, seq: int, window: int, timeout: float) -> bool:
+        """Wait until the service has answered frame `seq - window` or a later one, i.e. at
+        most `window` frames are in flight (True), or `timeout` seconds passed (False: a frame
+        may have been rejected, or the service does not answer)."""
+        end = time.monotonic() + timeout
+        with self._answer:
+            while (self.answered_seq if self.answered_seq is not None else -1) < seq - window:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._answer.wait(left)
+        return True
 
     def _answer_info(self, query) -> None:
         try:
@@ -128,7 +165,7 @@ class CameraStreamer:
         if self._closed:
             return
         self._closed = True
-        for entity in (self._publisher, self._queryable):
+        for entity in (self._publisher, self._queryable, self._poses):
             try:
                 entity.undeclare()
             except Exception as e:  # session already closed
@@ -151,10 +188,15 @@ class StreamStats:
     fps: float
     mbps: float
     subscriber: bool = True  # a subscriber matched the frame key when streaming ended
+    encoding: str = ""  # colour/depth encodings used, e.g. "raw/raw"
+    answered: int = 0  # frames the service answered with a pose
+    dropped: int = 0  # frames the service reported dropping (its queue was full)
+    rate: float | None = None  # the rate in the end (lower than asked when adapted to drops)
 
     def line(self) -> str:
         return (f"streamed {self.frames} frames, {self.bytes / 1e6:.1f} MB in {self.seconds:.2f} s "
-                f"({self.fps:.1f} fps, {self.mbps:.1f} Mbit/s)"
+                f"({self.fps:.1f} fps, {self.mbps:.1f} Mbit/s, {self.encoding}); the service answered "
+                f"{self.answered} and dropped {self.dropped}"
                 + ("" if self.subscriber else "; no subscriber was listening"))
 
 
@@ -165,16 +207,29 @@ def _length(dataset) -> int | None:
         return None
 
 
+def resolve_encodings(color: str, depth: str, settings: ZenohSettings) -> tuple[str, str]:
+    """"auto" encodings: raw frames to a service on this host (no encode / decode CPU on either
+    side; 640×480 RGB-D is 1.5 MB, ~44 MB/s at 30 Hz), JPEG colour and PNG depth over a network."""
+    local = settings.local
+    return (("raw" if local else "jpeg") if color == "auto" else color,
+            ("raw" if local else "png") if depth == "auto" else depth)
+
+
 def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *, rate: float | None = None,
-                   color: str = "jpeg", depth: str = "png", prefix: str = DEFAULT_PREFIX, progress: bool = True,
+                   color: str = "auto", depth: str = "auto", prefix: str = DEFAULT_PREFIX, progress: bool = True,
                    max_frames: int | None = None, wait_for_subscriber: float = 0.0,
-                   kind: str | None = None, session=None) -> StreamStats:
+                   kind: str | None = None, session=None, window: int = 4, adapt: bool = False,
+                   answer_timeout: float = 2.0) -> StreamStats:
     """Stream every frame of `dataset` (any `Dataset`, incl. `CaptureSource`) as `robot`.
 
     Opens a session with `settings` (default `ZenohSettings.client()`), unless an open
-    `session` is given (then it is left open). `rate` None sends as fast as the link and the
-    receiver allow; a rate sends frame k at k / rate seconds after the first (real time at that
-    rate; late frames are sent at once, never skipped). `wait_for_subscriber` seconds: wait
+    `session` is given (then it is left open). `rate` None sends as fast as the service takes
+    the frames: frame k waits until the service answered frame k - `window` (or
+    `answer_timeout` seconds passed: a rejected frame is never answered). A rate sends frame k
+    at k / rate seconds after the first (real time at that rate; late frames are sent at once,
+    never skipped); with `adapt`, each time the service reports new drops the rate is lowered by
+    10 %. `color` / `depth` "auto": raw to a service on this host, JPEG / PNG otherwise
+    (`resolve_encodings`). At the end it waits up to `answer_timeout` for the last answer. `wait_for_subscriber` seconds: wait
     that long for a subscriber on the frame key before the first frame (then stream anyway).
     seq counts frames from 0. `kind` defaults to the dataset's `kind` attribute if it has one
     (CaptureSource: "mono"), else its calibration's.
@@ -184,13 +239,15 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
     if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1):
         raise ValueError(f"max_frames must be a positive integer, got {max_frames!r}")
     keyspace = KeySpace(prefix)
+    settings = settings if settings is not None else ZenohSettings.client()
+    color, depth = resolve_encodings(color, depth, settings)
     kind = kind if kind is not None else getattr(dataset, "kind", None)
     total = _length(dataset)
     if max_frames is not None:
         total = max_frames if total is None else min(total, max_frames)
     own = session is None
     if own:
-        session = open_session(settings if settings is not None else ZenohSettings.client())
+        session = open_session(settings)
     bar = None
     try:
         streamer = CameraStreamer(session, robot, dataset.calibration, keyspace, color=color, depth=depth, kind=kind)
@@ -204,13 +261,21 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
                 bar = tqdm(total=total, unit="frame", desc=f"{robot} -> {streamer.frame_key}", dynamic_ncols=True)
             t0 = time.perf_counter()
             sent = 0
+            next_at, dropped = t0, 0  # when the next frame is due at `rate`; drops seen so far
             for frame in dataset:
                 if max_frames is not None and sent >= max_frames:
                     break
-                if rate is not None:
-                    delay = t0 + sent / rate - time.perf_counter()
+                if rate is None:
+                    streamer.wait_for_room(sent, window, answer_timeout)
+                else:
+                    if adapt and streamer.service_dropped > dropped:
+                        dropped = streamer.service_dropped
+                        rate *= 0.9
+                        log.warning("the service dropped %d frames: rate lowered to %.1f frames/s", dropped, rate)
+                    delay = next_at - time.perf_counter()
                     if delay > 0:
                         time.sleep(delay)
+                    next_at += 1.0 / rate  # late frames go at once (real time at that rate)
                 streamer.send(frame, sent)
                 sent += 1
                 if bar is not None:
@@ -219,6 +284,8 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
                         bar.set_postfix_str(f"{streamer.bytes_sent * 8 / 1e6 / max(time.perf_counter() - t0, 1e-9):.0f} Mbit/s")
             seconds = time.perf_counter() - t0
             matched = streamer.has_subscriber
+            if sent and matched:
+                streamer.wait_for_room(sent - 1, 0, answer_timeout)
         finally:
             streamer.close()
     finally:
@@ -227,7 +294,8 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
         if own:
             session.close()
     secs = max(seconds, 1e-9)
-    return StreamStats(sent, streamer.bytes_sent, seconds, sent / secs, streamer.bytes_sent * 8 / 1e6 / secs, matched)
+    return StreamStats(sent, streamer.bytes_sent, seconds, sent / secs, streamer.bytes_sent * 8 / 1e6 / secs, matched,
+                       f"{color}/{depth}", streamer.answered, streamer.service_dropped, rate)
 
 
 # ------------------------------------------------------------------------------------------
@@ -243,10 +311,16 @@ def add_stream_arguments(parser):
     src.add_argument("--camera", metavar="DEVICE_OR_VIDEO", help="stream a camera device (index, e.g. 0) or a video file instead")
     parser.add_argument("--format", choices=list(FORMATS), help="override dataset layout detection")
     parser.add_argument("--robot", default="robot1", help="robot id, [A-Za-z0-9_-]{1,64} (default robot1)")
-    parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the service takes them)")
-    parser.add_argument("--encoding", choices=["jpeg", "png", "raw"], default="jpeg", help="colour image encoding (default jpeg)")
-    parser.add_argument("--depth-encoding", choices=["png", "raw"], default="png",
-                        help="depth (or stereo right image) encoding (default png, lossless)")
+    parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the service takes them: "
+                                                   "at most --window frames in flight, none dropped)")
+    parser.add_argument("--window", type=int, default=4, help="frames in flight without --rate (default 4)")
+    parser.add_argument("--adapt", action="store_true",
+                        help="with --rate: lower the rate by 10%% each time the service reports dropped frames")
+    parser.add_argument("--encoding", choices=["auto", "jpeg", "png", "raw"], default="auto",
+                        help="colour image encoding (default auto: raw to a service on this host, else jpeg)")
+    parser.add_argument("--depth-encoding", choices=["auto", "png", "raw"], default="auto",
+                        help="depth (or stereo right image) encoding, both lossless (default auto: raw to a service "
+                             "on this host, else png)")
     parser.add_argument("--connect", action="append", metavar="ENDPOINT",
                         help=f"zenoh endpoint of the service, repeatable (default {DEFAULT_ENDPOINT})")
     parser.add_argument("--mode", choices=list(MODES), default="peer", help="zenoh session mode (default peer)")
@@ -290,9 +364,10 @@ def stream_main(args) -> int:
               f"to {', '.join(connect)} on {KeySpace(prefix).frame(robot)}", file=sys.stderr)
     try:
         stats = stream_dataset(dataset, robot, settings, rate=getattr(args, "rate", None),
-                               color=getattr(args, "encoding", "jpeg"), depth=getattr(args, "depth_encoding", "png"),
+                               color=getattr(args, "encoding", "auto"), depth=getattr(args, "depth_encoding", "auto"),
                                prefix=prefix, progress=not quiet, max_frames=max_frames,
-                               wait_for_subscriber=float(getattr(args, "wait", 5.0) or 0.0))
+                               wait_for_subscriber=float(getattr(args, "wait", 5.0) or 0.0),
+                               window=max(1, int(getattr(args, "window", 4))), adapt=bool(getattr(args, "adapt", False)))
     finally:
         close = getattr(dataset, "release", None)
         if close is not None:

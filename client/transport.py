@@ -37,6 +37,7 @@ DEFAULT_PORT = 7447
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 MODES = ("peer", "client", "router")
 _ENDPOINT = re.compile(r"[a-z0-9]+/\S+")
+_LOCAL = re.compile(r"(tcp|udp|quic|tls)/(127\.\d+\.\d+\.\d+|localhost|\[::1\]):\d+(#.*)?$|(unixsock-stream|shm)/.+")
 
 
 class TransportError(ConnectionError):
@@ -64,6 +65,13 @@ class ZenohSettings:
     def client(cls, connect: list[str] | None = None) -> "ZenohSettings":
         """A camera's default: a peer connecting to tcp/127.0.0.1:7447."""
         return cls(mode="peer", connect=list(connect) if connect else [DEFAULT_ENDPOINT])
+
+    @property
+    def local(self) -> bool:
+        """True when every endpoint it connects to is on this host (loopback, unix socket or
+        shared memory) and it discovers nothing by multicast: frames then need not be
+        compressed (raw frames cost memory bandwidth, not CPU)."""
+        return bool(self.connect) and not self.multicast_scouting and all(_LOCAL.match(e) for e in self.connect)
 
     def validate(self) -> "ZenohSettings":
         if self.mode not in MODES:

@@ -130,11 +130,13 @@ class ZenohConfig:
 
 @dataclass
 class ServiceConfig:
-    queue_size: int = 4  # frames waiting per robot; when full the oldest is dropped (and counted)
-    info_timeout: float = 2.0  # s to wait for a camera's info reply before asking again
+    queue_size: int = 30  # frames waiting per robot (1 s at 30 Hz); when full the oldest is dropped (and counted) ...
+    queue_mb: float = 128.0  # ... also when their decoded images would exceed this many MB
+    info_timeout: float = 2.0  # s to wait for a camera's info reply; a robot is asked again at most this often
     max_message_mb: float = 32.0  # frame messages larger than this are rejected before decoding
     max_image_side: int = 4096  # px; larger claimed sizes are rejected before decoding
-    max_robots: int = 32  # sessions at once; frames from more robots are rejected
+    max_robots: int = 32  # robot slots; a robot gets one when its camera info arrives, frames of others are rejected
+    idle_timeout: float = 60.0  # s without frames after which a robot's slot is freed (its session ends)
 
 
 @dataclass

@@ -42,7 +42,10 @@ class SlamService:
         self.started_at = time.time()
         self._lock = threading.Lock()
         self._subscribers = []
-        self._info_requests: set[str] = set()
+        self._info_requests: dict[str, float] = {}  # robot -> when its camera info was last asked for
+        self._info_slots = threading.BoundedSemaphore(4)  # info queries in flight
+        self._stopped = threading.Event()
+        self._janitor: threading.Thread | None = None
 
     # -- life cycle --------------------------------------------------------------------
     def start(self) -> "SlamService":
@@ -56,6 +59,8 @@ class SlamService:
             self.zenoh.declare_subscriber(self.keys.frames_wildcard(), self._on_frame_sample),
             self.zenoh.declare_subscriber(self.keys.info_wildcard(), self._on_info_sample),
         ]
+        self._janitor = threading.Thread(target=self._expire_idle, name="robot-slots", daemon=True)
+        self._janitor.start()
         log.info("service started: listen=%s prefix=%s db=%s", z.listen, z.prefix, self.config.storage.path)
         return self
 
@@ -68,6 +73,9 @@ class SlamService:
             except Exception:  # already closed
                 pass
         self._subscribers = []
+        self._stopped.set()
+        if self._janitor is not None:
+            self._janitor.join()
         for s in list(self.sessions.values()):
             s.stop()  # its pipeline finishes the queued map updates and ends its database session
         if self.mapping is not None:
@@ -88,34 +96,40 @@ class SlamService:
 
     # -- ingest (Zenoh threads) ------------------------------------------------------------
     def _on_frame_sample(self, sample) -> None:
+        """Decode a frame of an admitted robot against its calibration's image size and queue
+        it; anything else is counted and dropped before it costs memory."""
         key = str(sample.key_expr)
         robot = self.keys.robot_of(key)
+        session = self.sessions.get(robot) if robot is not None else None
+        if session is None:  # no slot: the robot's camera info has not arrived (ask for it)
+            self._count_reject("no_calibration" if robot is not None else "bad_key", key, None)
+            if robot is not None:
+                self._request_info(robot)
+            return
         try:
-            payload = sample.payload.to_bytes()
-            msg = protocol.decode_frame(payload, self.limits)
-            if robot is None or msg.robot != robot:
+            msg = protocol.decode_frame(sample.payload.to_bytes(), session.limits)
+            if msg.robot != robot:
                 raise protocol.ProtocolError("robot_mismatch", f"header robot {msg.robot!r} on key {key!r}")
         except protocol.ProtocolError as e:
+            session.reject(e.reason)
             self._count_reject(e.reason, key, e)
             return
         except Exception as e:  # a bug in decoding must not reach Zenoh's thread
+            session.reject("internal")
             self._count_reject("internal", key, e)
-            return
-        session = self._session(robot)
-        if session is None:
-            self._count_reject("too_many_robots", key, None)
             return
         session.submit(msg.seq, msg.frame)
 
     def _on_info_sample(self, sample) -> None:
+        key = str(sample.key_expr)
         try:
             robot, calibration = protocol.decode_info(sample.payload.to_bytes())
+            if robot != self.keys.robot_of(key):
+                raise protocol.ProtocolError("robot_mismatch", f"camera info of {robot!r} on key {key!r}")
         except protocol.ProtocolError as e:
-            self._count_reject("bad_info", str(sample.key_expr), e)
+            self._count_reject("bad_info", key, e)
             return
-        session = self.sessions.get(robot)
-        if session is not None:
-            session.set_calibration(calibration)
+        self._admit(robot, calibration)
 
     def _count_reject(self, reason: str, key: str, err) -> None:
         with self._lock:
@@ -124,38 +138,85 @@ class SlamService:
         if n <= 3 or n % 1000 == 0:  # structured, rate-limited
             log.warning("rejected message reason=%s key=%s count=%d detail=%s", reason, key, n, err)
 
-    def _session(self, robot: str) -> RobotSession | None:
-        s = self.sessions.get(robot)
-        if s is not None:
-            return s
+    def _admit(self, robot: str, calibration: Calibration) -> RobotSession | None:
+        """The robot's session, made when its calibration arrives and a slot is free. A camera
+        that restarts with another calibration keeps its session (counted, not applied)."""
         with self._lock:
             s = self.sessions.get(robot)
-            if s is None:
-                if len(self.sessions) >= self.config.service.max_robots:
-                    return None
-                s = RobotSession(robot, self.config, lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result)
+            if s is not None:
+                if s.calibration != calibration:
+                    s.reject("calibration_changed")
+                return s
+            if len(self.sessions) >= self.config.service.max_robots:
+                self.rejected["too_many_robots"] += 1
+                n = self.rejected["too_many_robots"]
+            else:
+                cam = calibration.camera
+                limits = protocol.Limits(self.limits.max_message_bytes, self.limits.max_width,
+                                         self.limits.max_height, size=(cam.width, cam.height))
+                s = RobotSession(robot, self.config, calibration, limits,
+                                 lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result)
                 self.sessions[robot] = s
-                log.info("new robot=%s", robot)
-                threading.Thread(target=self._fetch_info, args=(s,), daemon=True, name=f"info-{robot}").start()
+        if s is None:
+            if n <= 3 or n % 1000 == 0:
+                log.warning("robot=%s refused: all %d robot slots taken count=%d", robot,
+                            self.config.service.max_robots, n)
+            return None
+        log.info("robot admitted robot=%s camera=%dx%d kind=%s slots=%d/%d", robot, cam.width, cam.height,
+                 calibration.kind, len(self.sessions), self.config.service.max_robots)
         return s
 
-    def _fetch_info(self, session: RobotSession) -> None:
-        """Ask the camera's queryable for its calibration until it answers (or arrives by put)."""
-        while session.calibration is None and self.zenoh is not None and session.state != "stopped":
-            try:
-                for reply in self.zenoh.get(self.keys.info(session.robot), timeout=self.config.service.info_timeout):
-                    if reply.ok is None:
-                        continue
-                    robot, calibration = protocol.decode_info(reply.ok.payload.to_bytes())
-                    if robot == session.robot:
-                        session.set_calibration(calibration)
-                        break
-            except protocol.ProtocolError as e:
-                self._count_reject("bad_info", self.keys.info(session.robot), e)
-                time.sleep(self.config.service.info_timeout)
-            except Exception as e:  # session closed while asking
-                log.debug("info query for %s failed: %s", session.robot, e)
-                time.sleep(0.2)
+    def _request_info(self, robot: str) -> None:
+        """Ask robot's camera for its info (its queryable), at most once per info_timeout per
+        robot and a few robots at a time, so frames of unknown robots cost no more than that."""
+        now = time.monotonic()
+        with self._lock:
+            last = self._info_requests.get(robot)
+            if (last is not None and now - last < self.config.service.info_timeout) \
+                    or not self._info_slots.acquire(blocking=False):
+                return
+            self._info_requests[robot] = now
+            if len(self._info_requests) > 4 * self.config.service.max_robots:  # forget the oldest asks
+                for r, _ in sorted(self._info_requests.items(), key=lambda kv: kv[1])[:len(self._info_requests) // 2]:
+                    del self._info_requests[r]
+        threading.Thread(target=self._fetch_info, args=(robot,), daemon=True, name=f"info-{robot}").start()
+
+    def _fetch_info(self, robot: str) -> None:
+        try:
+            z = self.zenoh
+            if z is None:
+                return
+            for reply in z.get(self.keys.info(robot), timeout=self.config.service.info_timeout):
+                if reply.ok is None:
+                    continue
+                try:
+                    who, calibration = protocol.decode_info(reply.ok.payload.to_bytes())
+                except protocol.ProtocolError as e:
+                    self._count_reject("bad_info", self.keys.info(robot), e)
+                    continue
+                if who == robot:
+                    self._admit(robot, calibration)
+                    return
+                self._count_reject("bad_info", self.keys.info(robot), f"camera info of {who!r}")
+        except Exception as e:  # the session closed while asking
+            log.debug("info query for %s failed: %s", robot, e)
+        finally:
+            self._info_slots.release()
+
+    def _expire_idle(self) -> None:
+        """Free the slots of robots that sent nothing for idle_timeout seconds: their session
+        ends (the pipeline finishes its map update and closes its database session)."""
+        while not self._stopped.wait(min(1.0, self.config.service.idle_timeout / 4)):
+            now = time.monotonic()
+            for robot, s in list(self.sessions.items()):
+                if s.idle(now) > self.config.service.idle_timeout:
+                    with self._lock:
+                        if self.sessions.get(robot) is not s:
+                            continue
+                        del self.sessions[robot]
+                    log.info("robot expired robot=%s idle_s=%.0f frames=%d session=%s", robot, s.idle(now),
+                             s.stats.processed, s.session_id)
+                    s.stop()
 
     # -- per-frame output (worker threads) ---------------------------------------------
     def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:
@@ -172,7 +233,7 @@ class SlamService:
         robot = session.robot
         self._publish(self.keys.pose(robot), protocol.encode_pose(
             robot, frame.index, frame.stamp, result.status, result.pose, bool(result.keyframe), result.segment,
-            result.node_id))
+            result.node_id, queue_depth=session.queue_depth, dropped=session.stats.dropped_queue))
         if result.node_id is not None:
             self._publish(self.keys.events(robot), protocol.encode_event(
                 robot, "keyframe_added", node_id=result.node_id, seq=frame.index, stamp=frame.stamp))
@@ -196,6 +257,7 @@ class SlamService:
         return {
             "uptime_s": round(time.time() - self.started_at, 1),
             "robots": len(self.sessions),
+            "robot_slots": self.config.service.max_robots,
             "rejected": dict(self.rejected),
             "rejected_total": sum(self.rejected.values()),
             "mapping_process": self.mapping.stats() if self.mapping is not None else None,

@@ -1,10 +1,12 @@
 """One robot's SLAM session inside the service: a bounded frame queue, a worker thread that
 runs the pipeline, and the counters the REST API shows.
 
-Frames arrive from Zenoh's callback thread (`submit`); when the pipeline falls behind, the
-queue drops its *oldest* frame (a camera wants the freshest pose, not a growing backlog)
-and counts the drop. Until the camera's calibration is known (its info message), frames
-wait in the same bounded queue.
+A robot gets a session (a slot) only once its camera's calibration is known, so frames are
+decoded against the calibration's image size and nothing a robot sends is held before it.
+Frames arrive from Zenoh's callback thread (`submit`); a frame whose stamp does not increase
+is rejected and counted; when the pipeline falls behind, the queue (bounded in frames and in
+decoded bytes) drops its *oldest* frame (a camera wants the freshest pose, not a growing
+backlog) and counts the drop.
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from client.frames import Calibration, Frame
+from client.protocol import Limits
 
 from .config import Config
 from .pipeline import FrameResult, Pipeline
@@ -25,7 +28,7 @@ log = logging.getLogger("mnemoslam.session")
 
 @dataclass
 class SessionStats:
-    received: int = 0
+    received: int = 0  # frames accepted into the queue
     processed: int = 0
     dropped_queue: int = 0  # oldest frame dropped because the queue was full
     rejected: dict = field(default_factory=dict)  # reason -> count, for frames this session refused
@@ -41,18 +44,24 @@ class SessionStats:
 
 class RobotSession:
     """Owns the pipeline of one robot; `on_result(session, frame, result)` is called from
-    the worker thread after every processed frame."""
+    the worker thread after every processed frame. `limits` bound its frame messages (their
+    image size is the calibration's)."""
 
-    def __init__(self, robot: str, config: Config, make_pipeline: Callable[[Calibration], Pipeline],
+    def __init__(self, robot: str, config: Config, calibration: Calibration, limits: Limits,
+                 make_pipeline: Callable[[Calibration], Pipeline],
                  on_result: Callable[["RobotSession", Frame, FrameResult], None]):
         self.robot = robot
         self.config = config
-        self.calibration: Calibration | None = None
-        self.pipeline: Pipeline | None = None
+        self.calibration = calibration
+        self.limits = limits  # what its frame messages may be: the calibration's image size
+        self.pipeline: Pipeline | None = None  # made on the worker thread with the first frame
         self.stats = SessionStats()
+        self.last_active = time.monotonic()  # last frame (or the calibration) received
         self._make_pipeline = make_pipeline
         self._on_result = on_result
-        self._queue: deque[tuple[int, Frame]] = deque()
+        self._queue: deque[tuple[int, Frame, int]] = deque()  # (seq, frame, decoded bytes)
+        self._queued_bytes = 0
+        self._last_stamp: float | None = None  # of the last frame accepted
         self._cond = threading.Condition()
         self._stopping = False
         self._rate_window: deque[float] = deque(maxlen=60)
@@ -64,8 +73,8 @@ class RobotSession:
     def state(self) -> str:
         if self._stopping:
             return "stopped"
-        if self.calibration is None:
-            return "waiting_for_info"
+        if self.stats.last_status is None:
+            return "waiting_for_frames"
         return "lost" if self.stats.last_status == "lost" else "tracking"
 
     @property
@@ -76,19 +85,27 @@ class RobotSession:
     def queue_depth(self) -> int:
         return len(self._queue)
 
-    def set_calibration(self, calibration: Calibration) -> None:
-        with self._cond:
-            if self.calibration is None:
-                self.calibration = calibration
-                self._cond.notify()
+    def idle(self, now: float) -> float:
+        """Seconds since the last frame arrived (or the session was made)."""
+        return now - self.last_active
 
     def submit(self, seq: int, frame: Frame) -> None:
+        """Queue a decoded frame; a stamp that does not increase is rejected ("stamp_order")."""
+        size = frame.image.nbytes + sum(a.nbytes for a in (frame.depth, frame.right) if a is not None)
+        limit = self.config.service.queue_mb * 1024 * 1024
         with self._cond:
+            self.last_active = time.monotonic()
+            if self._last_stamp is not None and not frame.stamp > self._last_stamp:
+                self.stats.rejected["stamp_order"] = self.stats.rejected.get("stamp_order", 0) + 1
+                return
+            self._last_stamp = frame.stamp
             self.stats.received += 1
-            if len(self._queue) >= max(1, self.config.service.queue_size):
-                self._queue.popleft()
+            while self._queue and (len(self._queue) >= max(1, self.config.service.queue_size)
+                                   or self._queued_bytes + size > limit):
+                self._queued_bytes -= self._queue.popleft()[2]
                 self.stats.dropped_queue += 1
-            self._queue.append((seq, frame))
+            self._queue.append((seq, frame, size))
+            self._queued_bytes += size
             self._cond.notify()
 
     def reject(self, reason: str) -> None:
@@ -109,11 +126,12 @@ class RobotSession:
     def _run(self) -> None:
         while True:
             with self._cond:
-                while not self._stopping and (self.calibration is None or not self._queue):
+                while not self._stopping and not self._queue:
                     self._cond.wait()
                 if self._stopping:
                     return
-                seq, frame = self._queue.popleft()
+                seq, frame, size = self._queue.popleft()
+                self._queued_bytes -= size
             try:
                 self._process(seq, frame)
             except Exception:  # never let one frame kill the robot's session
@@ -123,10 +141,6 @@ class RobotSession:
     def _process(self, seq: int, frame: Frame) -> None:
         if self.pipeline is None:
             self.pipeline = self._make_pipeline(self.calibration)
-        cam = self.calibration.camera
-        if frame.image.shape[:2] != (cam.height, cam.width):
-            self.reject("size_mismatch")
-            return
         t = time.perf_counter()
         result = self.pipeline.process(frame)
         ms = (time.perf_counter() - t) * 1e3
@@ -149,6 +163,7 @@ class RobotSession:
         mapped, submitted = self.pipeline.map_progress if self.pipeline else (0, 0)
         return {
             "robot": self.robot, "state": self.state, "queue_depth": self.queue_depth,
+            "queue_mb": round(self._queued_bytes / 2**20, 1),
             "frames_received": s.received, "frames_processed": s.processed, "frames_dropped": s.dropped_queue,
             "frames_rejected": dict(s.rejected), "tracked": s.tracked, "lost": s.lost, "keyframes": s.keyframes,
             "fps": round(s.fps, 2), "processing_ms": round(s.processing_ms, 2), "last_stamp": s.last_stamp,
