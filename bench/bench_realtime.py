@@ -73,7 +73,8 @@ def main() -> int:
     default = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data")) / "7scenes_redkitchen"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dataset", nargs="?", default=str(default))
-    ap.add_argument("--rate", type=float, default=30.0, help="frames per second the client sends (camera rate)")
+    ap.add_argument("--rate", type=float, default=30.0,
+                    help="frames per second the client sends (camera rate); 0 = as fast as the service takes them")
     ap.add_argument("--encoding", default="auto", choices=["auto", "raw", "jpeg", "png"])
     ap.add_argument("--depth-encoding", default="auto", choices=["auto", "raw", "png"])
     ap.add_argument("--max-frames", type=int)
@@ -89,7 +90,7 @@ def main() -> int:
         try:
             mapping = children(svc.proc.pid)
             cpu0 = cpu_seconds(svc.proc.pid), sum(cpu_seconds(p) for p in mapping), time.process_time()
-            stats = stream_dataset(dataset, robot, ZenohSettings(connect=[svc.endpoint]), rate=args.rate,
+            stats = stream_dataset(dataset, robot, ZenohSettings(connect=[svc.endpoint]), rate=args.rate or None,
                                    color=args.encoding, depth=args.depth_encoding, progress=False,
                                    wait_for_subscriber=10.0)
             cpu_client = time.process_time() - cpu0[2]
@@ -106,7 +107,8 @@ def main() -> int:
         finally:
             svc.stop()
     n = stats.frames
-    print(f"{dataset.name}: {n} frames sent at {args.rate:g} Hz ({stats.fps:.1f} frames/s achieved, "
+    asked = f"{args.rate:g} Hz" if args.rate else "the service's pace"
+    print(f"{dataset.name}: {n} frames sent at {asked} ({stats.fps:.1f} frames/s achieved, "
           f"{stats.mbps:.0f} Mbit/s, encoding {stats.encoding})")
     print(f"service: received {r['frames_received']}, processed {r['frames_processed']}, "
           f"dropped {r['frames_dropped']}, rejected {sum(r['frames_rejected'].values())} "
