@@ -48,6 +48,49 @@ def _cmd_demo(args) -> int:
     return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=not args.quiet)
 
 
+def check_db_folder(path: str | Path) -> Path:
+    """The database's folder must exist: `serve` opens (or creates) the file but never
+    creates folders, so a typo in --db / storage.path is an error, not a new empty map
+    somewhere. ConfigError naming the folder otherwise."""
+    from .config import ConfigError
+
+    path = Path(path)
+    folder = path.parent
+    if not folder.is_dir():
+        what = "is not a folder" if folder.exists() else "does not exist"
+        raise ConfigError(f"database {path}: the folder {folder} {what} (create it first, or fix --db / storage.path)")
+    return path
+
+
+def _listen_socket(host: str, port: int):
+    """The REST server's socket, bound here so that the address printed at start is the one
+    listening (port 0: a free port) and a taken port is a one-line error."""
+    import socket
+
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as e:
+        sock.close()
+        raise OSError(e.errno, f"REST API cannot listen on {host}:{port}: {e.strerror}") from None
+    sock.set_inheritable(True)
+    return sock
+
+
+def serve_banner(config, rest_port: int | None) -> str:
+    """The line `serve` prints at start: REST address, Zenoh endpoints, database."""
+    z = config.zenoh
+    if rest_port is None:
+        rest = "REST off"
+    else:
+        host = config.api.host
+        rest = f"REST http://{f'[{host}]' if ':' in host else host}:{rest_port}"
+    return (f"mnemoslam serve: {rest}; Zenoh {z.mode} listen {', '.join(z.listen) or 'none'}, "
+            f"connect {', '.join(z.connect) or 'none'}, prefix {z.prefix}; "
+            f"database {Path(config.storage.path).resolve()}")
+
+
 def _cmd_serve(args) -> int:
     import signal
 
@@ -65,6 +108,7 @@ def _cmd_serve(args) -> int:
     if args.port is not None:
         overrides.setdefault("api", {})["port"] = args.port
     config = load_config(args.config, overrides)
+    check_db_folder(config.storage.path)
     logging.getLogger("mnemoslam").setLevel(logging.INFO)
     stop: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -73,10 +117,12 @@ def _cmd_serve(args) -> int:
         signal.signal(sig, lambda signum, _frame: stop.append(signum))
     service = SlamService(config).start()
     try:
-        if config.api.enabled:
+        sock = _listen_socket(config.api.host, config.api.port) if config.api.enabled else None
+        print(serve_banner(config, sock.getsockname()[1] if sock is not None else None), flush=True)
+        if sock is not None:
             server = uvicorn.Server(uvicorn.Config(create_app(service), host=config.api.host, port=config.api.port,
                                                    log_level="warning", access_log=False))
-            server.run()  # returns on SIGINT / SIGTERM
+            server.run(sockets=[sock])  # returns on SIGINT / SIGTERM
         else:
             while not stop:
                 signal.pause()
@@ -128,7 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--config", help="YAML config file (default: built-in defaults)")
     sv.add_argument("--db", help="SQLite database (overrides storage.path)")
     sv.add_argument("--listen", action="append", help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    sv.add_argument("--port", type=int, help="REST port (overrides api.port)")
+    sv.add_argument("--port", type=int, help="REST port (overrides api.port; 0 = a free port, printed at start)")
     sv.set_defaults(func=_cmd_serve)
 
     from client.streamer import add_stream_arguments
