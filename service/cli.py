@@ -8,6 +8,7 @@ from pathlib import Path
 
 
 def _cmd_run(args) -> int:
+    from client.cliargs import want_progress
     from client.datasets import open_dataset
 
     from .config import load_config
@@ -17,7 +18,7 @@ def _cmd_run(args) -> int:
     config = load_config(args.config, overrides)
     options = {"max_frames": args.max_frames} if args.max_frames else {}
     dataset = open_dataset(args.dataset, args.format, **options)
-    out = run_dataset(dataset, config, args.out, progress=not args.quiet)
+    out = run_dataset(dataset, config, args.out, progress=want_progress(args.quiet))
     print(out.summary.line())
     if dataset.ground_truth is not None and len(out.trajectory) >= 3:
         from .evaluation import evaluate
@@ -43,9 +44,11 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_demo(args) -> int:
+    from client.cliargs import want_progress
+
     from .demo import run_demo
 
-    return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=not args.quiet)
+    return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=want_progress(args.quiet))
 
 
 def check_db_folder(path: str | Path) -> Path:
@@ -147,7 +150,12 @@ def default_yaml() -> str:
     return text()
 
 
+QUIET_HELP = "no progress bar (there is one only when stderr is a terminal)"
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from client.cliargs import positive_int
+
     p = argparse.ArgumentParser(prog="mnemoslam", description="Long-term, memory-managed visual SLAM.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = p.add_subparsers(dest="command", required=True)
@@ -157,9 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="output folder (trajectory.tum, keyframes.tum, summary.json)")
     r.add_argument("--format", choices=["tum", "euroc", "kitti", "7scenes", "synthetic"], help="override layout detection")
     r.add_argument("--config", help="YAML config file (default: built-in defaults)")
-    r.add_argument("--max-frames", type=int, help="stop after this many frames")
+    r.add_argument("--max-frames", type=positive_int, metavar="N",
+                   help="stop after this many frames (a positive integer; default: all)")
     r.add_argument("--odometry-only", action="store_true", help="no loop closure (loop.enabled: false), the baseline")
-    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    r.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     r.set_defaults(func=_cmd_run)
 
     d = sub.add_parser("demo", help="start the service, stream the synthetic scene into it over Zenoh, report ATE and a REST query")
@@ -167,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--rate", type=float, default=15.0, help="frames per second of the synthetic camera")
     d.add_argument("--no-noise", action="store_true", help="exact depth instead of Kinect-like noise")
     d.add_argument("--out", default="out/demo", help="output folder")
-    d.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    d.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     d.set_defaults(func=_cmd_demo)
 
     sv = sub.add_parser("serve", help="run the SLAM service: Zenoh ingest, SQLite map, REST API")

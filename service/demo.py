@@ -4,6 +4,7 @@ against the scene's exact ground truth and the answer of a REST query, stop the 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -116,8 +117,33 @@ def keyframe_trajectory(api: PlannerClient, session_id: int) -> Trajectory:
                       np.array([p["pose"] for p in poses]).reshape(-1, 4, 4))
 
 
+_ERROR_LINE = re.compile(r"\b(ERROR|CRITICAL)\b|^Traceback \(most recent call last\)")
+
+
+def log_errors(path: str | Path) -> list[str]:
+    """The lines of a service log that report an error: ERROR / CRITICAL log records and
+    the first line of each traceback. [] when the log is missing."""
+    try:
+        with open(path, errors="replace") as f:
+            return [line.rstrip("\n") for line in f if _ERROR_LINE.search(line)]
+    except OSError:
+        return []
+
+
+def log_report(path: str | Path) -> str | None:
+    """The demo's line about errors in the service log (None when there are none)."""
+    errors = log_errors(path)
+    if not errors:
+        return None
+    n = len(errors)
+    first = errors[0] if len(errors[0]) <= 160 else errors[0][:157] + "..."
+    return f"demo: the service log has {n} error line{'s' if n > 1 else ''} ({path}); first: {first}"
+
+
 def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, out: str = "out/demo",
              progress: bool = True) -> int:
+    """The demo. Prints a short report (and the error lines of the service's log, if any);
+    progress bar when `progress`."""
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     db = out_dir / "map.db"
@@ -125,7 +151,14 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
         p.unlink(missing_ok=True)
     dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=noise)
     print(f"demo: starting the service (database {db})")
-    svc = ServiceProcess(db, {"service": {"queue_size": 10000}}, log_path=out_dir / "service.log").start()
+    log_path = out_dir / "service.log"
+    svc = ServiceProcess(db, {"service": {"queue_size": 10000}}, log_path=log_path)
+    try:
+        svc.start()
+    except RuntimeError:
+        svc.stop()
+        print(log_report(log_path) or f"demo: the service did not start; see its log {log_path}")
+        raise
     try:
         print(f"demo: streaming {dataset.name} ({len(dataset)} frames) over Zenoh to {svc.endpoint} as robot 'demo'")
         stats = stream_dataset(dataset, "demo", ZenohSettings(connect=[svc.endpoint]), rate=None,
@@ -147,5 +180,8 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
               f"{answer['total']} keyframes, first ids {[n['id'] for n in answer['nodes']]}")
     finally:
         code = svc.stop()
-    print(f"demo: service stopped (exit {code}); map in {db}")
+        print(f"demo: service stopped (exit {code}); map in {db}")
+        errors = log_report(log_path)  # also when the demo failed: the log may say why
+        if errors:
+            print(errors)
     return 0 if ev.matched > 0 and code == 0 else 1

@@ -1,6 +1,7 @@
-"""The `mnemoslam` command line: what it prints, its argument checks."""
+"""The `mnemoslam` command line: what it prints, its argument checks, progress bars."""
 from __future__ import annotations
 
+import io
 import os
 import selectors
 import signal
@@ -10,6 +11,7 @@ import sys
 import time
 import urllib.request
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -18,10 +20,99 @@ from service.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 
 
+class TtyIO(io.StringIO):
+    """A stderr that says it is a terminal."""
+
+    def isatty(self):
+        return True
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.fixture
+def fake_run(monkeypatch):
+    """service.runner.run_dataset replaced by a recorder (no pipeline runs)."""
+    calls = []
+
+    def run_dataset(dataset, config, out_dir=None, progress=True):
+        calls.append(SimpleNamespace(config=config, progress=progress))
+        return SimpleNamespace(summary=SimpleNamespace(line=lambda: "fake run", tracked=1), trajectory=[])
+
+    monkeypatch.setattr("service.runner.run_dataset", run_dataset)
+    return calls
+
+
+@pytest.fixture
+def fake_demo(monkeypatch):
+    calls = []
+
+    def run_demo(trajectory="loop", rate=15.0, noise=True, out="out/demo", progress=True):
+        calls.append(SimpleNamespace(progress=progress))
+        return 0
+
+    monkeypatch.setattr("service.demo.run_demo", run_demo)
+    return calls
+
+
+# -- run ------------------------------------------------------------------------------------
+
+def test_run_prints_no_progress_when_stderr_is_not_a_terminal(tmp_path, capsys):
+    assert main(["run", "synthetic:straight", "--out", str(tmp_path / "o"), "--max-frames", "12"]) == 0
+    out, err = capsys.readouterr()
+    assert "12 frames" in out
+    assert err == ""  # no progress bar lines (captured stderr is not a terminal)
+    # no loop on a straight path: said plainly, no nan, no vacuous 1.000 (0/0)
+    assert "no loop links" in out and "no true revisits" in out and "nan" not in out and "0/0" not in out
+
+
+def test_progress_bars_only_on_a_terminal_and_not_with_quiet(tmp_path, monkeypatch, fake_run, fake_demo):
+    out = str(tmp_path / "o")
+    main(["run", "synthetic:loop", "--out", out, "--max-frames", "2"])
+    main(["demo"])
+    monkeypatch.setattr(sys, "stderr", TtyIO())
+    main(["run", "synthetic:loop", "--out", out, "--max-frames", "2"])
+    main(["run", "synthetic:loop", "--out", out, "--max-frames", "2", "-q"])
+    main(["demo"])
+    main(["demo", "-q"])
+    assert [c.progress for c in fake_run] == [False, True, False]
+    assert [c.progress for c in fake_demo] == [False, True, False]
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "x"])
+def test_run_max_frames_must_be_positive(tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as e:
+        main(["run", "synthetic:loop", "--out", str(tmp_path / "o"), "--max-frames", value])
+    assert e.value.code == 2
+    assert "--max-frames" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+# -- demo -----------------------------------------------------------------------------------
+
+def test_demo_log_scan_reports_errors(tmp_path):
+    from service.demo import log_errors, log_report
+
+    log = tmp_path / "service.log"
+    log.write_text("mnemoslam serve: REST http://127.0.0.1:1; ...\n"
+                   "2026-01-01 10:00:00,000 INFO mnemoslam.service: service started\n"
+                   "2026-01-01 10:00:01,000 ERROR mnemoslam.session: robot demo: frame 3 failed\n"
+                   "Traceback (most recent call last):\n"
+                   '  File "x.py", line 1, in <module>\n'
+                   "ValueError: boom\n"
+                   "2026-01-01 10:00:02,000 INFO mnemoslam.service: service stopped\n")
+    assert len(log_errors(log)) == 2
+    report = log_report(log)
+    assert "2 error lines" in report and str(log) in report and "frame 3 failed" in report
+    clean = tmp_path / "clean.log"
+    clean.write_text("2026-01-01 10:00:00,000 INFO mnemoslam.service: service started\n")
+    assert log_report(clean) is None and log_report(tmp_path / "missing.log") is None
+    one = tmp_path / "one.log"
+    one.write_text("Traceback (most recent call last):\n  File ...\nRuntimeError: x\n")
+    assert "1 error line (" in log_report(one)
 
 
 # -- serve ----------------------------------------------------------------------------------
