@@ -7,6 +7,14 @@ import sys
 from pathlib import Path
 
 
+def _overrides(args, options: dict | None = None) -> dict:
+    """The config overrides of a command: its --set items, then its dedicated options
+    (--db, --port, --odometry-only, ...), which win over --set."""
+    from .config import merge_overrides, parse_sets
+
+    return merge_overrides(parse_sets(getattr(args, "set", None)), options or {})
+
+
 def _cmd_run(args) -> int:
     from client.cliargs import want_progress
     from client.datasets import open_dataset
@@ -14,8 +22,7 @@ def _cmd_run(args) -> int:
     from .config import load_config
     from .runner import run_dataset
 
-    overrides = {"loop": {"enabled": False}} if args.odometry_only else {}
-    config = load_config(args.config, overrides)
+    config = load_config(args.config, _overrides(args, {"loop": {"enabled": False}} if args.odometry_only else {}))
     options = {"max_frames": args.max_frames} if args.max_frames else {}
     dataset = open_dataset(args.dataset, args.format, **options)
     out = run_dataset(dataset, config, args.out, progress=want_progress(args.quiet))
@@ -48,7 +55,8 @@ def _cmd_demo(args) -> int:
 
     from .demo import run_demo
 
-    return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=want_progress(args.quiet))
+    return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=want_progress(args.quiet),
+                    overrides=_overrides(args))
 
 
 def check_db_folder(path: str | Path) -> Path:
@@ -103,14 +111,14 @@ def _cmd_serve(args) -> int:
     from .config import load_config
     from .server import SlamService
 
-    overrides: dict = {}
+    overrides: dict = {}  # the dedicated options win over --set
     if args.db:
         overrides.setdefault("storage", {})["path"] = args.db
     if args.listen:
         overrides.setdefault("zenoh", {})["listen"] = args.listen
     if args.port is not None:
         overrides.setdefault("api", {})["port"] = args.port
-    config = load_config(args.config, overrides)
+    config = load_config(args.config, _overrides(args, overrides))
     check_db_folder(config.storage.path)
     logging.getLogger("mnemoslam").setLevel(logging.INFO)
     stop: list[int] = []
@@ -153,6 +161,13 @@ def default_yaml() -> str:
 QUIET_HELP = "no progress bar (there is one only when stderr is a terminal)"
 
 
+def _add_set(parser, whose: str = "") -> None:
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help=f"override one config key {whose + ' ' if whose else ''}(dotted path, VALUE in YAML), "
+                             "e.g. --set loop.enabled=false --set service.queue_size=30; repeatable; "
+                             "`mnemoslam config` lists the keys")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from client.cliargs import positive_int
 
@@ -168,6 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-frames", type=positive_int, metavar="N",
                    help="stop after this many frames (a positive integer; default: all)")
     r.add_argument("--odometry-only", action="store_true", help="no loop closure (loop.enabled: false), the baseline")
+    _add_set(r)
     r.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     r.set_defaults(func=_cmd_run)
 
@@ -176,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--rate", type=float, default=15.0, help="frames per second of the synthetic camera")
     d.add_argument("--no-noise", action="store_true", help="exact depth instead of Kinect-like noise")
     d.add_argument("--out", default="out/demo", help="output folder")
+    _add_set(d, "of the service the demo starts")
     d.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     d.set_defaults(func=_cmd_demo)
 
@@ -184,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--db", help="SQLite database (overrides storage.path)")
     sv.add_argument("--listen", action="append", help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     sv.add_argument("--port", type=int, help="REST port (overrides api.port; 0 = a free port, printed at start)")
+    _add_set(sv)
     sv.set_defaults(func=_cmd_serve)
 
     from client.streamer import add_stream_arguments

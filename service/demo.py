@@ -23,6 +23,7 @@ from client.streamer import stream_dataset
 from client.trajectory import Trajectory
 from client.transport import ZenohSettings
 
+from .config import load_config, merge_overrides
 from .evaluation import evaluate
 
 
@@ -40,8 +41,7 @@ class ServiceProcess:
         self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
         cfg = {"zenoh": {"listen": [self.endpoint]}, "api": {"port": self.http_port},
                "storage": {"path": str(db)}}
-        for k, v in (config or {}).items():
-            cfg.setdefault(k, {}).update(v)
+        cfg = merge_overrides(cfg, config or {})  # nested: {"loop": {"enabled": False}}, top-level keys too
         self.dir = Path(tempfile.mkdtemp(prefix="mnemoslam-svc-"))
         self.config_path = self.dir / "service.yaml"
         self.config_path.write_text(yaml.safe_dump(cfg))
@@ -119,6 +119,9 @@ def keyframe_trajectory(api: PlannerClient, session_id: int) -> Trajectory:
 
 _ERROR_LINE = re.compile(r"\b(ERROR|CRITICAL)\b|^Traceback \(most recent call last\)")
 
+# Keys the demo sets itself for the service it starts (its own ports, database, REST on).
+DEMO_KEYS = ("zenoh.listen", "api.enabled", "api.host", "api.port", "storage.path")
+
 
 def log_errors(path: str | Path) -> list[str]:
     """The lines of a service log that report an error: ERROR / CRITICAL log records and
@@ -140,10 +143,25 @@ def log_report(path: str | Path) -> str | None:
     return f"demo: the service log has {n} error line{'s' if n > 1 else ''} ({path}); first: {first}"
 
 
+def _check_overrides(overrides: dict) -> None:
+    """Validate the service's --set overrides here (ConfigError: unknown key, wrong type),
+    and refuse the keys the demo sets itself."""
+    load_config(None, overrides)
+    for key in DEMO_KEYS:
+        section, name = key.split(".")
+        if name in (overrides.get(section) or {}):
+            raise ValueError(f"--set {key}: the demo sets it for the service it starts "
+                             "(use `mnemoslam serve` and `mnemoslam stream` for your own)")
+
+
 def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, out: str = "out/demo",
-             progress: bool = True) -> int:
-    """The demo. Prints a short report (and the error lines of the service's log, if any);
-    progress bar when `progress`."""
+             progress: bool = True, overrides: dict | None = None) -> int:
+    """The demo; `overrides` (nested config keys, `mnemoslam demo --set`) go to the service.
+    Prints a short report (and the error lines of the service's log, if any); progress bar
+    when `progress`."""
+    service_config = merge_overrides({"service": {"queue_size": 10000}}, overrides or {})
+    _check_overrides(service_config)
+    prefix = load_config(None, service_config).zenoh.prefix
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     db = out_dir / "map.db"
@@ -152,7 +170,7 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
     dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=noise)
     print(f"demo: starting the service (database {db})")
     log_path = out_dir / "service.log"
-    svc = ServiceProcess(db, {"service": {"queue_size": 10000}}, log_path=log_path)
+    svc = ServiceProcess(db, service_config, log_path=log_path)
     try:
         svc.start()
     except RuntimeError:
@@ -162,7 +180,7 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
     try:
         print(f"demo: streaming {dataset.name} ({len(dataset)} frames) over Zenoh to {svc.endpoint} as robot 'demo'")
         stats = stream_dataset(dataset, "demo", ZenohSettings(connect=[svc.endpoint]), rate=None,
-                               color="jpeg", depth="png", progress=progress, wait_for_subscriber=10.0)
+                               color="jpeg", depth="png", prefix=prefix, progress=progress, wait_for_subscriber=10.0)
         robot = svc.wait_processed("demo", stats.frames)
         svc.wait_mapped("demo")  # the loop closures of the last keyframes, before the map is read
         print(f"demo: service processed {robot['frames_processed']} frames "

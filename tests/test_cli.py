@@ -1,4 +1,4 @@
-"""The `mnemoslam` command line: what it prints, its argument checks, progress bars."""
+"""The `mnemoslam` command line: what it prints, its argument checks, --set, progress bars."""
 from __future__ import annotations
 
 import io
@@ -50,8 +50,8 @@ def fake_run(monkeypatch):
 def fake_demo(monkeypatch):
     calls = []
 
-    def run_demo(trajectory="loop", rate=15.0, noise=True, out="out/demo", progress=True):
-        calls.append(SimpleNamespace(progress=progress))
+    def run_demo(trajectory="loop", rate=15.0, noise=True, out="out/demo", progress=True, overrides=None):
+        calls.append(SimpleNamespace(progress=progress, overrides=overrides))
         return 0
 
     monkeypatch.setattr("service.demo.run_demo", run_demo)
@@ -91,7 +91,69 @@ def test_run_max_frames_must_be_positive(tmp_path, capsys, value):
     assert not (tmp_path / "o").exists()
 
 
+def test_run_set_overrides_config_keys(tmp_path, fake_run):
+    out = str(tmp_path / "o")
+    assert main(["run", "synthetic:loop", "--out", out, "--max-frames", "2", "--set", "loop.enabled=false",
+                 "--set", "service.queue_size=30", "--set", "loop.threshold=1", "--set", "seed=7",
+                 "--set", "zenoh.listen=[tcp/127.0.0.1:1, tcp/127.0.0.1:2]"]) == 0
+    c = fake_run[-1].config
+    assert c.loop.enabled is False and c.service.queue_size == 30 and c.seed == 7
+    assert c.loop.threshold == 1.0 and isinstance(c.loop.threshold, float)
+    assert c.zenoh.listen == ["tcp/127.0.0.1:1", "tcp/127.0.0.1:2"]
+    # a --config file, then --set, then the dedicated options
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("service:\n  queue_size: 5\nloop:\n  stm_size: 4\n")
+    main(["run", "synthetic:loop", "--out", out, "--config", str(cfg), "--set", "service.queue_size=6",
+          "--set", "loop.enabled=true", "--odometry-only"])
+    c = fake_run[-1].config
+    assert (c.service.queue_size, c.loop.stm_size, c.loop.enabled) == (6, 4, False)
+
+
+@pytest.mark.parametrize("item, message", [
+    ("loop.enable=false", "unknown config key 'loop.enable'"),
+    ("nosuch.key=1", "unknown config key 'nosuch'"),
+    ("service.queue_size=lots", "'service.queue_size': expected int"),
+    ("loop.enabled=[1, 2]", "'loop.enabled': expected bool"),
+    ("loop=false", "loop: expected a mapping"),
+    ("loop.enabled", "expected KEY=VALUE"),
+    ("loop.enabled=[1", "not valid YAML"),
+])
+def test_run_bad_set_is_a_clear_error(tmp_path, capsys, fake_run, item, message):
+    assert main(["run", "synthetic:loop", "--out", str(tmp_path / "o"), "--set", item]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mnemoslam run: error: ") and message in err and len(err.splitlines()) == 1
+    assert fake_run == []
+
+
 # -- demo -----------------------------------------------------------------------------------
+
+def test_demo_set_goes_to_its_service(fake_demo):
+    assert main(["demo", "--set", "loop.enabled=false", "--set", "service.queue_size=30"]) == 0
+    assert fake_demo[-1].overrides == {"loop": {"enabled": False}, "service": {"queue_size": 30}}
+
+
+@pytest.mark.parametrize("item, message", [
+    ("loop.bogus=1", "unknown config key 'loop.bogus'"),
+    ("api.port=9999", "the demo sets it"),
+    ("storage.path=x.db", "the demo sets it"),
+])
+def test_demo_bad_set_fails_before_anything_starts(tmp_path, capsys, item, message):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--set", item]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_service_process_takes_nested_and_top_level_keys(tmp_path):
+    import yaml
+
+    from service.demo import ServiceProcess
+
+    svc = ServiceProcess(tmp_path / "m.db", {"service": {"queue_size": 3}, "loop": {"enabled": False}, "seed": 2})
+    cfg = yaml.safe_load(svc.config_path.read_text())
+    assert cfg["service"] == {"queue_size": 3} and cfg["loop"] == {"enabled": False} and cfg["seed"] == 2
+    assert cfg["zenoh"]["listen"] == [svc.endpoint] and cfg["api"]["port"] == svc.http_port
+
 
 def test_demo_log_scan_reports_errors(tmp_path):
     from service.demo import log_errors, log_report
@@ -124,7 +186,7 @@ def test_serve_db_in_a_missing_folder_is_an_error(tmp_path, capsys):
     assert err.startswith("mnemoslam serve: error: ") and str(db.parent) in err and "does not exist" in err
     assert not (tmp_path / "typo").exists()
     (tmp_path / "file").write_text("")
-    assert main(["serve", "--db", str(tmp_path / "file" / "x.db")]) == 2
+    assert main(["serve", "--set", f"storage.path={tmp_path / 'file' / 'x.db'}"]) == 2
     assert "is not a folder" in capsys.readouterr().err
 
 
@@ -156,8 +218,8 @@ def _stop(proc: subprocess.Popen) -> int:
 def test_serve_prints_where_it_listens(tmp_path):
     db = tmp_path / "map.db"
     zenoh = f"tcp/127.0.0.1:{free_port()}"
-    (tmp_path / "c.yaml").write_text("loop:\n  process: false\n")
-    proc, line = _serve(tmp_path, "--db", str(db), "--listen", zenoh, "--port", "0", "--config", str(tmp_path / "c.yaml"))
+    proc, line = _serve(tmp_path, "--db", str(db), "--listen", zenoh, "--set", "api.port=0",
+                        "--set", "loop.process=false")
     try:
         assert line.startswith("mnemoslam serve: REST http://127.0.0.1:")
         assert f"listen {zenoh}" in line and "connect none" in line and f"database {db}" in line
@@ -181,9 +243,8 @@ def test_serve_prints_where_it_listens(tmp_path):
 
 
 def test_serve_rest_off(tmp_path):
-    (tmp_path / "c.yaml").write_text("api:\n  enabled: false\nloop:\n  enabled: false\n")
     proc, line = _serve(tmp_path, "--db", str(tmp_path / "map.db"), "--listen", f"tcp/127.0.0.1:{free_port()}",
-                        "--config", str(tmp_path / "c.yaml"))
+                        "--set", "api.enabled=false", "--set", "loop.enabled=false")
     try:
         assert line.startswith("mnemoslam serve: REST off; Zenoh peer listen tcp/127.0.0.1:")
     finally:
