@@ -23,15 +23,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import yaml
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from client.datasets import open_dataset  # noqa: E402
 from client.streamer import stream_dataset  # noqa: E402
 from client.transport import ZenohSettings  # noqa: E402
-from service.config import load_config  # noqa: E402
+from service.config import load_config, parse_sets  # noqa: E402
 from service.demo import ServiceProcess, keyframe_trajectory  # noqa: E402
 from service.evaluation import evaluate  # noqa: E402
 from service.runner import run_dataset  # noqa: E402
@@ -56,19 +54,6 @@ def children(pid: int) -> list[int]:
         return []
 
 
-def parse_set(items: list[str]) -> dict:
-    """--set a.b=VALUE -> {"a": {"b": VALUE}} (VALUE parsed as YAML)."""
-    out: dict = {}
-    for item in items:
-        key, _, value = item.partition("=")
-        *parents, leaf = key.split(".")
-        node = out
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = yaml.safe_load(value)
-    return out
-
-
 def main() -> int:
     default = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data")) / "7scenes_redkitchen"
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -83,7 +68,7 @@ def main() -> int:
     args = ap.parse_args()
     options = {"max_frames": args.max_frames} if args.max_frames else {}
     dataset = open_dataset(args.dataset, **options)
-    overrides = parse_set(args.set)
+    overrides = parse_sets(args.set)
     robot = "rt"
     with tempfile.TemporaryDirectory(prefix="mnemoslam-rt-") as tmp:
         svc = ServiceProcess(Path(tmp) / "map.db", overrides, log_path=Path(tmp) / "service.log").start()

@@ -39,7 +39,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from .frames import Calibration, Frame
+from .frames import Calibration, DatasetError, Frame
 from .protocol import (DEFAULT_PREFIX, KINDS, KeySpace, ProtocolError, decode_pose, encode_frame, encode_info,
                        frame_kind)
 from .transport import DEFAULT_ENDPOINT, MODES, ZenohSettings, open_session
@@ -192,11 +192,13 @@ class StreamStats:
     answered: int = 0  # frames the service answered with a pose
     dropped: int = 0  # frames the service reported dropping (its queue was full)
     rate: float | None = None  # the rate in the end (lower than asked when adapted to drops)
+    skipped: int = 0  # frames whose files could not be read (DatasetError), logged and not sent
 
     def line(self) -> str:
         return (f"streamed {self.frames} frames, {self.bytes / 1e6:.1f} MB in {self.seconds:.2f} s "
                 f"({self.fps:.1f} fps, {self.mbps:.1f} Mbit/s, {self.encoding}); the service answered "
                 f"{self.answered} and dropped {self.dropped}"
+                + (f"; {self.skipped} unreadable frame(s) skipped" if self.skipped else "")
                 + ("" if self.subscriber else "; no subscriber was listening"))
 
 
@@ -213,6 +215,31 @@ def resolve_encodings(color: str, depth: str, settings: ZenohSettings) -> tuple[
     local = settings.local
     return (("raw" if local else "jpeg") if color == "auto" else color,
             ("raw" if local else "png") if depth == "auto" else depth)
+
+
+def _frames(dataset):
+    """The frames of `dataset` in order; a frame that cannot be read comes as its
+    DatasetError instead of ending the stream (as `service.runner` skips it). A `Dataset`
+    with the default iteration is read by index (`frame(i)`), so one bad file costs one
+    frame; other iterables (CaptureSource: in order from the device) are iterated, and a
+    generator that raised ends there."""
+    from .datasets import Dataset
+
+    if isinstance(dataset, Dataset) and type(dataset).__iter__ is Dataset.__iter__:
+        for i in range(len(dataset)):
+            try:
+                yield dataset.frame(i)
+            except DatasetError as e:
+                yield e
+        return
+    frames = iter(dataset)
+    while True:
+        try:
+            yield next(frames)
+        except StopIteration:
+            return
+        except DatasetError as e:
+            yield e
 
 
 def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *, rate: float | None = None,
@@ -233,6 +260,10 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
     that long for a subscriber on the frame key before the first frame (then stream anyway).
     seq counts frames from 0. `kind` defaults to the dataset's `kind` attribute if it has one
     (CaptureSource: "mono"), else its calibration's.
+
+    A frame whose files cannot be read (DatasetError) is logged, counted in
+    `StreamStats.skipped` and not sent (seq counts the frames sent), as `mnemoslam run` skips
+    it; it counts towards `max_frames` (frames taken from the dataset).
     """
     if rate is not None and not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
         raise ValueError(f"rate must be a positive number of frames per second, got {rate!r}")
@@ -260,11 +291,17 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
 
                 bar = tqdm(total=total, unit="frame", desc=f"{robot} -> {streamer.frame_key}", dynamic_ncols=True)
             t0 = time.perf_counter()
-            sent = 0
+            sent = skipped = 0
             next_at, dropped = t0, 0  # when the next frame is due at `rate`; drops seen so far
-            for frame in dataset:
-                if max_frames is not None and sent >= max_frames:
+            for frame in _frames(dataset):
+                if max_frames is not None and sent + skipped >= max_frames:
                     break
+                if isinstance(frame, DatasetError):
+                    log.error("frame %d skipped: %s", sent + skipped, frame)
+                    skipped += 1
+                    if bar is not None:
+                        bar.update(1)
+                    continue
                 if rate is None:
                     streamer.wait_for_room(sent, window, answer_timeout)
                 else:
@@ -295,7 +332,7 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
             session.close()
     secs = max(seconds, 1e-9)
     return StreamStats(sent, streamer.bytes_sent, seconds, sent / secs, streamer.bytes_sent * 8 / 1e6 / secs, matched,
-                       f"{color}/{depth}", streamer.answered, streamer.service_dropped, rate)
+                       f"{color}/{depth}", streamer.answered, streamer.service_dropped, rate, skipped)
 
 
 # ------------------------------------------------------------------------------------------
@@ -304,6 +341,7 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
 def add_stream_arguments(parser):
     """Define the `mnemoslam stream` options on `parser` (an argparse (sub)parser) and set
     `func=stream_main`. Returns the parser."""
+    from .cliargs import positive_int
     from .datasets import FORMATS
 
     src = parser.add_mutually_exclusive_group(required=True)
@@ -325,17 +363,22 @@ def add_stream_arguments(parser):
                         help=f"zenoh endpoint of the service, repeatable (default {DEFAULT_ENDPOINT})")
     parser.add_argument("--mode", choices=list(MODES), default="peer", help="zenoh session mode (default peer)")
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"key expression prefix (default {DEFAULT_PREFIX})")
-    parser.add_argument("--max-frames", type=int, help="stop after this many frames")
+    parser.add_argument("--max-frames", type=positive_int, metavar="N",
+                        help="stop after this many frames (a positive integer; default: all)")
     parser.add_argument("--wait", type=float, default=5.0,
                         help="seconds to wait for the service to subscribe before streaming (default 5)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress bar (there is one only when stderr is a terminal)")
     parser.set_defaults(func=stream_main)
     return parser
 
 
 def stream_main(args) -> int:
     """`mnemoslam stream`: returns 0 when all frames were sent and a subscriber was there,
-    1 when nobody subscribed. DatasetError / ValueError / OSError propagate for the CLI."""
+    1 when nobody subscribed. DatasetError / ValueError / OSError propagate for the CLI.
+    Frames that cannot be read are skipped (counted in the summary line)."""
+    from .cliargs import want_progress
+
     camera = getattr(args, "camera", None)
     dataset_spec = getattr(args, "dataset", None)
     if (camera is None) == (dataset_spec is None):
@@ -365,7 +408,7 @@ def stream_main(args) -> int:
     try:
         stats = stream_dataset(dataset, robot, settings, rate=getattr(args, "rate", None),
                                color=getattr(args, "encoding", "auto"), depth=getattr(args, "depth_encoding", "auto"),
-                               prefix=prefix, progress=not quiet, max_frames=max_frames,
+                               prefix=prefix, progress=want_progress(quiet), max_frames=max_frames,
                                wait_for_subscriber=float(getattr(args, "wait", 5.0) or 0.0),
                                window=max(1, int(getattr(args, "window", 4))), adapt=bool(getattr(args, "adapt", False)))
     finally:

@@ -7,17 +7,25 @@ import sys
 from pathlib import Path
 
 
+def _overrides(args, options: dict | None = None) -> dict:
+    """The config overrides of a command: its --set items, then its dedicated options
+    (--db, --port, --odometry-only, ...), which win over --set."""
+    from .config import merge_overrides, parse_sets
+
+    return merge_overrides(parse_sets(getattr(args, "set", None)), options or {})
+
+
 def _cmd_run(args) -> int:
+    from client.cliargs import want_progress
     from client.datasets import open_dataset
 
     from .config import load_config
     from .runner import run_dataset
 
-    overrides = {"loop": {"enabled": False}} if args.odometry_only else {}
-    config = load_config(args.config, overrides)
+    config = load_config(args.config, _overrides(args, {"loop": {"enabled": False}} if args.odometry_only else {}))
     options = {"max_frames": args.max_frames} if args.max_frames else {}
     dataset = open_dataset(args.dataset, args.format, **options)
-    out = run_dataset(dataset, config, args.out, progress=not args.quiet)
+    out = run_dataset(dataset, config, args.out, progress=want_progress(args.quiet))
     print(out.summary.line())
     if dataset.ground_truth is not None and len(out.trajectory) >= 3:
         from .evaluation import evaluate
@@ -43,9 +51,55 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_demo(args) -> int:
+    from client.cliargs import want_progress
+
     from .demo import run_demo
 
-    return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=not args.quiet)
+    return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=want_progress(args.quiet),
+                    overrides=_overrides(args))
+
+
+def check_db_folder(path: str | Path) -> Path:
+    """The database's folder must exist: `serve` opens (or creates) the file but never
+    creates folders, so a typo in --db / storage.path is an error, not a new empty map
+    somewhere. ConfigError naming the folder otherwise."""
+    from .config import ConfigError
+
+    path = Path(path)
+    folder = path.parent
+    if not folder.is_dir():
+        what = "is not a folder" if folder.exists() else "does not exist"
+        raise ConfigError(f"database {path}: the folder {folder} {what} (create it first, or fix --db / storage.path)")
+    return path
+
+
+def _listen_socket(host: str, port: int):
+    """The REST server's socket, bound here so that the address printed at start is the one
+    listening (port 0: a free port) and a taken port is a one-line error."""
+    import socket
+
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as e:
+        sock.close()
+        raise OSError(e.errno, f"REST API cannot listen on {host}:{port}: {e.strerror}") from None
+    sock.set_inheritable(True)
+    return sock
+
+
+def serve_banner(config, rest_port: int | None) -> str:
+    """The line `serve` prints at start: REST address, Zenoh endpoints, database."""
+    z = config.zenoh
+    if rest_port is None:
+        rest = "REST off"
+    else:
+        host = config.api.host
+        rest = f"REST http://{f'[{host}]' if ':' in host else host}:{rest_port}"
+    return (f"mnemoslam serve: {rest}; Zenoh {z.mode} listen {', '.join(z.listen) or 'none'}, "
+            f"connect {', '.join(z.connect) or 'none'}, prefix {z.prefix}; "
+            f"database {Path(config.storage.path).resolve()}")
 
 
 def _cmd_serve(args) -> int:
@@ -57,14 +111,15 @@ def _cmd_serve(args) -> int:
     from .config import load_config
     from .server import SlamService
 
-    overrides: dict = {}
+    overrides: dict = {}  # the dedicated options win over --set
     if args.db:
         overrides.setdefault("storage", {})["path"] = args.db
     if args.listen:
         overrides.setdefault("zenoh", {})["listen"] = args.listen
     if args.port is not None:
         overrides.setdefault("api", {})["port"] = args.port
-    config = load_config(args.config, overrides)
+    config = load_config(args.config, _overrides(args, overrides))
+    check_db_folder(config.storage.path)
     logging.getLogger("mnemoslam").setLevel(logging.INFO)
     stop: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -73,10 +128,12 @@ def _cmd_serve(args) -> int:
         signal.signal(sig, lambda signum, _frame: stop.append(signum))
     service = SlamService(config).start()
     try:
-        if config.api.enabled:
+        sock = _listen_socket(config.api.host, config.api.port) if config.api.enabled else None
+        print(serve_banner(config, sock.getsockname()[1] if sock is not None else None), flush=True)
+        if sock is not None:
             server = uvicorn.Server(uvicorn.Config(create_app(service), host=config.api.host, port=config.api.port,
                                                    log_level="warning", access_log=False))
-            server.run()  # returns on SIGINT / SIGTERM
+            server.run(sockets=[sock])  # returns on SIGINT / SIGTERM
         else:
             while not stop:
                 signal.pause()
@@ -101,7 +158,19 @@ def default_yaml() -> str:
     return text()
 
 
+QUIET_HELP = "no progress bar (there is one only when stderr is a terminal)"
+
+
+def _add_set(parser, whose: str = "") -> None:
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help=f"override one config key {whose + ' ' if whose else ''}(dotted path, VALUE in YAML), "
+                             "e.g. --set loop.enabled=false --set service.queue_size=30; repeatable; "
+                             "`mnemoslam config` lists the keys")
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from client.cliargs import positive_int
+
     p = argparse.ArgumentParser(prog="mnemoslam", description="Long-term, memory-managed visual SLAM.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = p.add_subparsers(dest="command", required=True)
@@ -111,9 +180,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="output folder (trajectory.tum, keyframes.tum, summary.json)")
     r.add_argument("--format", choices=["tum", "euroc", "kitti", "7scenes", "synthetic"], help="override layout detection")
     r.add_argument("--config", help="YAML config file (default: built-in defaults)")
-    r.add_argument("--max-frames", type=int, help="stop after this many frames")
+    r.add_argument("--max-frames", type=positive_int, metavar="N",
+                   help="stop after this many frames (a positive integer; default: all)")
     r.add_argument("--odometry-only", action="store_true", help="no loop closure (loop.enabled: false), the baseline")
-    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_set(r)
+    r.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     r.set_defaults(func=_cmd_run)
 
     d = sub.add_parser("demo", help="start the service, stream the synthetic scene into it over Zenoh, report ATE and a REST query")
@@ -121,14 +192,16 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--rate", type=float, default=15.0, help="frames per second of the synthetic camera")
     d.add_argument("--no-noise", action="store_true", help="exact depth instead of Kinect-like noise")
     d.add_argument("--out", default="out/demo", help="output folder")
-    d.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_set(d, "of the service the demo starts")
+    d.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     d.set_defaults(func=_cmd_demo)
 
     sv = sub.add_parser("serve", help="run the SLAM service: Zenoh ingest, SQLite map, REST API")
     sv.add_argument("--config", help="YAML config file (default: built-in defaults)")
     sv.add_argument("--db", help="SQLite database (overrides storage.path)")
     sv.add_argument("--listen", action="append", help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    sv.add_argument("--port", type=int, help="REST port (overrides api.port)")
+    sv.add_argument("--port", type=int, help="REST port (overrides api.port; 0 = a free port, printed at start)")
+    _add_set(sv)
     sv.set_defaults(func=_cmd_serve)
 
     from client.streamer import add_stream_arguments

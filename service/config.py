@@ -173,7 +173,7 @@ class ConfigError(ValueError):
 
 def _build(cls, data: dict, where: str):
     if not isinstance(data, dict):
-        raise ConfigError(f"{where or 'config'}: expected a mapping, got {type(data).__name__}")
+        raise ConfigError(f"{where.rstrip('.') or 'config'}: expected a mapping (a config section), got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     kwargs = {}
@@ -182,7 +182,7 @@ def _build(cls, data: dict, where: str):
             raise ConfigError(f"unknown config key {where + key!r}; known: {', '.join(sorted(names))}")
         typ = hints[key]
         if dataclasses.is_dataclass(typ):
-            kwargs[key] = _build(typ, value or {}, f"{where}{key}.")
+            kwargs[key] = _build(typ, {} if value is None else value, f"{where}{key}.")
         else:
             kwargs[key] = _coerce(typ, value, where + key)
     return cls(**kwargs)
@@ -215,14 +215,44 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         except yaml.YAMLError as e:
             raise ConfigError(f"{path}: invalid YAML: {e}") from None
     if overrides:
-        data = _merge(data, overrides)
+        data = merge_overrides(data, overrides)
     return _build(Config, data, "")
 
 
-def _merge(a: dict, b: dict) -> dict:
+def parse_sets(items: list[str] | tuple[str, ...] | None) -> dict:
+    """`--set KEY=VALUE` items as `load_config` overrides: KEY is a dotted path into the
+    config (`loop.enabled`, `service.queue_size`, `seed`), VALUE a YAML scalar or flow list
+    (`false`, `30`, `0.5`, `[tcp/127.0.0.1:7447]`). Later items win. Only the form is checked
+    here (ConfigError); `load_config` rejects unknown keys and wrongly typed values."""
+    out: dict = {}
+    for item in items or ():
+        key, eq, text = item.partition("=")
+        path = key.strip().split(".")
+        if not eq or not all(path):
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE with a dotted KEY, e.g. loop.enabled=false")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"--set {key}: VALUE {text!r} is not valid YAML ({str(e).splitlines()[0]})") from None
+        if isinstance(value, dict):
+            raise ConfigError(f"--set {key}: VALUE must be a scalar or a list; set the keys of a section one by one "
+                              f"({key}.NAME=VALUE)")
+        node = out
+        for i, part in enumerate(path[:-1]):
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {key}: {'.'.join(path[:i + 1])} is set to a value by another --set")
+        if isinstance(node.get(path[-1]), dict):
+            raise ConfigError(f"--set {key}: other --set items set keys inside it")
+        node[path[-1]] = value
+    return out
+
+
+def merge_overrides(a: dict, b: dict) -> dict:
+    """`a` updated by `b`, nested mappings merged key by key (neither is modified)."""
     out = dict(a)
     for k, v in b.items():
-        out[k] = _merge(out.get(k) or {}, v) if isinstance(v, dict) else v
+        out[k] = merge_overrides(out[k] if isinstance(out.get(k), dict) else {}, v) if isinstance(v, dict) else v
     return out
 
 

@@ -4,6 +4,7 @@ against the scene's exact ground truth and the answer of a REST query, stop the 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -22,6 +23,7 @@ from client.streamer import stream_dataset
 from client.trajectory import Trajectory
 from client.transport import ZenohSettings
 
+from .config import load_config, merge_overrides
 from .evaluation import evaluate
 
 
@@ -39,8 +41,7 @@ class ServiceProcess:
         self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
         cfg = {"zenoh": {"listen": [self.endpoint]}, "api": {"port": self.http_port},
                "storage": {"path": str(db)}}
-        for k, v in (config or {}).items():
-            cfg.setdefault(k, {}).update(v)
+        cfg = merge_overrides(cfg, config or {})  # nested: {"loop": {"enabled": False}}, top-level keys too
         self.dir = Path(tempfile.mkdtemp(prefix="mnemoslam-svc-"))
         self.config_path = self.dir / "service.yaml"
         self.config_path.write_text(yaml.safe_dump(cfg))
@@ -116,8 +117,51 @@ def keyframe_trajectory(api: PlannerClient, session_id: int) -> Trajectory:
                       np.array([p["pose"] for p in poses]).reshape(-1, 4, 4))
 
 
+_ERROR_LINE = re.compile(r"\b(ERROR|CRITICAL)\b|^Traceback \(most recent call last\)")
+
+# Keys the demo sets itself for the service it starts (its own ports, database, REST on).
+DEMO_KEYS = ("zenoh.listen", "api.enabled", "api.host", "api.port", "storage.path")
+
+
+def log_errors(path: str | Path) -> list[str]:
+    """The lines of a service log that report an error: ERROR / CRITICAL log records and
+    the first line of each traceback. [] when the log is missing."""
+    try:
+        with open(path, errors="replace") as f:
+            return [line.rstrip("\n") for line in f if _ERROR_LINE.search(line)]
+    except OSError:
+        return []
+
+
+def log_report(path: str | Path) -> str | None:
+    """The demo's line about errors in the service log (None when there are none)."""
+    errors = log_errors(path)
+    if not errors:
+        return None
+    n = len(errors)
+    first = errors[0] if len(errors[0]) <= 160 else errors[0][:157] + "..."
+    return f"demo: the service log has {n} error line{'s' if n > 1 else ''} ({path}); first: {first}"
+
+
+def _check_overrides(overrides: dict) -> None:
+    """Validate the service's --set overrides here (ConfigError: unknown key, wrong type),
+    and refuse the keys the demo sets itself."""
+    load_config(None, overrides)
+    for key in DEMO_KEYS:
+        section, name = key.split(".")
+        if name in (overrides.get(section) or {}):
+            raise ValueError(f"--set {key}: the demo sets it for the service it starts "
+                             "(use `mnemoslam serve` and `mnemoslam stream` for your own)")
+
+
 def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, out: str = "out/demo",
-             progress: bool = True) -> int:
+             progress: bool = True, overrides: dict | None = None) -> int:
+    """The demo; `overrides` (nested config keys, `mnemoslam demo --set`) go to the service.
+    Prints a short report (and the error lines of the service's log, if any); progress bar
+    when `progress`."""
+    service_config = merge_overrides({}, overrides or {})
+    _check_overrides(service_config)
+    prefix = load_config(None, service_config).zenoh.prefix
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     db = out_dir / "map.db"
@@ -125,16 +169,23 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
         p.unlink(missing_ok=True)
     dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=noise)
     print(f"demo: starting the service (database {db})")
-    svc = ServiceProcess(db, {"service": {"queue_size": 10000}}, log_path=out_dir / "service.log").start()
+    log_path = out_dir / "service.log"
+    svc = ServiceProcess(db, service_config, log_path=log_path)
+    try:
+        svc.start()
+    except RuntimeError:
+        svc.stop()
+        print(log_report(log_path) or f"demo: the service did not start; see its log {log_path}")
+        raise
     try:
         print(f"demo: streaming {dataset.name} ({len(dataset)} frames) over Zenoh to {svc.endpoint} as robot 'demo'")
         stats = stream_dataset(dataset, "demo", ZenohSettings(connect=[svc.endpoint]), rate=None,
-                               color="jpeg", depth="png", progress=progress, wait_for_subscriber=10.0)
+                               prefix=prefix, progress=progress, wait_for_subscriber=10.0)
         robot = svc.wait_processed("demo", stats.frames)
         svc.wait_mapped("demo")  # the loop closures of the last keyframes, before the map is read
         print(f"demo: service processed {robot['frames_processed']} frames "
               f"({robot['tracked']} tracked, {robot['keyframes']} keyframes, {robot['frames_dropped']} dropped, "
-              f"{robot['fps']:.1f} frames/s); client sent {stats.mbps:.0f} Mbit/s")
+              f"{robot['fps']:.1f} frames/s); client sent {stats.mbps:.0f} Mbit/s ({stats.encoding})")
         session_id = svc.session_of("demo")
         keyframes = keyframe_trajectory(svc.api, session_id)
         ev = evaluate(dataset.ground_truth, keyframes)
@@ -147,5 +198,8 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
               f"{answer['total']} keyframes, first ids {[n['id'] for n in answer['nodes']]}")
     finally:
         code = svc.stop()
-    print(f"demo: service stopped (exit {code}); map in {db}")
+        print(f"demo: service stopped (exit {code}); map in {db}")
+        errors = log_report(log_path)  # also when the demo failed: the log may say why
+        if errors:
+            print(errors)
     return 0 if ev.matched > 0 and code == 0 else 1

@@ -228,9 +228,20 @@ class LoopReport:
     link_error_max: float
 
     def format(self) -> str:
-        return (f"loops        {self.links} links, {self.false_links} false (precision {self.precision:.3f}); "
-                f"recall {self.recall:.3f} ({self.recalled}/{self.revisits} revisiting keyframes); "
-                f"link error median {self.link_error_median * 100:.2f} cm, max {self.link_error_max * 100:.2f} cm")
+        """One line; without links or without revisits it says so instead of a vacuous ratio
+        (precision / recall default to 1.0 then) and NaN link errors."""
+        if self.links:
+            parts = [f"{self.links} links, {self.false_links} false (precision {self.precision:.3f})"]
+        else:
+            parts = ["no loop links"]
+        if self.revisits:
+            parts.append(f"recall {self.recall:.3f} ({self.recalled}/{self.revisits} revisiting keyframes)")
+        else:
+            parts.append("no true revisits (no keyframe came back to a place seen earlier)")
+        if self.links:
+            parts.append(f"link error median {self.link_error_median * 100:.2f} cm, "
+                         f"max {self.link_error_max * 100:.2f} cm")
+        return "loops        " + "; ".join(parts)
 
 
 def evaluate_loops(gt: Trajectory, node_ids, node_stamps, links, min_age: float = 10.0,

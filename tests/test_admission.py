@@ -100,8 +100,9 @@ def test_slots_are_bounded_and_idle_ones_expire(svc, z, dataset):
     assert svc.api.health()["robots"] == 4
     # a real camera while every slot is taken: refused at first, admitted once the idle squatters
     # expire (idle_timeout 3 s), asked for its info again because its frames keep coming
-    stats = stream_dataset(dataset, "late", _settings(svc), rate=10.0, progress=False, wait_for_subscriber=10.0)
-    r = svc.wait_processed("late", 1)
+    longer = open_dataset("synthetic:loop", max_frames=150)  # 7.5 s at 20 Hz: frames keep coming past the expiry
+    stats = stream_dataset(longer, "late", _settings(svc), rate=20.0, progress=False, wait_for_subscriber=10.0)
+    r = svc.wait_processed("late", 1, timeout=30)
     assert r["frames_processed"] > 0 and r["frames_dropped"] == 0
     assert stats.answered == r["frames_processed"]
     assert not any(x["robot"].startswith("squat") for x in svc.api.robots())

@@ -238,3 +238,22 @@ def test_loop_links_are_scored_against_ground_truth():
     assert r.revisits == 4 and r.recalled == 2 and r.recall == pytest.approx(0.5)
     assert r.link_error_median == pytest.approx(0.01, abs=1e-9) and r.link_error_max == pytest.approx(0.3)
     assert "precision" in r.format()
+
+
+def test_loop_report_without_loops_says_so():
+    from service.evaluation import evaluate_loops
+    # a straight path: no keyframe comes back, and no loop link
+    t = np.arange(30.0)
+    poses = np.stack([make_pose(np.eye(3), [0.5 * k, 0, 0]) for k in range(30)])
+    r = evaluate_loops(Trajectory(t, poses), np.arange(30), t, [], min_age=10.0)
+    assert (r.links, r.revisits) == (0, 0)
+    text = r.format()
+    assert "no loop links" in text and "no true revisits" in text
+    assert "nan" not in text and "0/0" not in text and "precision" not in text and "recall" not in text
+    # revisits but no link: recall is a real 0, link errors are not shown
+    t = np.arange(41.0)
+    back = np.stack([make_pose(np.eye(3), [0.1 * min(k, 40 - k), 0, 0]) for k in range(41)])
+    r = evaluate_loops(Trajectory(t, back), np.arange(41), t, [], min_age=10.0)
+    assert r.revisits > 0 and r.recalled == 0
+    text = r.format()
+    assert "no loop links" in text and f"recall 0.000 (0/{r.revisits}" in text and "nan" not in text

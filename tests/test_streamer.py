@@ -3,6 +3,8 @@ video-file capture source."""
 from __future__ import annotations
 
 import argparse
+import logging
+import os
 import socket
 import threading
 import time
@@ -274,6 +276,57 @@ def test_stream_main(collector, capsys):
     with pytest.raises(SystemExit):
         _parse(["stream"])
     capsys.readouterr()
+
+
+def test_stream_skips_unreadable_frames_like_run(tmp_path, collector, caplog):
+    """A corrupt image costs its frame (logged, counted in StreamStats.skipped and the summary
+    line), not the stream; skipped frames count towards max_frames."""
+    from tests.test_datasets import make_tum
+
+    ds = open_dataset(make_tum(tmp_path))
+    (ds.path / "depth/1.038.png").write_bytes(b"\x89PNG garbage" + bytes(range(256)))  # frame 1
+    with caplog.at_level(logging.ERROR, logger="client.streamer"):
+        stats = stream_dataset(ds, "bad1", collector.client_settings, prefix=collector.keyspace.prefix,
+                               progress=False, wait_for_subscriber=5.0, color="png")
+    assert (stats.frames, stats.skipped) == (3, 1)
+    assert "1.038.png" in caplog.text and "frame 1 skipped" in caplog.text
+    assert "1 unreadable frame(s) skipped" in stats.line()
+    got = collector.wait_frames(3)
+    assert [decode_frame(p).seq for _, p in got] == [0, 1, 2]  # seq counts frames sent
+    assert [decode_frame(p).frame.stamp for _, p in got] == pytest.approx([1.0, 1.066, 1.1])
+    short = stream_dataset(ds, "bad2", collector.client_settings, prefix=collector.keyspace.prefix,
+                           progress=False, max_frames=2)
+    assert (short.frames, short.skipped) == (1, 1)
+    clean = stream_dataset(open_dataset("synthetic:loop", max_frames=2), "ok1", collector.client_settings,
+                           prefix=collector.keyspace.prefix, progress=False)
+    assert clean.skipped == 0 and "unreadable" not in clean.line()
+
+
+def test_stream_max_frames_must_be_positive(capsys):
+    for bad in ("0", "-3", "two"):
+        with pytest.raises(SystemExit) as e:
+            _parse(["stream", "synthetic:loop", "--max-frames", bad])
+        assert e.value.code == 2
+        assert "--max-frames" in capsys.readouterr().err
+    assert _parse(["stream", "synthetic:loop", "--max-frames", "7"]).max_frames == 7
+    assert _parse(["stream", "synthetic:loop"]).max_frames is None  # no option: every frame
+
+
+def test_stream_main_no_progress_bar_when_stderr_is_not_a_terminal(collector, capsys):
+    args = _parse(["stream", "synthetic:loop", "--robot", "pipe-bot", "--connect", endpoint(collector.port),
+                   "--prefix", collector.keyspace.prefix, "--max-frames", "3"])  # no -q
+    assert args.func(args) == 0
+    out, err = capsys.readouterr()  # captured: not a terminal
+    assert "streamed 3 frames" in out
+    assert err.startswith("stream: ") and len(err.splitlines()) == 1  # the one header line, no bar
+    from client.cliargs import want_progress
+
+    class Tty:
+        def isatty(self):
+            return True
+    assert want_progress(False, Tty()) and not want_progress(True, Tty())
+    with open(os.devnull, "w") as devnull:
+        assert not want_progress(False, devnull)
 
 
 def test_stream_without_subscriber_reports_it():

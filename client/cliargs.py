@@ -1,0 +1,34 @@
+"""Command-line helpers shared by `mnemoslam stream` (client/streamer.py) and the service's
+commands (service/cli.py): one argparse type for counts, one rule for progress bars."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def positive_int(text: str) -> int:
+    """argparse `type=` for options such as --max-frames: an integer >= 1 (0 and negative
+    numbers are errors, never 'unlimited'; leave the option out for no limit)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer (leave the option out for no limit), got {value}")
+    return value
+
+
+def want_progress(quiet: bool = False, stream=None) -> bool:
+    """Progress bars only on an interactive terminal: not with -q/--quiet, and not when
+    `stream` (default stderr, where tqdm draws) is a pipe or a file, where every update would
+    be a line of its own."""
+    if quiet:
+        return False
+    stream = sys.stderr if stream is None else stream
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+__all__ = ["positive_int", "want_progress"]

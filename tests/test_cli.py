@@ -1,0 +1,251 @@
+"""The `mnemoslam` command line: what it prints, its argument checks, --set, progress bars."""
+from __future__ import annotations
+
+import io
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from service.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class TtyIO(io.StringIO):
+    """A stderr that says it is a terminal."""
+
+    def isatty(self):
+        return True
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def fake_run(monkeypatch):
+    """service.runner.run_dataset replaced by a recorder (no pipeline runs)."""
+    calls = []
+
+    def run_dataset(dataset, config, out_dir=None, progress=True):
+        calls.append(SimpleNamespace(config=config, progress=progress))
+        return SimpleNamespace(summary=SimpleNamespace(line=lambda: "fake run", tracked=1), trajectory=[])
+
+    monkeypatch.setattr("service.runner.run_dataset", run_dataset)
+    return calls
+
+
+@pytest.fixture
+def fake_demo(monkeypatch):
+    calls = []
+
+    def run_demo(trajectory="loop", rate=15.0, noise=True, out="out/demo", progress=True, overrides=None):
+        calls.append(SimpleNamespace(progress=progress, overrides=overrides))
+        return 0
+
+    monkeypatch.setattr("service.demo.run_demo", run_demo)
+    return calls
+
+
+# -- run ------------------------------------------------------------------------------------
+
+def test_run_prints_no_progress_when_stderr_is_not_a_terminal(tmp_path, capsys):
+    assert main(["run", "synthetic:straight", "--out", str(tmp_path / "o"), "--max-frames", "12"]) == 0
+    out, err = capsys.readouterr()
+    assert "12 frames" in out
+    assert err == ""  # no progress bar lines (captured stderr is not a terminal)
+    # no loop on a straight path: said plainly, no nan, no vacuous 1.000 (0/0)
+    assert "no loop links" in out and "no true revisits" in out and "nan" not in out and "0/0" not in out
+
+
+def test_progress_bars_only_on_a_terminal_and_not_with_quiet(tmp_path, monkeypatch, fake_run, fake_demo):
+    out = str(tmp_path / "o")
+    main(["run", "synthetic:loop", "--out", out, "--max-frames", "2"])
+    main(["demo"])
+    monkeypatch.setattr(sys, "stderr", TtyIO())
+    main(["run", "synthetic:loop", "--out", out, "--max-frames", "2"])
+    main(["run", "synthetic:loop", "--out", out, "--max-frames", "2", "-q"])
+    main(["demo"])
+    main(["demo", "-q"])
+    assert [c.progress for c in fake_run] == [False, True, False]
+    assert [c.progress for c in fake_demo] == [False, True, False]
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "x"])
+def test_run_max_frames_must_be_positive(tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as e:
+        main(["run", "synthetic:loop", "--out", str(tmp_path / "o"), "--max-frames", value])
+    assert e.value.code == 2
+    assert "--max-frames" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_run_set_overrides_config_keys(tmp_path, fake_run):
+    out = str(tmp_path / "o")
+    assert main(["run", "synthetic:loop", "--out", out, "--max-frames", "2", "--set", "loop.enabled=false",
+                 "--set", "service.queue_size=30", "--set", "loop.threshold=1", "--set", "seed=7",
+                 "--set", "zenoh.listen=[tcp/127.0.0.1:1, tcp/127.0.0.1:2]"]) == 0
+    c = fake_run[-1].config
+    assert c.loop.enabled is False and c.service.queue_size == 30 and c.seed == 7
+    assert c.loop.threshold == 1.0 and isinstance(c.loop.threshold, float)
+    assert c.zenoh.listen == ["tcp/127.0.0.1:1", "tcp/127.0.0.1:2"]
+    # a --config file, then --set, then the dedicated options
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("service:\n  queue_size: 5\nloop:\n  stm_size: 4\n")
+    main(["run", "synthetic:loop", "--out", out, "--config", str(cfg), "--set", "service.queue_size=6",
+          "--set", "loop.enabled=true", "--odometry-only"])
+    c = fake_run[-1].config
+    assert (c.service.queue_size, c.loop.stm_size, c.loop.enabled) == (6, 4, False)
+
+
+@pytest.mark.parametrize("item, message", [
+    ("loop.enable=false", "unknown config key 'loop.enable'"),
+    ("nosuch.key=1", "unknown config key 'nosuch'"),
+    ("service.queue_size=lots", "'service.queue_size': expected int"),
+    ("loop.enabled=[1, 2]", "'loop.enabled': expected bool"),
+    ("loop=false", "loop: expected a mapping"),
+    ("loop.enabled", "expected KEY=VALUE"),
+    ("loop.enabled=[1", "not valid YAML"),
+])
+def test_run_bad_set_is_a_clear_error(tmp_path, capsys, fake_run, item, message):
+    assert main(["run", "synthetic:loop", "--out", str(tmp_path / "o"), "--set", item]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mnemoslam run: error: ") and message in err and len(err.splitlines()) == 1
+    assert fake_run == []
+
+
+# -- demo -----------------------------------------------------------------------------------
+
+def test_demo_set_goes_to_its_service(fake_demo):
+    assert main(["demo", "--set", "loop.enabled=false", "--set", "service.queue_size=30"]) == 0
+    assert fake_demo[-1].overrides == {"loop": {"enabled": False}, "service": {"queue_size": 30}}
+
+
+@pytest.mark.parametrize("item, message", [
+    ("loop.bogus=1", "unknown config key 'loop.bogus'"),
+    ("api.port=9999", "the demo sets it"),
+    ("storage.path=x.db", "the demo sets it"),
+])
+def test_demo_bad_set_fails_before_anything_starts(tmp_path, capsys, item, message):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--set", item]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_service_process_takes_nested_and_top_level_keys(tmp_path):
+    import yaml
+
+    from service.demo import ServiceProcess
+
+    svc = ServiceProcess(tmp_path / "m.db", {"service": {"queue_size": 3}, "loop": {"enabled": False}, "seed": 2})
+    cfg = yaml.safe_load(svc.config_path.read_text())
+    assert cfg["service"] == {"queue_size": 3} and cfg["loop"] == {"enabled": False} and cfg["seed"] == 2
+    assert cfg["zenoh"]["listen"] == [svc.endpoint] and cfg["api"]["port"] == svc.http_port
+
+
+def test_demo_log_scan_reports_errors(tmp_path):
+    from service.demo import log_errors, log_report
+
+    log = tmp_path / "service.log"
+    log.write_text("mnemoslam serve: REST http://127.0.0.1:1; ...\n"
+                   "2026-01-01 10:00:00,000 INFO mnemoslam.service: service started\n"
+                   "2026-01-01 10:00:01,000 ERROR mnemoslam.session: robot demo: frame 3 failed\n"
+                   "Traceback (most recent call last):\n"
+                   '  File "x.py", line 1, in <module>\n'
+                   "ValueError: boom\n"
+                   "2026-01-01 10:00:02,000 INFO mnemoslam.service: service stopped\n")
+    assert len(log_errors(log)) == 2
+    report = log_report(log)
+    assert "2 error lines" in report and str(log) in report and "frame 3 failed" in report
+    clean = tmp_path / "clean.log"
+    clean.write_text("2026-01-01 10:00:00,000 INFO mnemoslam.service: service started\n")
+    assert log_report(clean) is None and log_report(tmp_path / "missing.log") is None
+    one = tmp_path / "one.log"
+    one.write_text("Traceback (most recent call last):\n  File ...\nRuntimeError: x\n")
+    assert "1 error line (" in log_report(one)
+
+
+# -- serve ----------------------------------------------------------------------------------
+
+def test_serve_db_in_a_missing_folder_is_an_error(tmp_path, capsys):
+    db = tmp_path / "typo" / "dir" / "x.db"
+    assert main(["serve", "--db", str(db)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mnemoslam serve: error: ") and str(db.parent) in err and "does not exist" in err
+    assert not (tmp_path / "typo").exists()
+    (tmp_path / "file").write_text("")
+    assert main(["serve", "--set", f"storage.path={tmp_path / 'file' / 'x.db'}"]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+
+
+def _serve(tmp_path, *args) -> tuple[subprocess.Popen, str]:
+    """`mnemoslam serve` in a child process and the first line it prints."""
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", *args], cwd=ROOT, text=True,
+                            stdout=subprocess.PIPE, stderr=open(tmp_path / "stderr", "w"),
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    line = proc.stdout.readline() if sel.select(timeout=60) else ""
+    sel.close()
+    if not line:
+        proc.kill()
+        proc.wait()
+        pytest.fail(f"serve printed nothing; stderr: {(tmp_path / 'stderr').read_text()}")
+    return proc, line
+
+
+def _stop(proc: subprocess.Popen) -> int:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        return proc.wait(30)
+    finally:
+        proc.kill()
+        proc.stdout.close()
+
+
+def test_serve_prints_where_it_listens(tmp_path):
+    db = tmp_path / "map.db"
+    zenoh = f"tcp/127.0.0.1:{free_port()}"
+    proc, line = _serve(tmp_path, "--db", str(db), "--listen", zenoh, "--set", "api.port=0",
+                        "--set", "loop.process=false")
+    try:
+        assert line.startswith("mnemoslam serve: REST http://127.0.0.1:")
+        assert f"listen {zenoh}" in line and "connect none" in line and f"database {db}" in line
+        url = line.split("REST ")[1].split(";")[0]
+        port = int(url.rsplit(":", 1)[1])
+        assert port > 0  # port 0 in the config: the line names the port actually bound
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                with urllib.request.urlopen(url + "/health", timeout=2) as r:
+                    assert r.status == 200
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+    finally:
+        code = _stop(proc)
+    assert code == 0
+    assert "INFO mnemoslam.service: service started" in (tmp_path / "stderr").read_text()  # the log lines stay
+
+
+def test_serve_rest_off(tmp_path):
+    proc, line = _serve(tmp_path, "--db", str(tmp_path / "map.db"), "--listen", f"tcp/127.0.0.1:{free_port()}",
+                        "--set", "api.enabled=false", "--set", "loop.enabled=false")
+    try:
+        assert line.startswith("mnemoslam serve: REST off; Zenoh peer listen tcp/127.0.0.1:")
+    finally:
+        assert _stop(proc) == 0
