@@ -64,7 +64,8 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
     KeyframeUpdate), ("close", key), None = drain and stop. Messages out over `conn`:
     ("ready", pid), ("correction", key, T_map_odom), ("event", key, kind, data),
     ("closed", key, updates), ("stopped",)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the service decides when we stop
+    for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C, timeout(1), systemd reach the whole group:
+        signal.signal(sig, signal.SIG_IGN)  # the service decides when we stop (we exit when it is gone)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")  # as the CLI's
     logging.getLogger("mnemoslam").setLevel(log_level)
     if config.process_nice:
