@@ -4,15 +4,23 @@ API never writes. OpenAPI docs at /docs."""
 from __future__ import annotations
 
 import math
+from typing import Annotated
 
-from fastapi import FastAPI, HTTPException, Query
+from fastapi import FastAPI, HTTPException, Path, Query
 from fastapi.responses import PlainTextResponse
 
+from client.protocol import ROBOT_PATTERN
 from client.trajectory import format_tum
 
 from .server import SlamService
 
 LINK_TYPES = {0: "odometry", 1: "loop", 2: "proximity", 3: "local_time", 4: "user", 5: "virtual"}
+
+# The largest SQLite INTEGER (signed 64-bit): a bigger id or offset cannot be bound to a query.
+# Bounding the parameters makes such input a 422 (and documents the range in the OpenAPI).
+SQLITE_INT_MAX = 2**63 - 1
+DbId = Annotated[int, Path(ge=0, le=SQLITE_INT_MAX, description="a database id (0 .. 2^63-1)")]
+RobotId = Annotated[str, Path(pattern=f"^{ROBOT_PATTERN.pattern}$", description="a robot id as on the wire")]
 
 
 def _pose_list(pose) -> list[float]:
@@ -65,7 +73,7 @@ def create_app(service: SlamService) -> FastAPI:
         return service.robots()
 
     @app.get("/robots/{robot}")
-    def robot(robot: str):
+    def robot(robot: RobotId):
         for r in service.robots():
             if r["robot"] == robot:
                 return r
@@ -76,8 +84,8 @@ def create_app(service: SlamService) -> FastAPI:
         return [s.to_dict() for s in store().sessions()]
 
     @app.get("/sessions/{session_id}/nodes")
-    def nodes(session_id: int, bbox: str | None = Query(None, description="xmin,ymin,zmin,xmax,ymax,zmax (metres)"),
-              limit: int = Query(100, ge=1, le=10000), offset: int = Query(0, ge=0)):
+    def nodes(session_id: DbId, bbox: str | None = Query(None, description="xmin,ymin,zmin,xmax,ymax,zmax (metres)"),
+              limit: int = Query(100, ge=1, le=10000), offset: int = Query(0, ge=0, le=SQLITE_INT_MAX)):
         session_or_404(session_id)
         box = _parse_bbox(bbox)
         st = store()
@@ -85,7 +93,7 @@ def create_app(service: SlamService) -> FastAPI:
                 "nodes": [_node_json(n) for n in st.nodes(session_id=session_id, bbox=box, limit=limit, offset=offset)]}
 
     @app.get("/sessions/{session_id}/trajectory")
-    def trajectory(session_id: int, format: str = Query("json", pattern="^(json|tum)$")):
+    def trajectory(session_id: DbId, format: str = Query("json", pattern="^(json|tum)$")):
         session_or_404(session_id)
         traj = store().trajectory(session_id)
         if format == "tum":
@@ -94,7 +102,7 @@ def create_app(service: SlamService) -> FastAPI:
             {"stamp": float(t), "pose": _pose_list(p)} for t, p in zip(traj.stamps, traj.poses)]}
 
     @app.get("/sessions/{session_id}/graph")
-    def graph(session_id: int):
+    def graph(session_id: DbId):
         session_or_404(session_id)
         st = store()
         nodes = st.nodes(session_id=session_id, limit=10**9, offset=0)
@@ -104,7 +112,7 @@ def create_app(service: SlamService) -> FastAPI:
                            "transform": _pose_list(l.transform)} for l in links]}
 
     @app.get("/nodes/{node_id}/statistics")
-    def node_statistics(node_id: int):
+    def node_statistics(node_id: DbId):
         """Why a loop was or wasn't closed at this keyframe: hypothesis, posterior, likelihood
         top-k, decision, verification inliers, time per step."""
         data = store().statistics(node_id)
