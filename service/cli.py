@@ -25,6 +25,10 @@ def _cmd_run(args) -> int:
     config = load_config(args.config, _overrides(args, {"loop": {"enabled": False}} if args.odometry_only else {}))
     options = {"max_frames": args.max_frames} if args.max_frames else {}
     dataset = open_dataset(args.dataset, args.format, **options)
+    if args.passes > 1:
+        from client.datasets.passes import Passes
+
+        dataset = Passes(dataset, args.passes)
     out = run_dataset(dataset, config, args.out, progress=want_progress(args.quiet))
     print(out.summary.line())
     if dataset.ground_truth is not None and len(out.trajectory) >= 3:
@@ -180,6 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="output folder (trajectory.tum, keyframes.tum, summary.json)")
     r.add_argument("--format", choices=["tum", "euroc", "kitti", "7scenes", "synthetic"], help="override layout detection")
     r.add_argument("--config", help="YAML config file (default: built-in defaults)")
+    r.add_argument("--passes", type=positive_int, default=1, metavar="N",
+                   help="play the sequence forward, backward, forward... N passes in all, stamps continuing at its "
+                        "frame rate (long runs from any dataset; groundtruth.tum follows the same stamps)")
     r.add_argument("--max-frames", type=positive_int, metavar="N",
                    help="stop after this many frames (a positive integer; default: all)")
     r.add_argument("--odometry-only", action="store_true", help="no loop closure (loop.enabled: false), the baseline")

@@ -436,3 +436,33 @@ def test_real_kitti_rows_align_and_truncation(data_dir):
     f = ds.frame(0)
     dy, dx = stereo_row_error(f.image, f.right)
     assert dy < 1.0 and dx > 0
+
+
+def test_passes_play_back_and_forth_with_increasing_stamps_and_matching_ground_truth():
+    from client.datasets.passes import Passes
+
+    ds = open_dataset("synthetic:loop", max_frames=6)
+    p = Passes(ds, 3)
+    assert [p.origin(j) for j in range(len(p))] == [0, 1, 2, 3, 4, 5, 4, 3, 2, 1, 0, 1, 2, 3, 4, 5]
+    assert np.all(np.diff(p.stamps) > 0) and np.allclose(np.diff(p.stamps), 1 / 30)
+    np.testing.assert_array_equal(p.stamps[:6], ds.stamps)  # pass 1 keeps the dataset's stamps
+    np.testing.assert_array_equal(p.ground_truth.stamps, p.stamps)
+    np.testing.assert_allclose(p.ground_truth.poses, ds.ground_truth.poses[[p.origin(j) for j in range(len(p))]])
+    f = p.frame(7)  # pass 2, dataset frame 3
+    assert (f.index, f.stamp) == (7, p.stamps[7])
+    np.testing.assert_array_equal(f.image, ds.frame(3).image)
+    assert len(Passes(ds, 1)) == len(ds) and Passes(ds, 1).name == ds.name
+    with pytest.raises(ValueError):
+        Passes(ds, 0)
+
+
+def test_run_passes_writes_ground_truth_at_the_played_stamps(tmp_path):
+    from client.trajectory import read_tum
+    from service.cli import main
+
+    assert main(["run", "synthetic:loop", "--max-frames", "20", "--passes", "3", "--out", str(tmp_path),
+                 "--odometry-only", "-q"]) == 0
+    gt = read_tum(tmp_path / "groundtruth.tum")
+    est = read_tum(tmp_path / "trajectory.tum")
+    assert len(gt) == 20 + 19 + 19 and np.all(np.diff(gt.stamps) > 0)
+    np.testing.assert_allclose(est.stamps, gt.stamps)

@@ -4,6 +4,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterator
 
+import numpy as np
+
 from ..frames import Calibration, DatasetError, Frame
 from ..trajectory import Trajectory
 
@@ -21,6 +23,7 @@ class Dataset:
     format: str = "?"
     calibration: Calibration
     ground_truth: Trajectory | None = None
+    stamps: np.ndarray  # (len,) seconds, of every frame, known without reading the frames
 
     def __len__(self) -> int:  # pragma: no cover - abstract
         raise NotImplementedError

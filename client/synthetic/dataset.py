@@ -62,8 +62,8 @@ class SyntheticDataset(Dataset):
         limit = max_frames if max_frames is not None else frames
         if limit is not None:
             n = max(0, min(n, int(limit)))
-        stamps = np.arange(n) / self.rate
-        self.ground_truth = Trajectory(stamps, self.path(stamps) if n else np.zeros((0, 4, 4)))
+        self.stamps = np.arange(n) / self.rate
+        self.ground_truth = Trajectory(self.stamps, self.path(self.stamps) if n else np.zeros((0, 4, 4)))
 
     def __len__(self) -> int:
         return len(self.ground_truth)
