@@ -55,6 +55,22 @@ class Memory:
         return node_id
 
 
+def decode_images(color_jpeg: bytes | None, depth_png: bytes | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The images `add_keyframe` stored, decoded: (colour image as stored (BGR or grey uint8),
+    depth in metres float32 with 0 where there was none), each None when not stored."""
+    image = depth = None
+    if color_jpeg is not None:
+        image = cv2.imdecode(np.frombuffer(color_jpeg, np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise ValueError("cannot decode the stored colour image")
+    if depth_png is not None:
+        mm = cv2.imdecode(np.frombuffer(depth_png, np.uint8), cv2.IMREAD_UNCHANGED)
+        if mm is None or mm.dtype != np.uint16:
+            raise ValueError("cannot decode the stored depth image as 16-bit PNG")
+        depth = mm.astype(np.float32) / 1000.0
+    return image, depth
+
+
 def _encode(ext: str, image: np.ndarray, params=()) -> bytes:
     ok, buf = cv2.imencode(ext, image, list(params))
     if not ok:
