@@ -22,6 +22,7 @@ from .mapping import Mapper
 from .mapping_process import MappingProcess
 from .memory import Memory
 from .pipeline import FrameResult, Pipeline
+from .recovery import recover
 from .session import RobotSession
 
 log = logging.getLogger("mnemoslam.service")
@@ -49,6 +50,7 @@ class SlamService:
     def start(self) -> "SlamService":
         z = self.config.zenoh
         self.store = MapStore(self.config.storage.path)
+        recover(self.config)  # sessions a kill left open end "crashed"; their map backlog is done, before any writer starts
         if self.config.loop.enabled and self.config.loop.process:
             self.mapping = MappingProcess(self.config.storage.path, self.config.loop)
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
@@ -75,7 +77,7 @@ class SlamService:
                 s.pipeline.mapper.close()  # finish the queued map updates before the database closes
             memory = s.pipeline.memory if s.pipeline else None
             if memory is not None:
-                self.store.end_session(memory.session_id)
+                self.store.end_session(memory.session_id, reason="stopped")
         if self.mapping is not None:
             self.mapping.close()  # every robot's updates are done: stop the child before the database closes
         if self.zenoh is not None:
