@@ -133,6 +133,49 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path):
     assert ate < ate_ref + 0.001  # within 1 mm of the uninterrupted map
 
 
+class _Stops:
+    """The pipeline's mapper: the map update of the first `cut` keyframes only."""
+
+    def __init__(self, mapper: Mapper, cut: int):
+        self.mapper, self.cut, self.n = mapper, cut, 0
+
+    def submit(self, u):
+        self.n += 1
+        if self.n <= self.cut:
+            self.mapper.submit(u)
+
+    def to_map(self, pose):
+        return self.mapper.to_map(pose)
+
+
+def test_a_keyframe_that_cannot_be_mapped_is_counted_and_the_others_go_on(tmp_path, caplog):
+    ds = open_dataset("synthetic:loop", rate=10, max_frames=30)
+    cfg = load_config()
+    cfg = dataclasses.replace(cfg, storage=dataclasses.replace(cfg.storage, path=str(tmp_path / "map.db")))
+    with MapStore(cfg.storage.path) as store:
+        memory = Memory(store, "r1", ds.calibration, cfg)
+        pipeline = Pipeline(ds.calibration, cfg, memory, _Stops(Mapper(ds.calibration.camera, cfg.loop, store), 3))
+        ids = [r.node_id for r in (pipeline.process(ds.frame(i)) for i in range(len(ds))) if r.node_id is not None]
+    sid, backlog = memory.session_id, ids[3:]
+    assert len(backlog) >= 4
+    bad = backlog[1]
+    with sqlite3.connect(cfg.storage.path) as conn:  # a keyframe whose features cannot be read
+        conn.execute("UPDATE features SET descriptors = x'00' WHERE node_id = ?", (bad,))
+
+    off = dataclasses.replace(cfg, loop=dataclasses.replace(cfg.loop, enabled=False))
+    r = recover(off)  # without the map update: the session is only ended
+    assert (r.crashed, r.keyframes, r.skipped, r.mapped, r.failed) == ([sid], len(backlog), len(backlog), 0, 0)
+    r = recover(cfg)  # the next start with it: the crashed session's backlog is mapped, but for `bad`
+    assert (r.crashed, r.keyframes, r.mapped, r.failed, r.error) == ([], len(backlog), len(backlog) - 1, 1, None)
+    assert f"map update of node {bad} (session {sid}) failed" in caplog.text
+    assert f"node {backlog[2]}: its odometry predecessor {bad} is not in the graph: starts a segment" in caplog.text
+    with MapStore(cfg.storage.path) as s:
+        assert s.unmapped_nodes() == {sid: [bad]} and s.session(sid).end_reason == "crashed"
+        assert s.integrity_check() == "ok"
+    r = recover(cfg)  # tried again at every start, never stopping it
+    assert (r.keyframes, r.mapped, r.failed) == (1, 0, 1)
+
+
 class _AsStreamed:
     """A dataset's frames as the service receives them (through the wire codec, JPEG colour
     and PNG depth as `stream_dataset` sends them), for an offline run of the same frames."""
