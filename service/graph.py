@@ -251,6 +251,71 @@ class PoseGraph:
                 self._snap[nid] = _ro(est.copy())
             return est
 
+    def restore(self, poses, odometry=(), loops=()) -> None:
+        """Load a stored graph into this empty one, at its stored poses: the nodes in the
+        order of ``poses`` ({id: 4×4 pose}); the first gets the tight prior, every other node
+        without an odometry link to it the loose segment prior; ``odometry`` (from, to,
+        T_from_to, information) links as ``add_node`` makes them (from an earlier node) and
+        ``loops`` (from, to, T_from_to, information) as ``add_loop`` does (default robust
+        kernel, no error check: they were checked when added). One iSAM2 update from the
+        stored poses, iterated to convergence. The stored poses count as published:
+        ``changed_poses`` reports only what moves away from them."""
+        poses = {int(k): _as_pose(v, f"pose of node {k}") for k, v in poses.items()}
+        odometry = [(int(a), int(b), _as_pose(t, "transform"), _as_information(i, "information"))
+                    for a, b, t, i in odometry]
+        loops = [(int(a), int(b), _as_pose(t, "transform"), _as_information(i, "information"))
+                 for a, b, t, i in loops]
+        order = {n: k for k, n in enumerate(poses)}
+        incoming: dict[int, tuple] = {}
+        for link in odometry:
+            a, b = link[0], link[1]
+            if a not in order or b not in order or order[a] >= order[b]:
+                raise ValueError(f"odometry link {a}->{b} must go from an earlier node to a later one of the graph")
+            if b in incoming:
+                raise ValueError(f"node {b} has two odometry links to it")
+            incoming[b] = link
+        for a, b, _, _ in loops:
+            if a not in order or b not in order or a == b:
+                raise ValueError(f"loop link {a}->{b} needs two different nodes of the graph")
+        with self._lock:
+            if self._nodes:
+                raise ValueError("restore needs an empty graph")
+            graph = gtsam.NonlinearFactorGraph()
+            values = gtsam.Values()
+            for k, (nid, pose) in enumerate(poses.items()):
+                values.insert(nid, _pose3(pose))
+                link = incoming.get(nid)
+                if link is None:
+                    sigmas = FIRST_PRIOR_SIGMAS if k == 0 else SEGMENT_PRIOR_SIGMAS
+                    graph.add(gtsam.PriorFactorPose3(nid, _pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+                    self._priors[nid] = (pose.copy(), sigmas, self._n_factors)
+                else:
+                    a, b, t, info = link
+                    graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), gtsam.noiseModel.Gaussian.Information(info)))
+                    self._links.append(_Link(a, b, t.copy(), info, False, self._n_factors))
+                self._n_factors += 1
+                self._nodes.append(nid)
+                self._raw[nid] = pose.copy()
+            for a, b, t, info in loops:
+                graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), self._loop_noise(info, self.robust)))
+                self._links.append(_Link(a, b, t.copy(), info, True, self._n_factors))
+                self._n_factors += 1
+            if not poses:
+                return
+            self._isam.update(graph, values)
+            self._converge_locked()
+            self._cache = None
+            self._publish_locked()
+            self._published = {k: v.copy() for k, v in poses.items()}
+
+    def _loop_noise(self, info: np.ndarray, kernel: str):
+        noise = gtsam.noiseModel.Gaussian.Information(info)
+        if kernel == "huber":
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.robust_width), noise)
+        elif kernel == "cauchy":
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.robust_width), noise)
+        return noise
+
     def add_loop(self, from_id: int, to_id: int, transform, information, robust: bool | str = True,
                  check: bool = True) -> LoopOutcome:
         """Add a loop link T_from_to between two graph nodes, optimise, and check the graph error.
@@ -273,13 +338,8 @@ class PoseGraph:
                 raise ValueError("a loop link needs two different nodes")
             before = self._estimate_locked()
             err_before = float(normalized_errors(before[a][None], before[b][None], t[None], info[None])[0])
-            noise = gtsam.noiseModel.Gaussian.Information(info)
-            if kernel == "huber":
-                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.robust_width), noise)
-            elif kernel == "cauchy":
-                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.robust_width), noise)
             graph = gtsam.NonlinearFactorGraph()
-            graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), noise))
+            graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), self._loop_noise(info, kernel)))
             index = self._n_factors
             self._isam.update(graph, gtsam.Values())
             self._n_factors += 1

@@ -16,16 +16,18 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from client.frames import PinholeCamera
 from client.geometry import invert
-from storage import LinkType, MapStore
+from storage import LinkType, MapStore, UnknownIdError
 
 from .config import LoopConfig
 from .features import FrameFeatures
 from .graph import PoseGraph
 from .loop_detection import LoopDetector
+from .memory import decode_images
 from .proximity import nearby
 from .verification import DenseView, Verification, refine, register_dense, verify
 from .vocabulary import Vocabulary
@@ -42,6 +44,30 @@ class KeyframeUpdate:
     odom_from: int | None  # previous keyframe of the same segment
     transform: np.ndarray | None  # T_from_to of that odometry link
     information: np.ndarray | None
+
+    @classmethod
+    def from_store(cls, store: MapStore, node_id: int, images: bool = True) -> "KeyframeUpdate":
+        """The update tracking handed over for a stored keyframe, rebuilt from the database:
+        its stamp and stored pose (the odometry's until the map update moves it), features
+        (without octaves: the map update does not use them), odometry link and, with
+        `images`, the depth and grey image decoded from its stored PNG-16 / JPEG (for dense
+        refinement; lossy JPEG, millimetre depth)."""
+        node = store.get_node(node_id)
+        if node is None:
+            raise UnknownIdError(f"no node {node_id}")
+        keypoints, descriptors, points, _ = store.load_features(node.id)
+        depth = grey = None
+        if images:
+            image, depth = decode_images(*store.load_images(node.id))
+            if image is None or depth is None:
+                depth = None
+            else:
+                grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        links = [l for l in store.links(node_ids=[node.id], type=LinkType.NEIGHBOR) if l.to_id == node.id]
+        odom = links[0] if links else None
+        features = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8), depth, grey)
+        return cls(node.id, node.stamp, node.pose, features, odom.from_id if odom else None,
+                   odom.transform if odom else None, odom.information if odom else None)
 
 
 @dataclass
@@ -91,6 +117,52 @@ class Mapper:
             self._queue = queue.Queue()
             self._thread = threading.Thread(target=self._run, name="mapper", daemon=True)
             self._thread.start()
+
+    @classmethod
+    def resume(cls, store: MapStore, session_id: int, config: LoopConfig, camera: PinholeCamera | None = None,
+               on_event: Callable[[str, dict], None] | None = None) -> "Mapper":
+        """A (synchronous) mapper that continues a stored session's map update, e.g. after
+        the service was killed with keyframes still in its backlog. It holds the session's
+        mapped keyframes (those with a statistics row) as the interrupted mapper did: the
+        graph with their odometry and loop links at their stored poses, their features, their
+        dense views (decoded from the stored images when a candidate needs one), the path
+        segments and graph neighbours; the map's vocabulary comes from the store as for any
+        mapper. Then `submit` the session's unmapped keyframes in id order (see
+        `KeyframeUpdate.from_store`) and they close loops to the mapped ones. The loop
+        detector's belief starts afresh and `to_map` gives the identity until the first
+        update. `camera` defaults to the session's."""
+        sid = int(session_id)
+        if camera is None:
+            camera = store.calibration(sid).camera
+        m = cls(camera, config, store, on_event=on_event)
+        unmapped = set(store.unmapped_nodes(session_ids=[sid]).get(sid, ()))
+        nodes = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
+        mapped = {n.id for n in nodes}
+        links = [l for l in store.links(session_id=sid) if l.from_id in mapped and l.to_id in mapped]
+        odometry = [l for l in links if l.type == LinkType.NEIGHBOR]
+        loops = [l for l in links if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
+        m.graph.restore({n.id: n.pose for n in nodes}, [(l.from_id, l.to_id, l.transform, l.information) for l in odometry],
+                        [(l.from_id, l.to_id, l.transform, l.information) for l in loops])
+        incoming = {l.to_id: l.from_id for l in odometry}
+        for n in nodes:
+            keypoints, descriptors, points, _ = store.load_features(n.id)
+            m._features[n.id] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
+            m._stamps[n.id] = n.stamp
+            m._order.append(n.id)
+            m._neighbours.setdefault(n.id, [])
+            src = incoming.get(n.id)
+            m._segment[n.id] = n.id if src is None else m._segment.get(src, src)
+            if src is not None:
+                m._neighbours[n.id].append(src)
+                m._neighbours[src].append(n.id)
+        for l in loops:
+            if l.type != LinkType.LOCAL_TIME:  # as _add_link: path links are not loops
+                m.loops.append((l.from_id, l.to_id))
+                m._neighbours[l.to_id].append(l.from_id)
+                m._neighbours[l.from_id].append(l.to_id)
+        if config.refine_dense:
+            m._views = _StoredViews(store, camera, mapped)
+        return m
 
     # -- tracking side ---------------------------------------------------------------------
     def submit(self, update: KeyframeUpdate) -> None:
@@ -295,3 +367,33 @@ class Mapper:
         if decision == "ok":
             decision = self._add_link(u, candidate, kind, v)
         return decision, v
+
+
+class _StoredViews(dict):
+    """A resumed mapper's dense views ({node: DenseView}): those of the stored keyframes are
+    decoded from their stored images when first asked for (`in` or `[]`), so that resuming
+    a long session decodes only the keyframes that become loop candidates."""
+
+    def __init__(self, store: MapStore, camera: PinholeCamera, node_ids):
+        super().__init__()
+        self._store, self._camera, self._stored = store, camera, set(node_ids)
+
+    def _load(self, node_id) -> None:
+        if node_id not in self._stored:
+            return
+        self._stored.discard(node_id)
+        try:
+            image, depth = decode_images(*self._store.load_images(node_id))
+        except Exception as e:  # a bad image costs the dense refinement of this keyframe only
+            log.warning("node %d: stored images not usable for dense registration: %s", node_id, e)
+            return
+        if image is not None and depth is not None:
+            self[node_id] = DenseView(depth, image, self._camera)
+
+    def __contains__(self, node_id) -> bool:
+        self._load(node_id)
+        return super().__contains__(node_id)
+
+    def __getitem__(self, node_id):
+        self._load(node_id)
+        return super().__getitem__(node_id)

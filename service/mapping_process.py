@@ -21,17 +21,22 @@ A reader thread receives the corrections and the mappers' events (`loop_closed`,
 does. If the child dies, tracking goes on with the last corrections: one error line is
 logged, `failures` counts it (reported in the service's status) and later updates are
 dropped (counted). The child exits when the service does, even after a kill -9 (it
-watches its parent's pid).
+watches its parent's pid, and starts no update once the service is gone: the keyframes
+left in the backlog are mapped by the next start's recovery, service/recovery.py). It holds
+the map update's lock (`map_update_lock`) while it runs, which that recovery waits for.
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import multiprocessing
 import os
 import queue
 import signal
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -42,7 +47,36 @@ from .mapping import KeyframeUpdate
 
 log = logging.getLogger("mnemoslam.mapping")
 
-_PARENT_POLL_S = 1.0  # the child checks this often (while idle) that the service still runs
+_PARENT_POLL_S = 1.0  # the child checks this often that the service still runs
+_ORPHAN_GRACE_S = 30.0  # once the service is gone, the update in hand may take this long before the child exits
+LOCK_WAIT_S = 60.0  # how long the child / the start-up recovery wait for the map update's lock
+
+
+@contextlib.contextmanager
+def map_update_lock(db_path, timeout: float = LOCK_WAIT_S) -> Iterator[bool]:
+    """Hold the map update's lock of the database at `db_path`: an flock on
+    `<db>-mapping.lock`, which the kernel releases when its holder exits, even by kill -9.
+    The mapping process holds it for its lifetime and the start-up recovery
+    (service.recovery) while it runs, so only one of them writes the map's words, links and
+    statistics at a time: a child of a killed service that is still finishing its last
+    update is waited for. Yields whether the lock was acquired within `timeout` seconds
+    (the caller decides what to do without it)."""
+    fd = os.open(f"{db_path}-mapping.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                acquired = True
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    acquired = False
+                    break
+                time.sleep(0.05)
+        yield acquired
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def _slim(update: KeyframeUpdate, keep_images: bool) -> KeyframeUpdate:
@@ -58,6 +92,22 @@ def _slim(update: KeyframeUpdate, keep_images: bool) -> KeyframeUpdate:
 
 
 # -- child process -------------------------------------------------------------------------
+
+def _watch_parent(parent_pid: int, busy: threading.Event) -> None:
+    """End the child once the service is gone (and the update in hand is done, for at most
+    `_ORPHAN_GRACE_S`). A thread, not the main loop: when the service dies in the middle of
+    putting a message, the child's read of the inbox blocks for good (the child holds the
+    queue's write end too, so no EOF comes). os._exit is as safe as a kill for the database;
+    the keyframes left unmapped are the next start's recovery's."""
+    while os.getppid() == parent_pid:
+        time.sleep(_PARENT_POLL_S)
+    log.error("mapping process: the service (pid %d) is gone, exiting", parent_pid)
+    deadline = time.monotonic() + _ORPHAN_GRACE_S
+    while busy.is_set() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    logging.shutdown()
+    os._exit(0)
+
 
 def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, log_level: int) -> None:
     """Host one Mapper per robot key; messages in: ("open", key, camera), ("update", key,
@@ -83,6 +133,12 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
         with send_lock:
             conn.send(msg)
 
+    busy = threading.Event()  # a message is being handled
+    threading.Thread(target=_watch_parent, args=(parent_pid, busy), name="mapping-parent-watch", daemon=True).start()
+    lock = contextlib.ExitStack()
+    if not lock.enter_context(map_update_lock(db_path)):
+        log.error("mapping process: another process held the map update's lock of %s for %.0f s "
+                  "(a second service on this map?): mapping anyway", db_path, LOCK_WAIT_S)
     store = MapStore(db_path, create=False)
     cameras: dict[str, PinholeCamera] = {}
     mappers: dict[str, Mapper] = {}
@@ -94,41 +150,48 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
             try:
                 msg = inbox.get(timeout=_PARENT_POLL_S)
             except queue.Empty:
-                if os.getppid() != parent_pid:
-                    log.error("mapping process: the service (pid %d) is gone, exiting", parent_pid)
-                    return
                 continue
+            if os.getppid() != parent_pid:
+                continue  # the service is gone: start nothing (_watch_parent ends the process)
             if msg is None:
                 break
-            op, key = msg[0], msg[1]
-            if op == "open":
-                cameras[key] = msg[2]
-            elif op == "update":
-                u: KeyframeUpdate = msg[2]
-                m = mappers.get(key)
-                if m is None:
-                    m = mappers[key] = Mapper(cameras[key], config, store, background=False,
-                                              on_event=lambda kind, data, k=key: send(("event", k, kind, data)))
-                try:
-                    m.submit(u)
-                except Exception:  # a failed map update must not stop the mapper
-                    log.exception("map update of node %d failed (robot key %s)", u.node_id, key)
-                counts[key] = counts.get(key, 0) + 1
-                send(("correction", key, m.to_map(np.eye(4))))
-            elif op == "close":
-                m = mappers.pop(key, None)
-                if m is not None:
-                    m.close()  # the graph's final poses to the database
-                cameras.pop(key, None)
-                send(("closed", key, counts.pop(key, 0)))
-            if os.getppid() != parent_pid:
-                log.error("mapping process: the service (pid %d) is gone, exiting", parent_pid)
-                return
+            busy.set()
+            try:
+                _handle(msg, config, store, cameras, mappers, counts, send)
+            finally:
+                busy.clear()
         send(("stopped",))
     except (BrokenPipeError, EOFError, OSError):
         pass  # the service closed its end
     finally:
         store.close()
+        lock.close()
+
+
+def _handle(msg, config, store, cameras, mappers, counts, send) -> None:
+    from .mapping import Mapper
+
+    op, key = msg[0], msg[1]
+    if op == "open":
+        cameras[key] = msg[2]
+    elif op == "update":
+        u: KeyframeUpdate = msg[2]
+        m = mappers.get(key)
+        if m is None:
+            m = mappers[key] = Mapper(cameras[key], config, store, background=False,
+                                      on_event=lambda kind, data, k=key: send(("event", k, kind, data)))
+        try:
+            m.submit(u)
+        except Exception:  # a failed map update must not stop the mapper
+            log.exception("map update of node %d failed (robot key %s)", u.node_id, key)
+        counts[key] = counts.get(key, 0) + 1
+        send(("correction", key, m.to_map(np.eye(4))))
+    elif op == "close":
+        m = mappers.pop(key, None)
+        if m is not None:
+            m.close()  # the graph's final poses to the database
+        cameras.pop(key, None)
+        send(("closed", key, counts.pop(key, 0)))
 
 
 # -- service side --------------------------------------------------------------------------

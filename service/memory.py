@@ -33,9 +33,9 @@ class Memory:
         self.last_segment: int | None = None
         self.last_link: tuple | None = None
 
-    def close(self) -> None:
-        """The session ended (its keyframes are all committed already)."""
-        self.store.end_session(self.session_id)
+    def close(self, reason: str = "stopped") -> None:
+        """The session ended, for `reason` (its keyframes are all committed already)."""
+        self.store.end_session(self.session_id, reason=reason)
 
     def add_keyframe(self, frame: Frame, features: FrameFeatures, pose: np.ndarray, inliers: int,
                      segment: int, statistics: dict | None = None) -> int:
@@ -57,6 +57,22 @@ class Memory:
         ))
         self.last_node, self.last_pose, self.last_segment = node_id, pose, segment
         return node_id
+
+
+def decode_images(color_jpeg: bytes | None, depth_png: bytes | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The images `add_keyframe` stored, decoded: (colour image as stored (BGR or grey uint8),
+    depth in metres float32 with 0 where there was none), each None when not stored."""
+    image = depth = None
+    if color_jpeg is not None:
+        image = cv2.imdecode(np.frombuffer(color_jpeg, np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise ValueError("cannot decode the stored colour image")
+    if depth_png is not None:
+        mm = cv2.imdecode(np.frombuffer(depth_png, np.uint8), cv2.IMREAD_UNCHANGED)
+        if mm is None or mm.dtype != np.uint16:
+            raise ValueError("cannot decode the stored depth image as 16-bit PNG")
+        depth = mm.astype(np.float32) / 1000.0
+    return image, depth
 
 
 def _encode(ext: str, image: np.ndarray, params=()) -> bytes:

@@ -66,13 +66,13 @@ class Pipeline:
             return 0, 0
         return self.mapper.mapped, self.mapper.submitted
 
-    def close(self) -> None:
+    def close(self, reason: str = "stopped") -> None:
         """End the session: the map update finishes its queued keyframes (and writes its final
-        poses), then the session is closed in the database."""
+        poses), then the session is closed in the database with `reason`."""
         if self.mapper is not None:
             self.mapper.close()
         if self.memory is not None:
-            self.memory.close()
+            self.memory.close(reason)
 
     def process(self, frame: Frame) -> FrameResult:
         t0 = time.perf_counter()

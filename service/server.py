@@ -21,6 +21,7 @@ from .builder import build_pipeline
 from .config import Config, to_dict
 from .mapping_process import MappingProcess
 from .pipeline import FrameResult, Pipeline
+from .recovery import recover
 from .session import RobotSession
 
 log = logging.getLogger("mnemoslam.service")
@@ -51,6 +52,7 @@ class SlamService:
     def start(self) -> "SlamService":
         z = self.config.zenoh
         self.store = MapStore(self.config.storage.path)
+        recover(self.config)  # sessions a kill left open end "crashed"; their map backlog is done, before any writer starts
         if self.config.loop.enabled and self.config.loop.process:
             self.mapping = MappingProcess(self.config.storage.path, self.config.loop)
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
@@ -216,7 +218,7 @@ class SlamService:
                         del self.sessions[robot]
                     log.info("robot expired robot=%s idle_s=%.0f frames=%d session=%s", robot, s.idle(now),
                              s.stats.processed, s.session_id)
-                    s.stop()
+                    s.stop(reason="idle")
 
     # -- per-frame output (worker threads) ---------------------------------------------
     def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:

@@ -112,15 +112,15 @@ class RobotSession:
         with self._cond:
             self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
 
-    def stop(self, timeout: float = 10.0) -> None:
+    def stop(self, timeout: float = 10.0, reason: str = "stopped") -> None:
         """Finish the frame in progress (the queue's backlog is dropped) and end the pipeline's
-        session (its map update finishes the keyframes it was given)."""
+        session for `reason` (its map update finishes the keyframes it was given)."""
         with self._cond:
             self._stopping = True
             self._cond.notify()
         self._thread.join(timeout)
         if self.pipeline is not None:
-            self.pipeline.close()
+            self.pipeline.close(reason)
 
     # -- worker thread -----------------------------------------------------------------
     def _run(self) -> None:

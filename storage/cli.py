@@ -23,8 +23,8 @@ def _when(t: float | None) -> str:
 
 
 def db_info(path: str | Path) -> str:
-    """Schema version, sessions (id, robot, map id, nodes, first/last stamp), counts, file
-    size and integrity of the database at `path` (which must exist)."""
+    """Schema version, sessions (id, robot, map id, nodes, first/last stamp, start, end and
+    how it ended), counts, file size and integrity of the database at `path` (which must exist)."""
     with _open(path) as store:
         st = store.stats()
         per_session = store.session_stats()
@@ -44,8 +44,9 @@ def db_info(path: str | Path) -> str:
             n, first, last = ps.get("nodes", 0), ps.get("first_stamp"), ps.get("last_stamp")
             f = "-" if first is None else f"{first:.6f}"
             l = "-" if last is None else f"{last:.6f}"
+            how = f" ({s.end_reason})" if s.end_reason else ""
             lines.append(f"  {s.id:>4}  {s.robot:<16} {s.map_id:>4} {n:>7}  {f:>17}  {l:>17}  "
-                         f"{_when(s.started_at):<19}  {_when(s.ended_at)}")
+                         f"{_when(s.started_at):<19}  {_when(s.ended_at)}{how}")
     by_type = ", ".join(f"{k} {v}" for k, v in st["links_by_type"].items())
     lines += [
         f"nodes     {st['nodes']}",

@@ -99,8 +99,16 @@ def m001_initial(db: sqlite_utils.Database) -> None:
     )
 
 
+def m002_session_end_reason(db: sqlite_utils.Database) -> None:
+    """v2: `sessions.end_reason`, how a session ended: "stopped" (a normal end), "crashed"
+    (found still open when the service started again), NULL while it runs. Sessions that had
+    already ended were ended normally (`end_session` was the only way to end one)."""
+    db.execute("ALTER TABLE sessions ADD COLUMN end_reason TEXT")
+    db.execute("UPDATE sessions SET end_reason = 'stopped' WHERE ended_at IS NOT NULL")
+
+
 #: Applied in order: MIGRATIONS[i] upgrades schema version i to i + 1.
-MIGRATIONS: tuple[Migration, ...] = (m001_initial,)
+MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason)
 
 #: Tables a v1 database has (for "is this a mnemoslam database" checks).
 TABLES = ("admin", "sessions", "nodes", "links", "features", "words", "images", "statistics")

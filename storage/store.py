@@ -14,6 +14,10 @@ One file holds every session of every robot (RTAB-Map's multi-session database).
   word id ≥ 0 in `features.word_ids` is in `words` (until the word is deleted).
 - images: JPEG colour, PNG-16 depth in millimetres (both optional).
 - JSON text for session calibration / config and per-node statistics.
+- sessions: `ended_at` (wall time) and `end_reason` once ended: "stopped" for a normal
+  end, "crashed" for one the service found still open when it started again.
+- statistics: the map update's (service.mapping) last write for a keyframe, after its words,
+  links and poses: a node without a statistics row has not been through the map update.
 
 Durability: WAL journal with synchronous=NORMAL. A transaction is durable against a
 process crash (kill -9) once COMMIT returns; `add_keyframe` returns only after COMMIT, so
@@ -93,6 +97,7 @@ class SessionRecord:
     ended_at: float | None
     calibration: Calibration
     config: dict | None
+    end_reason: str | None = None  # "stopped" (normal end), "crashed" (found open at start-up), None while running
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -385,12 +390,21 @@ def _link_name(t: int) -> str:
         return str(t)
 
 
+def _end_reason(reason) -> str:
+    if not isinstance(reason, str) or not reason.strip():
+        raise ValueError(f"end reason must be a non-empty string, got {reason!r}")
+    return reason
+
+
 def _session(row) -> SessionRecord:
     return SessionRecord(row[0], row[1], row[2], row[3], row[4], _calibration_from_dict(json.loads(row[5])),
-                         None if row[6] is None else json.loads(row[6]))
+                         None if row[6] is None else json.loads(row[6]), row[7])
 
 
-_SESSION_COLUMNS = "id, robot, map_id, started_at, ended_at, calibration, config"
+_SESSION_COLUMNS = "id, robot, map_id, started_at, ended_at, calibration, config, end_reason"
+
+#: Link types the map update (service.mapping.Mapper) writes; each goes *to* the keyframe being updated.
+MAP_UPDATE_LINKS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)
 
 
 # -- the store ------------------------------------------------------------------------------
@@ -704,13 +718,55 @@ class MapStore:
                 (robot, map_id, time.time(), calib, conf))
             return cur.lastrowid
 
-    def end_session(self, session_id: int) -> None:
-        """Mark a session ended (its first end time is kept); it takes no more keyframes."""
+    def end_session(self, session_id: int, reason: str = "stopped") -> None:
+        """Mark a session ended, with why ("stopped" = a normal end); its first end time and
+        reason are kept. It takes no more keyframes."""
         sid = _as_int(session_id, "session_id")
+        why = _end_reason(reason)
         with self._write("end_session") as c:
-            cur = c.execute("UPDATE sessions SET ended_at = COALESCE(ended_at, ?) WHERE id = ?", (time.time(), sid))
+            cur = c.execute("UPDATE sessions SET ended_at = COALESCE(ended_at, ?), "
+                            "end_reason = CASE WHEN ended_at IS NULL THEN ? ELSE end_reason END WHERE id = ?",
+                            (time.time(), why, sid))
             if cur.rowcount == 0:
                 raise UnknownIdError(f"no session {sid}")
+
+    def end_open_sessions(self, reason: str = "crashed") -> list[SessionRecord]:
+        """End every session that has not ended, with `reason`, in one transaction, and return
+        them as ended. For the sessions a killed service left open: their end time is their last
+        keyframe's (when it was stored), or their start without keyframes."""
+        why = _end_reason(reason)
+        with self._write("end_open_sessions") as c:
+            ids = [r[0] for r in c.execute("SELECT id FROM sessions WHERE ended_at IS NULL ORDER BY id")]
+            if ids:
+                c.execute("UPDATE sessions SET end_reason = ?, ended_at = COALESCE("
+                          "(SELECT MAX(n.time_enter) FROM nodes n WHERE n.session_id = sessions.id), started_at) "
+                          "WHERE ended_at IS NULL", (why,))
+                q = ",".join("?" * len(ids))
+                rows = c.execute(f"SELECT {_SESSION_COLUMNS} FROM sessions WHERE id IN ({q}) ORDER BY id", ids).fetchall()
+            else:
+                rows = []
+        return [_session(r) for r in rows]
+
+    def unmapped_nodes(self, session_ids: Iterable[int] | None = None,
+                       end_reason: str | None = None) -> dict[int, list[int]]:
+        """{session id: [node ids ascending]} of the keyframes that have no map update yet: no
+        `statistics` row, which the map update (service.mapping.Mapper) writes last, after the
+        keyframe's words, links and poses. Only sessions in `session_ids` and/or that ended
+        with `end_reason`, when given; sessions without such keyframes are left out."""
+        where, params = [], []
+        if session_ids is not None:
+            where.append("n.session_id IN (SELECT value FROM json_each(?))")
+            params.append(json.dumps([_as_int(i, "session id") for i in session_ids]))
+        if end_reason is not None:
+            where.append("n.session_id IN (SELECT id FROM sessions WHERE end_reason = ?)")
+            params.append(str(end_reason))
+        sql = ("SELECT n.session_id, n.id FROM nodes n LEFT JOIN statistics s ON s.node_id = n.id "
+               "WHERE s.node_id IS NULL" + "".join(f" AND {w}" for w in where) + " ORDER BY n.session_id, n.id")
+        out: dict[int, list[int]] = {}
+        with self._read() as c:
+            for sid, nid in c.execute(sql, params):
+                out.setdefault(sid, []).append(nid)
+        return out
 
     def sessions(self, robot: str | None = None) -> list[SessionRecord]:
         sql, params = f"SELECT {_SESSION_COLUMNS} FROM sessions", ()
@@ -786,6 +842,16 @@ class MapStore:
                     missing = [i for i in (a, b) if c.execute("SELECT 1 FROM nodes WHERE id = ?", (i,)).fetchone() is None]
                     raise UnknownIdError(f"link {a} -> {b}: no node {', '.join(map(str, missing))}") from e
                 raise StoreError(f"link {a} -> {b} of type {t.name.lower()} already exists (pass replace=True)") from e
+
+    def delete_links(self, to_ids: Iterable[int], types: Iterable[int]) -> int:
+        """Delete the links of the given `types` that end at one of `to_ids`, in one
+        transaction (e.g. what an interrupted map update wrote for a keyframe before it is
+        redone: see `MAP_UPDATE_LINKS`). Returns the number deleted."""
+        ids = json.dumps([_as_int(i, "node id") for i in to_ids])
+        kinds = json.dumps([_as_int(t, "link type") for t in types])
+        with self._write("delete_links") as c:
+            return c.execute("DELETE FROM links WHERE to_id IN (SELECT value FROM json_each(?)) "
+                             "AND type IN (SELECT value FROM json_each(?))", (ids, kinds)).rowcount
 
     def update_poses(self, poses: Mapping[int, np.ndarray]) -> int:
         """Set the pose (blob and x, y, z) of many nodes in one transaction, e.g. after graph

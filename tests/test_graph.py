@@ -280,3 +280,38 @@ def test_readers_do_not_wait_for_an_optimisation(scene):
     assert len(got["poses"]) == len(truth) and np.allclose(got["pose"], got["poses"][3])
     with pytest.raises(ValueError):
         got["poses"][3][0, 0] = 5.0  # snapshot arrays are read-only
+
+
+def test_restore_continues_a_stored_graph(scene):
+    """A graph rebuilt from stored poses and links (a map update resumed after a crash) holds
+    the same estimate, reports nothing moved, and goes on like the original."""
+    truth, odo, rng = scene
+    n = len(truth) - 1
+    g = build(truth, odo[:30])  # the second half comes after the "crash"
+    loop = (25, 3, loop_measurement(truth, 25, 3, rng))
+    assert g.add_loop(*loop, LOOP_INFO).accepted
+    stored = g.poses()
+    g2 = PoseGraph()
+    g2.restore(stored, [(i, i + 1, odo[i], INFO) for i in range(30)], [(*loop, LOOP_INFO)])
+    assert len(g2) == len(g) and g2.loops() == g.loops() == [(25, 3)]
+    assert max_diff(stored, g2.poses()) < 1e-6
+    assert g2.changed_poses() == {}  # (within the graph's move tolerance)
+    for gg in (g, g2):  # both go on with the same keyframes and close the big loop the same way
+        for i in range(30, n):
+            gg.add_node(i + 1, np.eye(4), odom_from=i, transform=odo[i], information=INFO)
+        assert gg.add_loop(n, 0, loop_measurement(truth, n, 0, np.random.default_rng(5)), LOOP_INFO).accepted
+    assert max_diff(g.poses(), g2.poses()) < 1e-4
+    assert ate(g2.poses(), truth) < 0.05
+    moved = g2.changed_poses()
+    assert set(range(31, n + 1)) <= set(moved) and 0 not in moved  # new nodes + what the loop moved
+    # a node without an odometry link to it starts a (loosely anchored) segment; bad input refused
+    g3 = PoseGraph()
+    three = {0: truth[0], 1: truth[0] @ odo[0], 7: truth[7]}
+    g3.restore(three, [(0, 1, odo[0], INFO)])
+    assert max_diff(three, g3.poses()) < 1e-6
+    with pytest.raises(ValueError, match="empty graph"):
+        g3.restore({9: truth[0]})
+    with pytest.raises(ValueError, match="earlier node"):
+        PoseGraph().restore({0: truth[0], 1: truth[1]}, [(1, 0, odo[0], INFO)])
+    with pytest.raises(ValueError, match="loop link"):
+        PoseGraph().restore({0: truth[0]}, [], [(0, 5, odo[0], LOOP_INFO)])

@@ -119,15 +119,21 @@ def test_killed_child_leaves_tracking_running(tmp_path):
         store.close()
 
 
-def test_child_exits_when_its_parent_is_killed(tmp_path):
+@pytest.mark.parametrize("mid_message", [False, True])
+def test_child_exits_when_its_parent_is_killed(tmp_path, mid_message):
+    # mid_message: the parent dies in the middle of putting a message on the child's inbox
+    # (a keyframe update is ~2 MB with its images): the child's read of it never ends
     script = textwrap.dedent(f"""
-        import sys, time
+        import os, struct, sys, time
         sys.path.insert(0, {os.getcwd()!r})
         from service.config import load_config
         from service.mapping_process import MappingProcess
         from storage import MapStore
         MapStore({str(tmp_path / 'map.db')!r}).close()
         mp = MappingProcess({str(tmp_path / 'map.db')!r}, load_config().loop)
+        mp.wait_ready(120)
+        if {mid_message!r}:
+            os.write(mp._inbox._writer.fileno(), struct.pack("!i", 2_000_000) + bytes(1000))
         print(mp.pid, flush=True)
         time.sleep(600)
     """)

@@ -216,9 +216,11 @@ def test_sigkill_mid_stream_keeps_every_reported_keyframe(tmp_path):
     assert len(stored) >= 15
     with sqlite3.connect(db) as conn:
         assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
-    svc2 = ServiceProcess(db).start()  # restarts on the same database
+    svc2 = ServiceProcess(db).start(timeout=180)  # restarts on the same database (its map backlog mapped first)
     try:
-        ids = {n["id"] for n in svc2.api.nodes(svc2.api.sessions()[0]["id"], limit=10000)["nodes"]}
+        session = svc2.api.sessions()[0]
+        assert session["end_reason"] == "crashed"  # found open at start-up
+        ids = {n["id"] for n in svc2.api.nodes(session["id"], limit=10000)["nodes"]}
         assert set(stored) <= ids
     finally:
         svc2.stop()

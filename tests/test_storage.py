@@ -52,6 +52,9 @@ def rows(path, sql, params=()):
         c.close()
 
 
+V = len(MapStore.MIGRATIONS)  # the current schema version
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(7)
@@ -454,33 +457,99 @@ def test_multi_session(store, rng):
     assert st[s1] == {"nodes": 3, "first_stamp": 0.0, "last_stamp": 2.0} and st[s3]["nodes"] == 0
 
 
+def test_sessions_record_how_they_ended(store, rng):
+    s1, s2, s3 = (store.begin_session(r, CAL) for r in ("alpha", "beta", "gamma"))
+    assert store.session(s1).end_reason is None and store.session(s1).to_dict()["end_reason"] is None
+    store.end_session(s1)  # a normal end
+    assert store.session(s1).end_reason == "stopped"
+    store.end_session(s1, reason="other")  # the first end is kept
+    assert store.session(s1).end_reason == "stopped"
+    with pytest.raises(ValueError, match="end reason"):
+        store.end_session(s2, reason="")
+    a = [store.add_keyframe(record(rng, s2, i)) for i in range(3)]
+    (last,), = rows(store.path, "SELECT MAX(time_enter) FROM nodes")
+    ended = store.end_open_sessions("crashed")  # as the service does at start-up
+    assert [(s.id, s.end_reason) for s in ended] == [(s2, "crashed"), (s3, "crashed")]
+    assert ended[0].ended_at == last  # its last keyframe's time; without keyframes: its start
+    assert ended[1].ended_at == store.session(s3).started_at
+    assert {s.id: s.end_reason for s in store.sessions()} == {s1: "stopped", s2: "crashed", s3: "crashed"}
+    assert json.loads(json.dumps(store.session(s2).to_dict()))["end_reason"] == "crashed"
+    assert store.end_open_sessions() == []  # nothing open any more
+    with pytest.raises(StoreError, match="ended"):
+        store.add_keyframe(record(rng, s2, 9))
+    assert store.count_nodes(session_id=s2) == len(a)
+
+
+def test_unmapped_nodes_are_those_without_statistics(store, rng):
+    s1, s2, s3 = (store.begin_session(r, CAL) for r in ("alpha", "beta", "gamma"))
+    a = [store.add_keyframe(record(rng, s1, i)) for i in range(4)]
+    b = [store.add_keyframe(record(rng, s2, i)) for i in range(3)]
+    c = [store.add_keyframe(record(rng, s3, i)) for i in range(2)]
+    for n in a[:2] + b + c[:1]:
+        store.set_statistics(n, {"decision": "none"})  # the map update's last write
+    assert store.unmapped_nodes() == {s1: a[2:], s3: c[1:]}  # s2 fully mapped: left out
+    assert store.unmapped_nodes(session_ids=[s3, s2]) == {s3: c[1:]}
+    store.end_session(s1)
+    store.end_open_sessions("crashed")
+    assert store.unmapped_nodes(end_reason="crashed") == {s3: c[1:]}
+    assert store.unmapped_nodes(end_reason="stopped") == {s1: a[2:]}
+    assert store.unmapped_nodes(session_ids=[s1], end_reason="crashed") == {}
+    # what an interrupted map update wrote into a keyframe: its loop links (odometry stays)
+    T = pose(0.1)
+    store.add_link(a[0], a[3], LinkType.GLOBAL_CLOSURE, T)
+    store.add_link(a[1], a[3], LinkType.LOCAL_TIME, T)
+    store.add_link(a[0], a[2], LinkType.LOCAL_SPACE, T)
+    store.add_link(a[2], a[3], LinkType.NEIGHBOR, T)
+    store.add_link(a[3], a[0], LinkType.USER, T)
+    assert store.delete_links([a[3]], [1, 2, 3]) == 2
+    assert {(l.from_id, l.to_id, int(l.type)) for l in store.links(session_id=s1)} == {
+        (a[0], a[2], 2), (a[2], a[3], 0), (a[3], a[0], 4)}
+
+
+def test_migration_to_v2_marks_ended_sessions_stopped(tmp_path, rng):
+    path = tmp_path / "map.db"
+
+    class StoreV1(MapStore):
+        MIGRATIONS = MapStore.MIGRATIONS[:1]
+
+    with StoreV1(path) as s:
+        s1, s2 = s.begin_session("alpha", CAL), s.begin_session("beta", CAL)
+        s.add_keyframe(record(rng, s1, 0.0))
+    rows(path, "UPDATE sessions SET ended_at = 1.0 WHERE id = ?", (s1,))  # as v1's end_session did
+    assert "end_reason" not in {r[1] for r in rows(path, "PRAGMA table_info(sessions)")}
+    with MapStore(path) as s:
+        assert s.schema_version >= 2
+        assert [(x.id, x.end_reason) for x in s.sessions()] == [(s1, "stopped"), (s2, None)]
+        assert s.integrity_check() == "ok"
+
+
 # -- schema ---------------------------------------------------------------------------------
 
 
 def test_schema_version_and_migration(tmp_path, rng):
     path = tmp_path / "map.db"
     with MapStore(path) as s:
-        assert s.schema_version == s.current_version == 1
-        assert s.get_info("schema_version") == 1 and s.get_info("created_at") > 0
+        assert s.schema_version == s.current_version == V
+        assert s.get_info("schema_version") == V and s.get_info("created_at") > 0
         sid = s.begin_session("r1", CAL)
         nid = s.add_keyframe(record(rng, sid, 0.0))
         s.set_info("note", {"a": [1, 2]})
-    assert rows(path, "PRAGMA user_version") == [(1,)]
+    assert rows(path, "PRAGMA user_version") == [(V,)]
     assert rows(path, "PRAGMA journal_mode") == [("wal",)]
 
     applied = []
 
-    def m002_fake(db):
+    def m_next_fake(db):
         applied.append(1)
         db["nodes"].add_column("semantic_class", str)
         db["objects"].create({"id": int, "node_id": int, "name": str}, pk="id")
         db.execute("UPDATE nodes SET semantic_class = 'floor'")
 
     class StoreV2(MapStore):
-        MIGRATIONS = MapStore.MIGRATIONS + (m002_fake,)
+        MIGRATIONS = MapStore.MIGRATIONS + (m_next_fake,)
 
     with StoreV2(path) as s:
-        assert s.schema_version == 2 and s.get_info("schema_version") == 2
+        assert s.schema_version == V + 1 and s.get_info("schema_version") == V + 1
         assert s.get_node(nid) is not None and s.get_info("note") == {"a": [1, 2]}
     assert rows(path, "SELECT semantic_class FROM nodes") == [("floor",)]
     assert "objects" in {r[0] for r in rows(path, "SELECT name FROM sqlite_master")}
@@ -488,8 +557,8 @@ def test_schema_version_and_migration(tmp_path, rng):
         pass
     assert applied == [1]  # applied once
 
-    # The v1 code refuses the v2 file.
-    with pytest.raises(StoreError, match="schema version 2, newer than this mnemoslam knows"):
+    # The current code refuses the newer file.
+    with pytest.raises(StoreError, match=f"schema version {V + 1}, newer than this mnemoslam knows"):
         MapStore(path)
 
 
@@ -497,16 +566,16 @@ def test_failed_migration_keeps_previous_version(tmp_path):
     path = tmp_path / "map.db"
     MapStore(path).close()
 
-    def m002_broken(db):
+    def m_next_broken(db):
         db["nodes"].add_column("half_done", int)
         raise RuntimeError("migration bug")
 
     class Broken(MapStore):
-        MIGRATIONS = MapStore.MIGRATIONS + (m002_broken,)
+        MIGRATIONS = MapStore.MIGRATIONS + (m_next_broken,)
 
     with pytest.raises(RuntimeError, match="migration bug"):
         Broken(path)
-    assert rows(path, "PRAGMA user_version") == [(1,)]
+    assert rows(path, "PRAGMA user_version") == [(V,)]
     assert "half_done" not in {r[1] for r in rows(path, "PRAGMA table_info(nodes)")}
     with MapStore(path) as s:
         assert s.integrity_check() == "ok"
@@ -738,7 +807,7 @@ def test_db_info_and_export_text(tmp_path, rng):
         s.add_link(prev, prev - 6, LinkType.GLOBAL_CLOSURE, np.eye(4))
         s.begin_session("robot_b", STEREO)
     text = db_info(path)
-    for needle in ("schema    v1", "sessions  2", "robot_a", "robot_b", "nodes     7", "links     7 (neighbor 6, global_closure 1)",
+    for needle in (f"schema    v{V}", "sessions  2", "robot_a", "robot_b", "nodes     7", "links     7 (neighbor 6, global_closure 1)",
                    "features  7 (77 keypoints)", "images    7", "words     0", "integrity ok", "10.000000", "16.000000", "MB"):
         assert needle in text, (needle, text)
     out = db_export(path, tmp_path / "exp", session=s1)
@@ -753,7 +822,7 @@ def test_stats_counts_and_file_size(store, rng):
     store.add_keyframe(record(rng, sid, 0, n=10, image_jpeg=JPEG, statistics={"a": 1}))
     st = store.stats()
     assert {k: st[k] for k in ("schema_version", "sessions", "nodes", "links", "features", "keypoints", "words",
-                               "images", "statistics")} == dict(schema_version=1, sessions=1, nodes=1, links=0,
+                               "images", "statistics")} == dict(schema_version=V, sessions=1, nodes=1, links=0,
                                                                 features=1, keypoints=10, words=0, images=1, statistics=1)
     assert st["file_bytes"] >= os.path.getsize(store.path) and st["wal_bytes"] > 0
     json.dumps(st)
