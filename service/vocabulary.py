@@ -207,20 +207,42 @@ class Vocabulary:
             self._prv[rows, t0:t0 + g] = prv.T
 
     def _unlink(self, slots: np.ndarray) -> None:
+        """Take words (distinct linked slots) out of every table, vectorized over the words
+        of a table: a removed word's nearest kept neighbours in its chain are found by
+        pointer jumping over the removed words next to it (runs of them in one bucket), then
+        each run is spliced out in one write (all the words of a run write the same links).
+        The kept words keep their order, so the tables are those of a vocabulary that never
+        had the removed words."""
+        slots = np.unique(np.asarray(slots, np.int64))
         if not len(slots):
             return
         keys = self._keys(self._desc[slots])
-        tables = np.arange(self.n_tables)
-        for s, k in zip(slots.tolist(), keys):  # O(L) vector ops per removed word
-            p = self._prv[s]
-            n = self._nxt[s]
+        last = len(slots) - 1
+
+        def removed(link: np.ndarray) -> np.ndarray:  # link values (slot + 1, 0 = none)
+            s = link.astype(np.int64) - 1
+            return slots[np.minimum(np.searchsorted(slots, s), last)] == s
+
+        for t in range(self.n_tables):
+            nxt = self._nxt[:, t]
+            prv = self._prv[:, t]
+            p = prv[slots]
+            m = np.nonzero(removed(p))[0]
+            while len(m):
+                p[m] = prv[p[m] - 1]
+                m = m[removed(p[m])]
+            n = nxt[slots]
+            m = np.nonzero(removed(n))[0]
+            while len(m):
+                n[m] = nxt[n[m] - 1]
+                m = m[removed(n[m])]
             hp = p > 0
-            self._nxt[p[hp] - 1, tables[hp]] = n[hp]
-            self._head[k[~hp]] = n[~hp]
+            nxt[p[hp] - 1] = n[hp]
+            self._head[keys[~hp, t]] = n[~hp]
             hn = n > 0
-            self._prv[n[hn] - 1, tables[hn]] = p[hn]
-            self._nxt[s] = 0
-            self._prv[s] = 0
+            prv[n[hn] - 1] = p[hn]
+        self._nxt[slots] = 0
+        self._prv[slots] = 0
 
     # -- search -------------------------------------------------------------------------
     def _search(self, q64: np.ndarray):
