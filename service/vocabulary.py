@@ -321,11 +321,17 @@ class Vocabulary:
                 act = act[succ[act] > s1[act]]
             order = np.lexsort((-slots, succ, k))  # by bucket, gap, then id descending
             K, P, N, S = k[order], pred[order], succ[order], s1[order]
-            brk = (K[1:] != K[:-1]) | (N[1:] != N[:-1])
-            first = np.r_[True, brk]
-            last = np.r_[brk, True]
-            prv[S - 1] = np.where(first, P, np.r_[0, S[:-1]])
-            nxt[S - 1] = np.where(last, N, np.r_[S[1:], 0])
+            first = np.ones(len(S), bool)  # first / last word of its gap
+            np.not_equal(K[1:], K[:-1], out=first[1:])
+            first[1:] |= N[1:] != N[:-1]
+            last = np.ones(len(S), bool)
+            last[:-1] = first[1:]
+            before = np.zeros_like(S)  # the batch word before / after in the same gap
+            before[1:] = S[:-1]
+            after = np.zeros_like(S)
+            after[:-1] = S[1:]
+            prv[S - 1] = np.where(first, P, before)
+            nxt[S - 1] = np.where(last, N, after)
             hp = first & (P > 0)
             nxt[P[hp] - 1] = S[hp]
             hh = first & (P == 0)
