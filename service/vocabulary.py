@@ -28,6 +28,19 @@ one transaction, `from_store` rebuilds the vocabulary of a reopened map from the
 table and the nodes' word ids without any search, and `for_store` gives the one vocabulary
 that every mapper of a map shares (word ids are the map's, so two vocabularies must not
 write to one file). Callers sharing a vocabulary between threads hold its `lock`.
+
+Working memory (RTAB-Map's WM/LTM): the vocabulary holds the nodes in RAM (WM), and only
+their words are searched. `unload_node` takes a node moving to long-term memory out of the
+inverted index; the words no node in RAM references any more become *dormant*: unlinked
+from the hash tables (neither `query` nor `add` finds them, so search cost and the
+likelihood's candidates stay bounded by WM) but their descriptors kept. `reload_node`
+brings the node back: its dormant words are linked again, at their place (every bucket's
+chain is in descending id order whatever was unlinked and relinked in between, so the
+tables are exactly those of a vocabulary that never unloaded anything) and its postings are
+restored. Words the vocabulary never held (a restarted process that loaded only WM) come
+with the call (`descriptors=store.load_words(...)`). Nothing is deleted and ids are never
+reused: words created while others are dormant get new ids. `len()` counts the searchable
+words, `dormant` the others.
 """
 from __future__ import annotations
 
@@ -50,6 +63,19 @@ def _runs(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(starts, ends) of the runs of equal values of a sorted array."""
     cuts = np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1
     return np.r_[0, cuts], np.r_[cuts, len(sorted_keys)]
+
+
+class MissingWordsError(LookupError):
+    """`reload_node` was given word ids this vocabulary holds no descriptor for (and no
+    descriptors for them): `word_ids` lists them."""
+
+    def __init__(self, node_id: int, word_ids: np.ndarray):
+        self.node_id = int(node_id)
+        self.word_ids = np.asarray(word_ids, np.int64)
+        some = ", ".join(map(str, self.word_ids[:8].tolist())) + (", ..." if len(self.word_ids) > 8 else "")
+        super().__init__(
+            f"node {self.node_id} references {len(self.word_ids)} word(s) this vocabulary does not hold "
+            f"({some}): pass their descriptors, e.g. descriptors=store.load_words(vocabulary.missing_words(ids))")
 
 
 def hamming_matrix(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
@@ -89,7 +115,8 @@ class Vocabulary:
         self._head = np.zeros(self.n_tables << self.key_bits, np.int32)
         self._alloc(max(int(capacity), 1024))
         self._next_id = 0
-        self._n_live = 0
+        self._n_live = 0  # words linked in the tables (searchable)
+        self._n_dormant = 0  # words kept (descriptors) but unlinked: only LTM nodes have them
         # Inverted index: word -> {node: count}; node -> (unique words, counts), #features.
         self._postings: dict[int, dict[int, int]] = {}
         self._nodes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -105,7 +132,8 @@ class Vocabulary:
         self._desc = np.zeros((cap, 4), np.uint64)
         self._nxt = np.zeros((cap, self.n_tables), np.int32)
         self._prv = np.zeros((cap, self.n_tables), np.int32)
-        self._live = np.zeros(cap, bool)
+        self._live = np.zeros(cap, bool)  # linked in the tables
+        self._dormant = np.zeros(cap, bool)  # descriptor kept, not linked (never both)
 
     def _ensure(self, n_more: int) -> None:
         need = self._next_id + n_more
@@ -114,14 +142,21 @@ class Vocabulary:
         cap = self._cap
         while cap < need:
             cap *= 2
-        old = (self._desc, self._nxt, self._prv, self._live)
+        old = (self._desc, self._nxt, self._prv, self._live, self._dormant)
         n = self._next_id
         self._alloc(cap)
-        self._desc[:n], self._nxt[:n], self._prv[:n], self._live[:n] = (a[:n] for a in old)
+        for new, a in zip((self._desc, self._nxt, self._prv, self._live, self._dormant), old):
+            new[:n] = a[:n]
 
     # -- properties ---------------------------------------------------------------------
     def __len__(self) -> int:
+        """Searchable words (linked in the hash tables); dormant ones are not counted."""
         return self._n_live
+
+    @property
+    def dormant(self) -> int:
+        """Words kept out of the search because only unloaded (LTM) nodes have them."""
+        return self._n_dormant
 
     def __contains__(self, node_id) -> bool:
         """Whether a node is in the inverted index."""
@@ -132,10 +167,27 @@ class Vocabulary:
 
     @property
     def n_nodes(self) -> int:
+        """Nodes in the inverted index (in RAM: unloaded nodes are not counted)."""
         return len(self._nodes)
 
     def descriptors(self, word_ids) -> np.ndarray:
+        """Descriptors (W×32 uint8) of words, live or dormant."""
         return self._desc[np.asarray(word_ids, np.int64)].view(np.uint8).reshape(-1, 32)
+
+    def _held(self, word_ids: np.ndarray) -> np.ndarray:
+        """Whether each word id (≥ 0) is live or dormant."""
+        w = np.asarray(word_ids, np.int64)
+        ok = w < self._next_id
+        held = np.zeros(len(w), bool)
+        held[ok] = self._live[w[ok]] | self._dormant[w[ok]]
+        return held
+
+    def missing_words(self, word_ids) -> np.ndarray:
+        """The distinct ids (≥ 0, ascending) among `word_ids` that this vocabulary holds no
+        descriptor for (neither live nor dormant): what `reload_node` needs `descriptors` for."""
+        w = np.unique(np.asarray(word_ids, np.int64))
+        w = w[w >= 0]
+        return w[~self._held(w)]
 
     # -- hashing ------------------------------------------------------------------------
     def _keys(self, d64: np.ndarray) -> np.ndarray:
@@ -207,20 +259,95 @@ class Vocabulary:
             self._prv[rows, t0:t0 + g] = prv.T
 
     def _unlink(self, slots: np.ndarray) -> None:
+        """Take words (distinct linked slots) out of every table, vectorized over the words
+        of a table: a removed word's nearest kept neighbours in its chain are found by
+        pointer jumping over the removed words next to it (runs of them in one bucket), then
+        each run is spliced out in one write (all the words of a run write the same links).
+        The kept words keep their order, so the tables are those of a vocabulary that never
+        had the removed words."""
+        slots = np.unique(np.asarray(slots, np.int64))
         if not len(slots):
             return
         keys = self._keys(self._desc[slots])
-        tables = np.arange(self.n_tables)
-        for s, k in zip(slots.tolist(), keys):  # O(L) vector ops per removed word
-            p = self._prv[s]
-            n = self._nxt[s]
+        last = len(slots) - 1
+
+        def removed(link: np.ndarray) -> np.ndarray:  # link values (slot + 1, 0 = none)
+            s = link.astype(np.int64) - 1
+            return slots[np.minimum(np.searchsorted(slots, s), last)] == s
+
+        for t in range(self.n_tables):
+            nxt = self._nxt[:, t]
+            prv = self._prv[:, t]
+            p = prv[slots]
+            m = np.nonzero(removed(p))[0]
+            while len(m):
+                p[m] = prv[p[m] - 1]
+                m = m[removed(p[m])]
+            n = nxt[slots]
+            m = np.nonzero(removed(n))[0]
+            while len(m):
+                n[m] = nxt[n[m] - 1]
+                m = m[removed(n[m])]
             hp = p > 0
-            self._nxt[p[hp] - 1, tables[hp]] = n[hp]
-            self._head[k[~hp]] = n[~hp]
+            nxt[p[hp] - 1] = n[hp]
+            self._head[keys[~hp, t]] = n[~hp]
             hn = n > 0
-            self._prv[n[hn] - 1, tables[hn]] = p[hn]
-            self._nxt[s] = 0
-            self._prv[s] = 0
+            prv[n[hn] - 1] = p[hn]
+        self._nxt[slots] = 0
+        self._prv[slots] = 0
+
+    def _relink(self, slots: np.ndarray) -> None:
+        """Link words (distinct slots, not linked) into every table at their place: each
+        bucket's chain is kept in descending id order (what `_link` of ever newer words and
+        `_link_all` build), so relinking what `_unlink` took out restores the tables
+        exactly. Vectorized over the words of a table: their successors are found by one
+        walk of all the chains at once, words falling between the same two chain words are
+        chained together (descending ids) and spliced in."""
+        slots = np.unique(np.asarray(slots, np.int64))
+        if not len(slots):
+            return
+        keys = self._keys(self._desc[slots])
+        s1 = (slots + 1).astype(np.int32)  # link values
+        for t in range(self.n_tables):
+            nxt = self._nxt[:, t]
+            prv = self._prv[:, t]
+            k = keys[:, t]
+            pred = np.zeros(len(slots), np.int32)  # chain word before the gap (0: the head)
+            succ = self._head[k]  # chain word after the gap (0: the end)
+            act = np.nonzero(succ > s1)[0]  # newer words come first: walk past them
+            while len(act):
+                pred[act] = succ[act]
+                succ[act] = nxt[succ[act] - 1]
+                act = act[succ[act] > s1[act]]
+            order = np.lexsort((-slots, succ, k))  # by bucket, gap, then id descending
+            K, P, N, S = k[order], pred[order], succ[order], s1[order]
+            first = np.ones(len(S), bool)  # first / last word of its gap
+            np.not_equal(K[1:], K[:-1], out=first[1:])
+            first[1:] |= N[1:] != N[:-1]
+            last = np.ones(len(S), bool)
+            last[:-1] = first[1:]
+            before = np.zeros_like(S)  # the batch word before / after in the same gap
+            before[1:] = S[:-1]
+            after = np.zeros_like(S)
+            after[:-1] = S[1:]
+            prv[S - 1] = np.where(first, P, before)
+            nxt[S - 1] = np.where(last, N, after)
+            hp = first & (P > 0)
+            nxt[P[hp] - 1] = S[hp]
+            hh = first & (P == 0)
+            self._head[K[hh]] = S[hh]
+            tl = last & (N > 0)
+            prv[N[tl] - 1] = S[tl]
+
+    def _wake(self, word_ids: np.ndarray) -> None:
+        """Relink the dormant words among `word_ids` (distinct, held)."""
+        w = word_ids[self._dormant[word_ids]]
+        if len(w):
+            self._relink(w)
+            self._dormant[w] = False
+            self._live[w] = True
+            self._n_dormant -= len(w)
+            self._n_live += len(w)
 
     # -- search -------------------------------------------------------------------------
     def _search(self, q64: np.ndarray):
@@ -348,13 +475,15 @@ class Vocabulary:
 
     def index_node(self, node_id: int, word_ids: np.ndarray) -> None:
         """Add a node to the inverted index from word ids it already has (also used when
-        loading a map: no search needed)."""
+        loading a map: no search needed). Dormant words it has become searchable again; ids
+        the vocabulary does not hold are indexed as they are (`reload_node` checks them)."""
         node_id = int(node_id)
         if node_id in self._nodes:
             self.remove_node(node_id, drop_orphans=False)
         w = np.asarray(word_ids, np.int64)
         w = w[w >= 0]
         uw, cnt = np.unique(w, return_counts=True)
+        self._wake(uw[uw < self._next_id])  # a node in RAM has its words searchable
         self._nodes[node_id] = (uw, cnt)
         self._nfeat[node_id] = int(len(w))
         post = self._postings
@@ -404,23 +533,32 @@ class Vocabulary:
         self._nfeat.pop(node_id, None)
         if entry is None:
             return np.zeros(0, np.int64)
-        orphans = []
-        for w in entry[0].tolist():
-            d = self._postings.get(w)
-            if d is None:
-                continue
-            d.pop(node_id, None)
-            if not d:
-                del self._postings[w]
-                orphans.append(w)
-        orphans = np.asarray(orphans, np.int64)
+        orphans = self._drop_postings(node_id, entry[0])
         if drop_orphans and len(orphans):
             self.remove_words(orphans)
         return orphans if drop_orphans else np.zeros(0, np.int64)
 
+    def _drop_postings(self, node_id: int, words: np.ndarray) -> np.ndarray:
+        """Take a node's postings out of its words'; returns the words left without any."""
+        orphans = []
+        post = self._postings
+        for w in words.tolist():  # bounded by the node's features
+            d = post.get(w)
+            if d is None:
+                continue
+            d.pop(node_id, None)
+            if not d:
+                del post[w]
+                orphans.append(w)
+        return np.asarray(orphans, np.int64)
+
     def remove_words(self, word_ids) -> None:
+        """Delete words for good (live or dormant), from every node that has them."""
         w = np.unique(np.asarray(word_ids, np.int64))
         w = w[(w >= 0) & (w < self._next_id)]
+        dormant = w[self._dormant[w]]
+        self._dormant[dormant] = False
+        self._n_dormant -= len(dormant)
         w = w[self._live[w]]
         self._unlink(w)
         self._live[w] = False
@@ -433,11 +571,131 @@ class Vocabulary:
                     keep = uw != x
                     self._nodes[n] = (uw[keep], cnt[keep])
 
+    # -- working memory ---------------------------------------------------------------
+    def unload_node(self, node_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Move a node out of RAM (to long-term memory): it leaves the inverted index, and
+        its words no node left in RAM references become dormant (unlinked from the hash
+        tables, so `query`/`add` no longer find them; descriptors kept). Nothing is deleted.
+        Returns the node's (distinct word ids ascending, counts), what `reload_node` takes
+        to restore it (its `node_size` is their sum unless words were removed from under
+        it: then pass `n_features=node_size(node_id)` taken before unloading). An unknown
+        node gives empty arrays."""
+        with self.lock:
+            node_id = int(node_id)
+            entry = self._nodes.pop(node_id, None)
+            self._nfeat.pop(node_id, None)
+            if entry is None:
+                return np.zeros(0, np.int64), np.zeros(0, np.int64)
+            orphans = self._drop_postings(node_id, entry[0])
+            orphans = orphans[(orphans < self._next_id)]
+            orphans = orphans[self._live[orphans]]
+            self._unlink(orphans)
+            self._live[orphans] = False
+            self._dormant[orphans] = True
+            self._n_live -= len(orphans)
+            self._n_dormant += len(orphans)
+            return entry
+
+    def reload_node(self, node_id: int, word_ids, counts=None, n_features: int | None = None,
+                    descriptors=None) -> None:
+        """Bring a node back into RAM (retrieved from long-term memory): its postings are
+        restored and its dormant words linked back into the hash tables at their place, so
+        after `unload_node` + `reload_node` the tables, `postings` (a word's nodes in
+        ascending id order), `node_words`, `node_size` and hence the likelihoods are what
+        they were. Words already live are just referenced.
+
+        `word_ids`: with `counts=None`, the node's word id per feature as stored
+        (`features.word_ids`: repeats are counts, -1 = no word, `node_size` = number of ids
+        ≥ 0); else distinct ids with their `counts` (what `unload_node` returned,
+        `node_size` = sum of counts). `n_features` overrides `node_size`.
+
+        `descriptors`: for word ids this vocabulary does not hold (`missing_words`), e.g.
+        after a restart that loaded only working memory: either the `(ids, W×32 uint8)` pair
+        `MapStore.load_words` returns (any superset of the missing ids), or W×32 uint8 for
+        the node's distinct ids ≥ 0 in ascending order. Missing ids without descriptors
+        raise `MissingWordsError` (nothing changed). A node already in RAM is a ValueError."""
+        with self.lock:
+            node_id = int(node_id)
+            if node_id in self._nodes:
+                raise ValueError(f"node {node_id} is in RAM already (unload_node it first)")
+            w = np.asarray(word_ids, np.int64).ravel()
+            if counts is None:
+                w = w[w >= 0]
+                uw, cnt = np.unique(w, return_counts=True)
+                nf = len(w)
+            else:
+                c = np.asarray(counts, np.int64).ravel()
+                if len(c) != len(w):
+                    raise ValueError(f"{len(c)} counts for {len(w)} word ids")
+                keep = w >= 0
+                w, c = w[keep], c[keep]
+                if np.any(c <= 0):
+                    raise ValueError("counts must be positive")
+                if len(w) > 1 and np.any(w[1:] <= w[:-1]):
+                    uw, inv = np.unique(w, return_inverse=True)
+                    cnt = np.bincount(inv.ravel(), weights=c, minlength=len(uw)).astype(np.int64)
+                else:
+                    uw, cnt = w, c
+                nf = int(cnt.sum())
+            if n_features is not None:
+                nf = int(n_features)
+            missing = uw[~self._held(uw)]
+            if len(missing):
+                self._add_held(node_id, missing, uw, descriptors)
+            self._wake(uw)
+            self._nodes[node_id] = (uw, cnt)
+            self._nfeat[node_id] = nf
+            post = self._postings
+            for word, k in zip(uw.tolist(), cnt.tolist()):  # bounded by the node's features
+                d = post.get(word)
+                if d is None:
+                    post[word] = {node_id: k}
+                elif next(reversed(d)) < node_id:  # the usual case: newer nodes hold it
+                    d[node_id] = k
+                else:  # keep the word's nodes in ascending id order
+                    items = sorted([*d.items(), (node_id, k)])
+                    d.clear()
+                    d.update(items)
+
+    def _add_held(self, node_id: int, missing: np.ndarray, uw: np.ndarray, descriptors) -> None:
+        """Store the descriptors of words this vocabulary did not hold, as dormant words
+        (`_wake` then links them); raises MissingWordsError before changing anything."""
+        if descriptors is None:
+            raise MissingWordsError(node_id, missing)
+        if isinstance(descriptors, tuple):
+            ids, desc = descriptors
+            ids = np.asarray(ids, np.int64).ravel()
+            d64 = _as_u64(desc)
+            if len(ids) != len(d64):
+                raise ValueError(f"{len(d64)} descriptors for {len(ids)} word ids")
+        else:
+            ids, d64 = uw, _as_u64(descriptors)
+            if len(d64) != len(uw):
+                raise ValueError(f"{len(d64)} descriptors for the node's {len(uw)} distinct word ids "
+                                 "(pass the (ids, descriptors) pair of MapStore.load_words instead)")
+        order = np.argsort(ids, kind="stable")
+        ids, d64 = ids[order], d64[order]
+        pos = np.minimum(np.searchsorted(ids, missing), max(len(ids) - 1, 0))
+        found = (ids[pos] == missing) if len(ids) else np.zeros(len(missing), bool)
+        if not found.all():
+            raise MissingWordsError(node_id, missing[~found])
+        top = int(missing[-1]) + 1
+        if top > self._next_id:  # ids are the map's: never hand them out again
+            self._ensure(top - self._next_id)
+            self._next_id = top
+        self._desc[missing] = d64[pos]
+        self._dormant[missing] = True
+        self._n_dormant += len(missing)
+
     # -- persistence --------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:
-        """Arrays to persist: live word ids (W,) int64 and descriptors (W×32 uint8), the
-        postings (word, node, count) and the parameters."""
-        ids = np.nonzero(self._live[: self._next_id])[0].astype(np.int64)
+        """Arrays to persist: the word ids held (W,) int64 ascending, live and dormant (the
+        map's words: the database has them all) with their descriptors (W×32 uint8) and
+        `dormant` (W,) bool; the postings (word, node, count) and sizes of the nodes in RAM;
+        `next_id`; the parameters. `from_state` rebuilds the same vocabulary (dormant words
+        stay out of the tables), which then reloads nodes like this one."""
+        held = self._live[: self._next_id] | self._dormant[: self._next_id]
+        ids = np.nonzero(held)[0].astype(np.int64)
         pw, pn, pc = [], [], []
         for n, (uw, cnt) in self._nodes.items():
             pw.append(uw)
@@ -448,6 +706,7 @@ class Vocabulary:
         return {
             "word_ids": ids,
             "descriptors": self._desc[ids].view(np.uint8).reshape(-1, 32).copy(),
+            "dormant": self._dormant[ids],
             "post_word": cat(pw), "post_node": cat(pn), "post_count": cat(pc),
             "node_ids": nodes,
             "node_nfeat": np.fromiter(self._nfeat.values(), np.int64, len(self._nfeat)),
@@ -459,7 +718,8 @@ class Vocabulary:
     @classmethod
     def from_state(cls, st: dict[str, np.ndarray], **overrides) -> "Vocabulary":
         """Rebuild from `state()` arrays; the hash tables are rebuilt in one vectorized
-        O(W) pass (no search)."""
+        O(W) pass (no search). Words flagged `dormant` (optional; e.g. a map's store state has
+        none) are kept unlinked, unless a node of the postings references them."""
         p = st.get("params")
         kw = {}
         if p is not None:
@@ -473,14 +733,22 @@ class Vocabulary:
         v._ensure(next_id)
         v._next_id = next_id
         d64 = _as_u64(st["descriptors"])
+        dormant = np.asarray(st.get("dormant", np.zeros(len(ids), bool)), bool)
+        pw = np.asarray(st.get("post_word", np.zeros(0)), np.int64)
+        if dormant.any():  # a word a node in RAM has is searchable
+            dormant = dormant & ~np.isin(ids, pw)
         v._desc[ids] = d64
-        v._live[ids] = True
-        v._n_live = len(ids)
         if len(ids) > 1 and np.any(ids[1:] <= ids[:-1]):
             order = np.argsort(ids, kind="stable")
-            ids, d64 = ids[order], d64[order]
-        v._link_all(ids, d64)
-        pw = np.asarray(st.get("post_word", np.zeros(0)), np.int64)
+            ids, d64, dormant = ids[order], d64[order], dormant[order]
+        v._live[ids[~dormant]] = True
+        v._dormant[ids[dormant]] = True
+        v._n_dormant = int(dormant.sum())
+        v._n_live = len(ids) - v._n_dormant
+        if v._n_dormant:
+            v._link_all(ids[~dormant], d64[~dormant])
+        else:
+            v._link_all(ids, d64)
         pn = np.asarray(st.get("post_node", np.zeros(0)), np.int64)
         pc = np.asarray(st.get("post_count", np.zeros(0)), np.int64)
         if len(pn):

@@ -15,7 +15,7 @@ from client.frames import Calibration, PinholeCamera
 from client.synthetic import SyntheticDataset
 from service.config import load_config
 from service.runner import run_dataset
-from service.vocabulary import Vocabulary
+from service.vocabulary import MissingWordsError, Vocabulary
 from storage import KeyframeRecord, MapStore, UnknownIdError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -350,7 +350,7 @@ import sys
 sys.path.insert(0, {root!r})
 import numpy as np
 from client.frames import Calibration, PinholeCamera
-from service.vocabulary import Vocabulary
+from service.vocabulary import MissingWordsError, Vocabulary
 from storage import KeyframeRecord, MapStore
 rng = np.random.default_rng(0)
 centres = rng.integers(0, 256, (3000, 32), dtype=np.uint8)
@@ -397,3 +397,244 @@ def test_kill_9_never_leaves_word_ids_without_their_words(tmp_path):
         _, n_words = printed[-1]
         assert len(Vocabulary.from_store(store)) >= n_words
         assert store.count_nodes() - len(indexed) <= 1  # at most the node stored but not yet quantized
+
+
+# -- working memory: nodes unloaded to long-term memory and reloaded ---------------------------
+
+def _tables(v):
+    """The hash tables and word states, up to the highest id."""
+    k = v.state()["next_id"][0]
+    return v._head.copy(), v._nxt[:k].copy(), v._prv[:k].copy(), v._live[:k].copy(), v._dormant[:k].copy()
+
+
+def _same_tables(a, b):
+    return all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+def _index_snapshot(v, probe):
+    """Everything the loop detector reads, and the search's answers."""
+    from service.loop_detection import LoopDetector
+    ids = sorted(v.node_ids())
+    det = LoopDetector(v)
+    q = v.query(probe)
+    nodes = {n: (v.node_words(n)[0].copy(), v.node_words(n)[1].copy(), v.node_size(n)) for n in ids}
+    cand = np.asarray(ids, np.int64)
+    lik = [det.raw_likelihood(np.repeat(*v.node_words(n)), cand, n) for n in ids[::5]]
+    return ids, q, [a.copy() for a in v.postings(q)], nodes, lik, v.n_nodes, len(v)
+
+
+def _same_snapshot(a, b):
+    ids, q, post, nodes, lik, n_nodes, n_words = a
+    ids2, q2, post2, nodes2, lik2, n_nodes2, n_words2 = b
+    assert ids == ids2 and n_nodes == n_nodes2 and n_words == n_words2
+    assert np.array_equal(q, q2)
+    for x, y in zip(post, post2):
+        assert np.array_equal(x, y)
+    for n in ids:
+        (w, c, s), (w2, c2, s2) = nodes[n], nodes2[n]
+        assert np.array_equal(w, w2) and np.array_equal(c, c2) and s == s2, n
+    for x, y in zip(lik, lik2):
+        assert np.array_equal(x, y)  # bit-identical
+
+
+def _check_consistent(v):
+    """Invariants: postings = the nodes' words; every word a node in RAM has is live; live
+    and dormant disjoint and counted; the tables are the canonical ones (from_state's)."""
+    derived = {}
+    for n in v.node_ids():
+        for w, c in zip(*(a.tolist() for a in v.node_words(n))):
+            derived.setdefault(w, {})[n] = c
+    assert {w: v.word_nodes(w) for w in derived} == derived
+    assert set(v._postings) == set(derived)
+    k = v.state()["next_id"][0]
+    live, dormant = v._live[:k], v._dormant[:k]
+    assert not np.any(live & dormant) and not v._live[k:].any() and not v._dormant[k:].any()
+    assert live.sum() == len(v) and dormant.sum() == v.dormant
+    assert live[list(derived)].all()
+    assert _same_tables(_tables(v), _tables(Vocabulary.from_state(v.state(), capacity=v._cap)))
+
+
+def test_unload_reload_round_trip_is_identical(orb_nodes):
+    v = Vocabulary()
+    for n, d in enumerate(orb_nodes[:-1]):
+        v.add(n, d)
+    probe = _flip(np.random.default_rng(12), orb_nodes[-1], 3)
+    before, tables = _index_snapshot(v, probe), _tables(v)
+    n_words = len(v)
+    # To LTM: every third node, and a run of neighbours (words only they share go dormant).
+    ltm = sorted(set(range(0, 40, 3)) | {20, 21, 22})
+    held = {w: set(v.word_nodes(w)) for w in v.state()["word_ids"].tolist()}
+    exclusive = np.array(sorted(w for w, ns in held.items() if ns <= set(ltm)), np.int64)
+    shared = np.array(sorted(w for w, ns in held.items() if ns & set(ltm) and not ns <= set(ltm)), np.int64)
+    assert len(exclusive) > 1000 and len(shared) > 1000
+    out = {n: v.unload_node(n) for n in ltm}
+    assert v.n_nodes == 40 - len(ltm) and not any(n in v for n in ltm)
+    assert len(v) == n_words - len(exclusive) and v.dormant == len(exclusive)
+    assert not v._live[exclusive].any() and v._live[shared].all()
+    _check_consistent(v)
+    # The dormant words are out of the search; the ones a WM node still has are found.
+    assert not np.isin(v.query(v.descriptors(exclusive)), exclusive).any()
+    assert np.isin(v.query(_flip(np.random.default_rng(1), orb_nodes[20], 3)), exclusive).sum() == 0
+    assert (v.query(v.descriptors(shared)) == shared).mean() > 0.99
+    assert all(not v.word_nodes(w) for w in exclusive[:100].tolist())
+    uw, df, idx, nodes, counts = v.postings(np.concatenate([exclusive, shared]))
+    assert not np.isin(nodes, ltm).any()
+    assert len(v.unload_node(ltm[0])[0]) == 0  # not in RAM any more: nothing
+    # Back, in another order: everything as it was, bit for bit.
+    for n in reversed(ltm):
+        v.reload_node(n, *out[n])
+    assert v.dormant == 0
+    _same_snapshot(before, _index_snapshot(v, probe))
+    assert _same_tables(tables, _tables(v))
+    # Stored word ids (repeats = counts, -1 = none) give the same node back.
+    w, c = v.unload_node(5)
+    stored = np.concatenate([np.repeat(w, c), [-1, -1]])
+    v.reload_node(5, np.random.default_rng(0).permutation(stored))
+    _same_snapshot(before, _index_snapshot(v, probe))
+    with pytest.raises(ValueError, match="in RAM"):
+        v.reload_node(5, stored)
+
+
+def test_nodes_added_while_others_are_unloaded(orb_nodes):
+    v = Vocabulary()
+    for n, d in enumerate(orb_nodes[:20]):
+        v.add(n, d)
+    next_id = v.state()["next_id"][0]
+    out = {n: v.unload_node(n) for n in range(0, 15)}  # the start of the loop goes to LTM
+    dormant = np.nonzero(v._dormant)[0]
+    assert len(dormant) == v.dormant > 0
+    # The loop comes back to the start (last frames ≈ first ones): its words are dormant, so
+    # they are not matched and new words are made, with new ids.
+    for n in range(36, 40):
+        v.add(n, orb_nodes[n])
+        assert v.last_new_words.min() >= next_id
+        _check_consistent(v)
+    assert v._dormant[dormant].all()
+    reference = Vocabulary.from_state(v.state())
+    for n in sorted(out):  # retrieved: both copies of the place are searchable again
+        v.reload_node(n, *out[n])
+        reference.reload_node(n, *out[n])
+        _check_consistent(v)
+    assert v.dormant == 0 and v.n_nodes == 24
+    _assert_same(v, reference, orb_nodes[0])
+    assert _same_tables(_tables(v), _tables(reference))
+    # The likelihood finds the start again from a revisit.
+    from service.loop_detection import LoopDetector
+    w = v.query(orb_nodes[38])
+    raw = LoopDetector(v).raw_likelihood(w, np.arange(0, 15), None)
+    assert raw.argmax() <= 3 and raw.max() > 0
+    # Both grow identically afterwards.
+    probe = _flip(np.random.default_rng(2), orb_nodes[25], 5)
+    assert np.array_equal(v.add(100, probe), reference.add(100, probe))
+
+
+def test_state_round_trip_with_dormant_words():
+    rng = np.random.default_rng(13)
+    centres = _rand(rng, 500)
+    v = Vocabulary(key_bits=12, n_tables=8, capacity=1 << 14)  # long buckets: chains matter
+    for n in range(30):
+        d = _rand(rng, 200)
+        d[:100] = _flip(rng, centres[rng.integers(0, 500, 100)], 6)
+        v.add(n, d)
+    tables = _tables(v)
+    out = {n: v.unload_node(n) for n in (3, 4, 5, 17, 29)}
+    st = v.state()
+    # Dormant words are persisted (the map has them) and flagged.
+    assert len(st["word_ids"]) == len(v) + v.dormant and st["dormant"].sum() == v.dormant
+    assert set(st["post_node"].tolist()) == set(range(30)) - set(out)
+    v2 = Vocabulary.from_state(st, capacity=1 << 14)
+    assert len(v2) == len(v) and v2.dormant == v.dormant and v2.n_nodes == v.n_nodes
+    assert _same_tables(_tables(v), _tables(v2))
+    probe = _flip(rng, v.descriptors(st["word_ids"]), 4)
+    assert np.array_equal(v.query(probe), v2.query(probe))
+    # A state without the flag (e.g. the store's) has every word searchable.
+    v3 = Vocabulary.from_state({k: a for k, a in st.items() if k != "dormant"}, capacity=1 << 14)
+    assert v3.dormant == 0 and len(v3) == len(v) + v.dormant == len(st["word_ids"])
+    for n in (29, 3, 17, 5, 4):
+        v.reload_node(n, *out[n])
+        v2.reload_node(n, *out[n])
+    assert _same_tables(tables, _tables(v2)) and v2.dormant == 0
+    _assert_same(v, v2, probe)
+    new = _rand(rng, 100)
+    assert np.array_equal(v.add(99, new), v2.add(99, new))
+
+
+def test_reload_into_a_vocabulary_that_never_had_the_words(tmp_path, orb_nodes):
+    """A restarted process loads only working memory; nodes retrieved from LTM bring their
+    words from the map (`store.load_words`)."""
+    path = tmp_path / "map.db"
+    v = Vocabulary()
+    with MapStore(path) as store:
+        sid = store.begin_session("r1", CAL)
+        nodes = [_store_node(store, sid, d, k) for k, d in enumerate(orb_nodes[:30])]
+        for n, d in zip(nodes, orb_nodes):
+            v.add(n, d, store=store)
+    ltm, wm = nodes[:20], nodes[20:]
+    with MapStore(path, create=False) as store:
+        st = store.load_vocabulary_state()
+        keep = np.isin(st["post_node"], wm)
+        wm_words = np.unique(st["post_word"][keep])
+        has = np.isin(st["word_ids"], wm_words)
+        partial = dict(st, word_ids=st["word_ids"][has], descriptors=st["descriptors"][has],
+                       post_word=st["post_word"][keep], post_node=st["post_node"][keep],
+                       post_count=st["post_count"][keep], node_ids=np.asarray(wm, np.int64),
+                       node_nfeat=st["node_nfeat"][np.isin(st["node_ids"], wm)])
+        restarted = Vocabulary.from_state(partial)
+        full = Vocabulary.from_store(store)
+        for n in ltm:
+            full.unload_node(n)
+        # Same searchable words and tables; the restarted one just has no dormant words.
+        assert len(restarted) == len(full) and restarted.dormant == 0 < full.dormant
+        t, t2 = _tables(restarted), _tables(full)
+        assert all(np.array_equal(x, y) for x, y in zip(t[:4], t2[:4]))
+        # A word created now never takes an id of the map's (dormant or not loaded).
+        d = _rand(np.random.default_rng(4), 50)
+        assert np.array_equal(restarted.add(10_000, d), full.add(10_000, d))
+        assert restarted.last_new_words.min() >= st["next_id"][0]
+        for k, n in enumerate(ltm):
+            ids = store.load_features(n)[3]
+            missing = restarted.missing_words(ids)
+            assert len(missing) and not len(full.missing_words(ids))
+            with pytest.raises(MissingWordsError) as err:
+                restarted.reload_node(n, ids)
+            assert np.array_equal(err.value.word_ids, missing) and n not in restarted
+            if k % 2:  # the (ids, descriptors) pair of the store
+                restarted.reload_node(n, ids, descriptors=store.load_words(missing))
+            else:  # or descriptors of all the node's distinct words
+                restarted.reload_node(n, ids, descriptors=store.load_words(ids)[1])
+            full.reload_node(n, ids)
+            _check_consistent(restarted)
+        assert full.dormant == restarted.dormant == 0
+        _assert_same(full, restarted, _flip(np.random.default_rng(5), orb_nodes[25], 3))
+        assert _same_tables(_tables(full), _tables(restarted))
+        with pytest.raises(MissingWordsError):
+            restarted.reload_node(777, [restarted.state()["next_id"][0] + 5])
+
+
+def test_dormant_words_removed_for_good():
+    rng = np.random.default_rng(14)
+    v = Vocabulary()
+    d = _rand(rng, 30)
+    v.add(1, d[:20])
+    v.add(2, d[10:30])
+    w, c = v.unload_node(1)
+    assert v.dormant == 10 and len(v) == 20
+    v.index_node(1, np.repeat(w, c))  # index_node (the loop detector's) wakes them too
+    assert v.dormant == 0 and len(v) == 30 and np.array_equal(v.query(d), np.arange(30))
+    _check_consistent(v)
+    w, c = v.unload_node(1)
+    assert np.all(v.query(d[:10]) == -1)
+    v.remove_words(w[:5])  # e.g. pruned from the map with the node
+    assert v.dormant == 5 and len(v) == 20 and len(v.missing_words(w)) == 5
+    with pytest.raises(MissingWordsError):
+        v.reload_node(1, w, c)
+    v.remove_words(w)  # the shared ones are deleted from node 2
+    assert v.dormant == 0 and len(v) == 10 and v.node_size(2) == 20
+    assert np.array_equal(v.node_words(2)[0], np.arange(20, 30))
+    _check_consistent(v)
+    # counts form: duplicates are summed, order does not matter
+    v.reload_node(3, [25, 21, 25, -1], [1, 2, 3, 9])
+    assert np.array_equal(v.node_words(3)[0], [21, 25]) and np.array_equal(v.node_words(3)[1], [2, 4])
+    assert v.node_size(3) == 6
+    with pytest.raises(ValueError):
+        v.reload_node(4, [21, 22], [1])
