@@ -29,5 +29,6 @@ def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config
         if mapping is not None:
             mapper = mapping.mapper(robot, calibration.camera, on_event)
         else:
-            mapper = Mapper(calibration.camera, config.loop, store, on_event=on_event, background=background)
+            mapper = Mapper(calibration.camera, config.loop, store, on_event=on_event, background=background,
+                            memory=config.memory)
     return Pipeline(calibration, config, memory, mapper)

@@ -90,8 +90,7 @@ class KeyframeConfig:
 class LoopConfig:
     enabled: bool = True  # false = odometry-only baseline (mnemoslam run --odometry-only)
     threshold: float = 0.11  # hypothesis acceptance (Rtabmap/LoopThr)
-    stm_size: int = 10  # the last keyframes are not loop candidates (Mem/STMSize) ...
-    min_age: float = 10.0  # ... nor keyframes younger than this many seconds (keyframes come faster than RTAB-Map's 1 Hz)
+    min_age: float = 10.0  # keyframes younger than this many seconds are not loop candidates (keyframes come faster than RTAB-Map's 1 Hz)
     nndr_ratio: float = 0.8  # a descriptor makes a new word unless d1 < ratio·d2 (Kp/NndrRatio)
     min_inliers: int = 20  # geometric verification (Vis/MinInliers)
     optimize_max_error: float = 3.0  # reject a link whose graph error exceeds this many σ (RGBD/OptimizeMaxError)
@@ -116,6 +115,17 @@ class LoopConfig:
     refine_max_rotation: float = 5.0  # deg; ... nor one that turns it more
     process: bool = True  # service: every robot's map update in one child process (its own GIL), so a slow update never slows tracking; false = a thread of the service (offline runs are always inline)
     process_nice: int = 10  # that child's nice increment (lower CPU priority than tracking); 0 = same priority
+
+
+@dataclass
+class MemoryConfig:
+    stm_size: int = 10  # short-term memory: the last keyframes, not loop candidates (Mem/STMSize) ...
+    max_wm_nodes: int = 0  # working memory (loop candidates in RAM) above this many nodes: the excess goes to long-term memory, the database only (Rtabmap/MemoryThr); 0 = unlimited
+    time_threshold_ms: float = 0.0  # ... also when the last map update took longer than this (Rtabmap/TimeThr); 0 = no limit
+    recent_wm_ratio: float = 0.2  # nodes that entered WM since the last loop closure stay, up to this share of WM (Mem/RecentWmRatio)
+    local_radius: float = 1.0  # m; WM nodes the graph places this near the new keyframe are not transferred either (RGBD/LocalImmunizationRatio-like)
+    max_retrieved: int = 2  # LTM nodes brought back per update, around the best loop hypothesis (even below loop.threshold) and the new keyframe (Rtabmap/MaxRetrieved)
+    retrieval_depth: int = 3  # ... within this many graph links of them
 
 
 @dataclass
@@ -160,6 +170,7 @@ class Config:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+    memory: MemoryConfig = field(default_factory=MemoryConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)

@@ -23,7 +23,7 @@ from client.frames import PinholeCamera
 from client.geometry import invert
 from storage import LinkType, MapStore, UnknownIdError
 
-from .config import LoopConfig
+from .config import LoopConfig, MemoryConfig
 from .features import FrameFeatures
 from .graph import PoseGraph
 from .loop_detection import LoopDetector
@@ -31,6 +31,7 @@ from .memory import decode_images
 from .proximity import nearby
 from .verification import DenseView, Verification, refine, register_dense, verify
 from .vocabulary import Vocabulary
+from .working_memory import WorkingMemory
 
 log = logging.getLogger("mnemoslam.mapping")
 
@@ -85,27 +86,36 @@ class LoopStatistics:
     proximity: list = field(default_factory=list)  # [{node, decision, inliers, refined}] spatial candidates
     path: list = field(default_factory=list)  # [{node, decision, inliers, refined}] recent keyframes of its own path
     timings_ms: dict = field(default_factory=dict)
+    memory: dict = field(default_factory=dict)  # after the update: stm, wm, ltm sizes, transferred / retrieved ids, words
 
 
 class Mapper:
     def __init__(self, camera: PinholeCamera, config: LoopConfig, store: MapStore | None = None,
-                 on_event: Callable[[str, dict], None] | None = None, background: bool = False):
+                 on_event: Callable[[str, dict], None] | None = None, background: bool = False,
+                 memory: MemoryConfig | None = None):
         self.camera = camera
         self.config = config
+        self.memory_config = mc = memory if memory is not None else MemoryConfig()
         self.store = store
         self.on_event = on_event or (lambda kind, data: None)
         # The map's vocabulary: loaded from the store when the map is reopened, shared by every
         # mapper (robot) of that store, persisted with each keyframe.
         self.vocabulary = (Vocabulary.for_store(store, nndr=config.nndr_ratio) if store is not None
                            else Vocabulary(nndr=config.nndr_ratio))
-        self.detector = LoopDetector(self.vocabulary, loop_threshold=config.threshold, stm_size=config.stm_size)
+        self.detector = LoopDetector(self.vocabulary, loop_threshold=config.threshold, stm_size=mc.stm_size)
         self.graph = PoseGraph(max_error=config.optimize_max_error)
-        self._features: dict[int, FrameFeatures] = {}  # working memory's features (bounded later by the memory manager)
-        self._views: dict[int, DenseView] = {}  # reduced depth + grey of RGB-D keyframes, for dense link refinement
+        # STM / WM / LTM: which keyframes are loop candidates with features and words in RAM
+        self.memory = WorkingMemory(mc.stm_size, mc.max_wm_nodes, mc.time_threshold_ms, mc.recent_wm_ratio,
+                                    mc.max_retrieved, mc.retrieval_depth)
+        self._features: dict[int, FrameFeatures] = {}  # the features of the keyframes in STM and WM
+        # reduced depth + grey of RGB-D keyframes in RAM, for dense link refinement (a retrieved
+        # keyframe's are decoded from its stored images when first needed)
+        self._views: dict[int, DenseView] = _StoredViews(store, camera, ()) if store is not None else {}
         self._order: list[int] = []
         self._stamps: dict[int, float] = {}
         self._neighbours: dict[int, list[int]] = {}
         self._segment: dict[int, int] = {}  # node -> first node of its odometry segment
+        self._loop_nodes: set[int] = set()  # the older end of the last accepted loop closure (kept in WM)
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
@@ -120,7 +130,7 @@ class Mapper:
 
     @classmethod
     def resume(cls, store: MapStore, session_id: int, config: LoopConfig, camera: PinholeCamera | None = None,
-               on_event: Callable[[str, dict], None] | None = None) -> "Mapper":
+               on_event: Callable[[str, dict], None] | None = None, memory: MemoryConfig | None = None) -> "Mapper":
         """A (synchronous) mapper that continues a stored session's map update, e.g. after
         the service was killed with keyframes still in its backlog. It holds the session's
         mapped keyframes (those with a statistics row) as the interrupted mapper did: the
@@ -134,7 +144,7 @@ class Mapper:
         sid = int(session_id)
         if camera is None:
             camera = store.calibration(sid).camera
-        m = cls(camera, config, store, on_event=on_event)
+        m = cls(camera, config, store, on_event=on_event, memory=memory)
         unmapped = set(store.unmapped_nodes(session_ids=[sid]).get(sid, ()))
         nodes = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
         mapped = {n.id for n in nodes}
@@ -162,6 +172,8 @@ class Mapper:
                 m._neighbours[l.from_id].append(l.to_id)
         if config.refine_dense:
             m._views = _StoredViews(store, camera, mapped)
+        k = max(len(m._order) - m.memory.stm_size, 0)
+        m.memory.restore(stm=m._order[k:], wm=m._order[:k], ltm=())
         return m
 
     # -- tracking side ---------------------------------------------------------------------
@@ -214,8 +226,7 @@ class Mapper:
         t1 = time.perf_counter()
         words = self.vocabulary.add(u.node_id, u.features.descriptors, store=self.store)  # + its new words, one commit
         t2 = time.perf_counter()
-        stm = set(self._order[-self.config.stm_size:])
-        candidates = {n for n in self._order if u.stamp - self._stamps[n] >= self.config.min_age} - stm
+        candidates = {n for n in self.memory.wm if u.stamp - self._stamps[n] >= self.config.min_age}
         with self.vocabulary.lock:  # other robots' mappers add to the same vocabulary
             hyp = self.detector.process(u.node_id, words, self._neighbours, candidates)
         t3 = time.perf_counter()
@@ -233,9 +244,15 @@ class Mapper:
         if self.config.proximity_by_time:
             self._link_path(u, candidates, stats)
         t6 = time.perf_counter()
+        transferred, retrieved = self._manage_memory(u, hyp.best_id, (t6 - t0) * 1e3)
+        t7 = time.perf_counter()
         stats.timings_ms = {"graph": (t1 - t0) * 1e3, "vocabulary": (t2 - t1) * 1e3,
                             "detection": (t3 - t2) * 1e3, "verification_optimization": (t4 - t3) * 1e3,
-                            "proximity": (t5 - t4) * 1e3, "path": (t6 - t5) * 1e3}
+                            "proximity": (t5 - t4) * 1e3, "path": (t6 - t5) * 1e3, "memory": (t7 - t6) * 1e3}
+        sizes = self.memory.sizes()
+        stats.memory = {"stamp": u.stamp, "stm": sizes.stm, "wm": sizes.wm, "ltm": sizes.ltm,
+                        "transferred": transferred, "retrieved": retrieved, "merged": [],
+                        "words": len(self.vocabulary), "dormant_words": self.vocabulary.dormant}
         self.statistics[u.node_id] = stats
         self._publish(u.node_id)
         if self.store is not None:
@@ -250,11 +267,85 @@ class Mapper:
             self._views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
         self._stamps[u.node_id] = u.stamp
         self._order.append(u.node_id)
+        self.memory.add(u.node_id)
         self._neighbours.setdefault(u.node_id, [])
         self._segment[u.node_id] = u.node_id if u.odom_from is None else self._segment.get(u.odom_from, u.odom_from)
         if u.odom_from is not None:
             self._neighbours[u.node_id].append(u.odom_from)
             self._neighbours.setdefault(u.odom_from, []).append(u.node_id)
+
+    # -- memory management ---------------------------------------------------------------
+    def _manage_memory(self, u: KeyframeUpdate, best: int | None, update_ms: float) -> tuple[list[int], list[int]]:
+        """Retrieval (LTM → WM) around the best hypothesis and the new keyframe, then transfer
+        (WM → LTM) when WM is over its limits. Returns (transferred, retrieved) node ids."""
+        mem = self.memory
+        retrieved = []
+        if self.store is not None and mem.ltm and mem.max_retrieved > 0:
+            retrieved = mem.select_retrievals([best], self._neighbours)
+            retrieved += [n for n in self._ltm_near(u) if n not in retrieved]
+            retrieved = [n for n in retrieved[:mem.max_retrieved] if self._retrieve(n)]
+        mem.retrieved(retrieved)
+        transferred: list[int] = []
+        if self.store is not None and mem.over_limit(update_ms):
+            transferred = mem.select_transfers(update_ms, *self._protected(u))
+            for n in transferred:
+                self._transfer(n)
+            mem.transferred(transferred)
+        return transferred, retrieved
+
+    def _ltm_near(self, u: KeyframeUpdate) -> list[int]:
+        """LTM nodes the map places where the new keyframe is (within loop.proximity_radius,
+        looking within proximity_angle of its way), nearest first: one R*Tree query of the
+        stored poses (the graph's estimates)."""
+        c = self.config
+        pose = self.graph.pose(u.node_id)
+        r = c.proximity_radius
+        box = (tuple(pose[:3, 3] - r), tuple(pose[:3, 3] + r))
+        nodes = [n for n in self.store.nodes(bbox=box, limit=None) if n.id in self.memory.ltm]
+        if not nodes:
+            return []
+        return nearby(np.stack([n.pose for n in nodes]), np.array([n.id for n in nodes], np.int64), pose, r,
+                      c.proximity_angle, self.memory.max_retrieved).tolist()
+
+    def _protected(self, u: KeyframeUpdate) -> tuple[set[int], set[int]]:
+        """(WM nodes that stay in RAM: linked to STM and the last loop closure's; WM nodes that
+        go last: those the graph places within memory.local_radius of the new keyframe)."""
+        keep = set(self._loop_nodes)
+        for s in self.memory.stm:
+            keep.update(self._neighbours.get(s, ()))
+        wm, near = self.memory.wm, set()
+        if wm and self.memory_config.local_radius > 0:
+            here = self.graph.pose(u.node_id)[:3, 3]
+            centres = np.stack([self.graph.pose(n)[:3, 3] for n in wm])
+            close = np.linalg.norm(centres - here, axis=1) <= self.memory_config.local_radius
+            near = set(np.asarray(wm)[close].tolist())
+        return keep, near
+
+    def _transfer(self, node: int) -> None:
+        """WM → LTM: the node's words leave the search structures, its features leave RAM
+        (everything stays in the database)."""
+        with self.vocabulary.lock:
+            self.vocabulary.unload_node(node)
+            self.detector.forget([node])
+        self._features.pop(node, None)
+        self._views.pop(node, None)
+
+    def _retrieve(self, node: int) -> bool:
+        """LTM → WM: features and words back from the database (its dense view when first
+        needed). False when the node cannot be loaded (it stays in LTM)."""
+        try:
+            keypoints, descriptors, points, word_ids = self.store.load_features(node)
+        except UnknownIdError:
+            return False
+        self._features[node] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
+        if word_ids is not None:
+            with self.vocabulary.lock:
+                missing = self.vocabulary.missing_words(word_ids[word_ids >= 0])
+                self.vocabulary.reload_node(node, word_ids, descriptors=self.store.load_words(missing) if len(missing)
+                                            else None)
+        if isinstance(self._views, _StoredViews):
+            self._views.defer(node)
+        return True
 
     def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics) -> None:
         """Proximity detection: verify the nearest older keyframes the graph places around this
@@ -284,7 +375,7 @@ class Mapper:
         segment = self._segment[u.node_id]
         recent = []
         for n in reversed(self._order[:-1]):  # the non-candidates are the newest keyframes
-            if n in candidates:
+            if n in candidates or not self.memory.in_ram(n):
                 break
             if self._segment[n] == segment and n not in self._neighbours[u.node_id]:
                 recent.append(n)
@@ -335,6 +426,8 @@ class Mapper:
             return f"rejected: graph {outcome.reason}"
         if kind != LinkType.LOCAL_TIME:
             self.loops.append((candidate, u.node_id))
+            self._loop_nodes = {candidate}
+            self.memory.loop_closed()
             self._neighbours[u.node_id].append(candidate)
             self._neighbours[candidate].append(u.node_id)
         if self.store is not None:
@@ -377,6 +470,15 @@ class _StoredViews(dict):
     def __init__(self, store: MapStore, camera: PinholeCamera, node_ids):
         super().__init__()
         self._store, self._camera, self._stored = store, camera, set(node_ids)
+
+    def defer(self, node_id) -> None:
+        """Decode this node's view from the store when it is first asked for."""
+        if not super().__contains__(node_id):
+            self._stored.add(node_id)
+
+    def pop(self, node_id, default=None):
+        self._stored.discard(node_id)
+        return super().pop(node_id, default)
 
     def _load(self, node_id) -> None:
         if node_id not in self._stored:

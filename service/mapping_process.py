@@ -42,7 +42,7 @@ import numpy as np
 
 from client.frames import PinholeCamera
 
-from .config import LoopConfig
+from .config import LoopConfig, MemoryConfig
 from .mapping import KeyframeUpdate
 
 log = logging.getLogger("mnemoslam.mapping")
@@ -109,7 +109,8 @@ def _watch_parent(parent_pid: int, busy: threading.Event) -> None:
     os._exit(0)
 
 
-def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, log_level: int) -> None:
+def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, log_level: int,
+                memory: MemoryConfig | None = None) -> None:
     """Host one Mapper per robot key; messages in: ("open", key, camera), ("update", key,
     KeyframeUpdate), ("close", key), None = drain and stop. Messages out over `conn`:
     ("ready", pid), ("correction", key, T_map_odom), ("event", key, kind, data),
@@ -157,7 +158,7 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
                 break
             busy.set()
             try:
-                _handle(msg, config, store, cameras, mappers, counts, send)
+                _handle(msg, config, memory, store, cameras, mappers, counts, send)
             finally:
                 busy.clear()
         send(("stopped",))
@@ -168,7 +169,7 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
         lock.close()
 
 
-def _handle(msg, config, store, cameras, mappers, counts, send) -> None:
+def _handle(msg, config, memory, store, cameras, mappers, counts, send) -> None:
     from .mapping import Mapper
 
     op, key = msg[0], msg[1]
@@ -178,7 +179,7 @@ def _handle(msg, config, store, cameras, mappers, counts, send) -> None:
         u: KeyframeUpdate = msg[2]
         m = mappers.get(key)
         if m is None:
-            m = mappers[key] = Mapper(cameras[key], config, store, background=False,
+            m = mappers[key] = Mapper(cameras[key], config, store, background=False, memory=memory,
                                       on_event=lambda kind, data, k=key: send(("event", k, kind, data)))
         try:
             m.submit(u)
@@ -245,7 +246,7 @@ class MapperProxy:
 class MappingProcess:
     """One child process hosting every robot's mapper of the map at `db_path`."""
 
-    def __init__(self, db_path, config: LoopConfig):
+    def __init__(self, db_path, config: LoopConfig, memory: MemoryConfig | None = None):
         self.db_path = str(db_path)
         self.config = config
         self.failures = 0  # times the child died while the service ran
@@ -265,7 +266,7 @@ class MappingProcess:
         recv_end, send_end = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(target=_child_main, name="mnemoslam-mapping", daemon=True,
                                  args=(self.db_path, config, self._inbox, send_end, os.getpid(),
-                                       logging.getLogger("mnemoslam").getEffectiveLevel()))
+                                       logging.getLogger("mnemoslam").getEffectiveLevel(), memory))
         self._proc.start()
         send_end.close()  # ours: so the reader sees EOF when the child dies
         self._conn = recv_end

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from storage import MapStore, SessionRecord
 from storage.store import MAP_UPDATE_LINKS
 
-from .config import Config, LoopConfig
+from .config import Config
 from .mapping import KeyframeUpdate, Mapper
 from .mapping_process import LOCK_WAIT_S, map_update_lock
 
@@ -101,17 +101,17 @@ def _recover(store: MapStore, config: Config, report: RecoveryReport) -> None:
             if not ((session.config or {}).get("loop") or {}).get("enabled", True):
                 report.skipped += len(node_ids)  # recorded without the map update: nothing to resume
                 continue
-            _recover_session(store, session, node_ids, config.loop, report)
+            _recover_session(store, session, node_ids, config, report)
 
 
-def _recover_session(store: MapStore, session: SessionRecord, node_ids: list[int], loop: LoopConfig,
+def _recover_session(store: MapStore, session: SessionRecord, node_ids: list[int], config: Config,
                      report: RecoveryReport) -> None:
     sid = session.id
     t0 = time.perf_counter()
     report.sessions += 1
     try:
         redone = store.delete_links(node_ids, MAP_UPDATE_LINKS)  # what an interrupted update wrote
-        mapper = Mapper.resume(store, sid, loop)
+        mapper = Mapper.resume(store, sid, config.loop, memory=config.memory)
     except Exception:  # noqa: BLE001 - e.g. a corrupt stored graph: the other sessions go on
         log.exception("recovery: session %d cannot be resumed: %d keyframe(s) stay unmapped", sid, len(node_ids))
         report.failed += len(node_ids)
@@ -124,7 +124,7 @@ def _recover_session(store: MapStore, session: SessionRecord, node_ids: list[int
     failed = 0
     for k, nid in enumerate(node_ids, 1):
         try:
-            u = KeyframeUpdate.from_store(store, nid, images=loop.refine_dense)
+            u = KeyframeUpdate.from_store(store, nid, images=config.loop.refine_dense)
             if u.odom_from is not None and u.odom_from not in mapper.graph:
                 log.warning("recovery: node %d: its odometry predecessor %d is not in the graph: starts a segment",
                             nid, u.odom_from)

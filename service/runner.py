@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import json
 import logging
 import tempfile
@@ -96,7 +97,28 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
         if dataset.ground_truth is not None:
             write_tum(out_dir / "groundtruth.tum", dataset.ground_truth)
         (out_dir / "summary.json").write_text(json.dumps(asdict(out.summary), indent=2) + "\n")
+        if mapper is not None:
+            write_updates(out_dir / "updates.csv", mapper.statistics)
     return out
+
+
+UPDATE_COLUMNS = ("keyframe", "stamp", "update_ms", "stm", "wm", "ltm", "transferred", "retrieved", "merged", "words")
+UPDATE_STEPS = ("graph", "vocabulary", "detection", "verification_optimization", "proximity", "path", "memory")
+
+
+def write_updates(path: Path, statistics: dict) -> None:
+    """One row per map update (keyframe): its time in all and per step (ms), the STM / WM /
+    LTM sizes after it, how many nodes it transferred to LTM, retrieved and merged, and the
+    vocabulary's searchable words."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(UPDATE_COLUMNS + tuple(f"{s}_ms" for s in UPDATE_STEPS))
+        for node in sorted(statistics):
+            st = statistics[node]
+            m, t = st.memory, st.timings_ms
+            w.writerow([node, f"{m.get('stamp', float('nan')):.6f}", f"{sum(t.values()):.3f}", m.get("stm", ""),
+                        m.get("wm", ""), m.get("ltm", ""), len(m.get("transferred", ())), len(m.get("retrieved", ())),
+                        len(m.get("merged", ())), m.get("words", "")] + [f"{t.get(s, 0.0):.3f}" for s in UPDATE_STEPS])
 
 
 def _frames(dataset: Dataset, ahead: int = 2):

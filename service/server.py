@@ -54,7 +54,7 @@ class SlamService:
         self.store = MapStore(self.config.storage.path)
         recover(self.config)  # sessions a kill left open end "crashed"; their map backlog is done, before any writer starts
         if self.config.loop.enabled and self.config.loop.process:
-            self.mapping = MappingProcess(self.config.storage.path, self.config.loop)
+            self.mapping = MappingProcess(self.config.storage.path, self.config.loop, self.config.memory)
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
                                                 z.multicast_scouting, z.gossip_scouting))
         self._subscribers = [

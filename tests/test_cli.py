@@ -102,11 +102,11 @@ def test_run_set_overrides_config_keys(tmp_path, fake_run):
     assert c.zenoh.listen == ["tcp/127.0.0.1:1", "tcp/127.0.0.1:2"]
     # a --config file, then --set, then the dedicated options
     cfg = tmp_path / "c.yaml"
-    cfg.write_text("service:\n  queue_size: 5\nloop:\n  stm_size: 4\n")
+    cfg.write_text("service:\n  queue_size: 5\nmemory:\n  stm_size: 4\n")
     main(["run", "synthetic:loop", "--out", out, "--config", str(cfg), "--set", "service.queue_size=6",
           "--set", "loop.enabled=true", "--odometry-only"])
     c = fake_run[-1].config
-    assert (c.service.queue_size, c.loop.stm_size, c.loop.enabled) == (6, 4, False)
+    assert (c.service.queue_size, c.memory.stm_size, c.loop.enabled) == (6, 4, False)
 
 
 @pytest.mark.parametrize("item, message", [

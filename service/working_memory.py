@@ -1,0 +1,168 @@
+"""RTAB-Map's three memories, as bookkeeping: which keyframes (nodes) are in short-term
+memory (STM: the newest `stm_size`, not loop candidates), working memory (WM: loop
+candidates, their features and words in RAM) and long-term memory (LTM: in the database
+only), and which move between them.
+
+This module decides; it holds no features and does no I/O. The map update (`Mapper`) asks
+it what to transfer and what to retrieve, moves the data (vocabulary, loop detector, its own
+feature cache) and tells it what moved. Moving a node between WM and LTM changes no data.
+
+Transfer (WM → LTM, RTAB-Map's `Memory::forget`): when WM holds more than `max_wm_nodes`
+nodes, or the last map update took longer than `time_threshold_ms`, the lowest-weight
+nodes go first, the oldest (entered WM first) among equal weights; never the nodes that
+entered WM since the last loop closure (up to `recent_wm_ratio` of WM), nodes linked to STM
+or to the loop-closure node, nor nodes near the current pose.
+
+Retrieval (LTM → WM): LTM nodes within `retrieval_depth` graph links of the best loop
+hypothesis (even one below the acceptance threshold), nearest first (`select_retrievals`),
+then those the map places near the new keyframe (the mapper asks the database's spatial
+index), at most `max_retrieved` per update.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Iterable, Mapping
+
+import numpy as np
+
+
+@dataclass
+class MemorySizes:
+    stm: int
+    wm: int
+    ltm: int
+
+
+class WorkingMemory:
+    def __init__(self, stm_size: int = 10, max_wm_nodes: int = 0, time_threshold_ms: float = 0.0,
+                 recent_wm_ratio: float = 0.2, max_retrieved: int = 2, retrieval_depth: int = 2):
+        self.stm_size = max(0, int(stm_size))
+        self.max_wm_nodes = max(0, int(max_wm_nodes))  # 0 = unlimited
+        self.time_threshold_ms = float(time_threshold_ms)  # 0 = unlimited
+        self.recent_wm_ratio = float(recent_wm_ratio)
+        self.max_retrieved = max(0, int(max_retrieved))
+        self.retrieval_depth = max(0, int(retrieval_depth))
+        self.stm: deque[int] = deque()
+        self._wm: dict[int, int] = {}  # node -> order of entry into WM (insertion-ordered: oldest first)
+        self.ltm: set[int] = set()
+        self.weights: dict[int, int] = {}  # node -> weight (rehearsal raises it); all memories
+        self._entries = 0
+        self._last_loop_entry = 0  # WM entry counter at the last loop closure
+
+    # -- sizes and membership -------------------------------------------------------------
+    @property
+    def wm(self) -> list[int]:
+        """WM nodes, oldest entry first."""
+        return list(self._wm)
+
+    def sizes(self) -> MemorySizes:
+        return MemorySizes(len(self.stm), len(self._wm), len(self.ltm))
+
+    def in_wm(self, node: int) -> bool:
+        return node in self._wm
+
+    def in_ram(self, node: int) -> bool:
+        """STM or WM: its features and words are in RAM."""
+        return node in self._wm or node in self.stm
+
+    def __contains__(self, node: int) -> bool:
+        return node in self._wm or node in self.ltm or node in self.stm
+
+    # -- life cycle -------------------------------------------------------------------------
+    def add(self, node: int, weight: int = 0) -> list[int]:
+        """A new keyframe enters STM; returns the nodes that moved from STM to WM."""
+        self.stm.append(node)
+        self.weights[node] = weight
+        moved = []
+        while len(self.stm) > self.stm_size:
+            n = self.stm.popleft()
+            self._enter_wm(n)
+            moved.append(n)
+        return moved
+
+    def _enter_wm(self, node: int) -> None:
+        self._entries += 1
+        self._wm[node] = self._entries
+
+    def loop_closed(self) -> None:
+        """A loop closure was accepted: the nodes that enter WM from now on are 'recent'."""
+        self._last_loop_entry = self._entries
+
+    def over_limit(self, update_ms: float) -> bool:
+        return (self.max_wm_nodes > 0 and len(self._wm) > self.max_wm_nodes) or \
+            (self.time_threshold_ms > 0 and update_ms > self.time_threshold_ms)
+
+    def select_transfers(self, update_ms: float, protected: Iterable[int] = (), preferred: Iterable[int] = ()) -> list[int]:
+        """The WM nodes to move to LTM after an update that took `update_ms`: enough to get
+        back under max_wm_nodes, at least one node when only the time threshold was exceeded;
+        lowest weight first, then oldest. `protected` nodes (linked to STM, the loop-closure
+        node) never go; `preferred` ones (near the current pose) and those that entered WM
+        since the last loop closure (up to recent_wm_ratio of WM) go only when nothing else
+        can, so that WM never holds more than max_wm_nodes."""
+        if not self.over_limit(update_ms):
+            return []
+        n = len(self._wm)
+        need = max(n - self.max_wm_nodes, 0) if self.max_wm_nodes > 0 else 0
+        if self.time_threshold_ms > 0 and update_ms > self.time_threshold_ms:
+            need = max(need, 1)
+        if need <= 0:
+            return []
+        keep = set(protected)
+        recent = [m for m, e in self._wm.items() if e > self._last_loop_entry]
+        soft = set(preferred) | set(recent[-int(self.recent_wm_ratio * n):] if self.recent_wm_ratio > 0 else [])
+        ids = np.fromiter((m for m in self._wm if m not in keep), np.int64)
+        if not len(ids):
+            return []
+        weight = np.fromiter((self.weights.get(m, 0) for m in ids.tolist()), np.int64)
+        entry = np.fromiter((self._wm[m] for m in ids.tolist()), np.int64)
+        kept = np.fromiter((m in soft for m in ids.tolist()), bool, len(ids))
+        order = np.lexsort((ids, entry, weight, kept))  # the others first; then weight, age, id
+        return ids[order[:need]].tolist()
+
+    def transferred(self, nodes: Iterable[int]) -> None:
+        for n in nodes:
+            if self._wm.pop(n, None) is not None:
+                self.ltm.add(n)
+
+    def select_retrievals(self, seeds: Iterable[int], neighbours: Mapping[int, Iterable[int]]) -> list[int]:
+        """LTM nodes within retrieval_depth links of the `seeds` (best hypothesis first, then
+        the current node), breadth first (nearest in the graph first), at most max_retrieved."""
+        if not self.ltm or self.max_retrieved <= 0:
+            return []
+        out: list[int] = []
+        for seed in seeds:
+            if seed is None:
+                continue
+            frontier, seen = [seed], {seed}
+            for _ in range(self.retrieval_depth):
+                nxt = []
+                for n in frontier:
+                    for m in neighbours.get(n, ()):
+                        if m not in seen:
+                            seen.add(m)
+                            nxt.append(m)
+                for m in sorted(nxt):
+                    if m in self.ltm and m not in out:
+                        out.append(m)
+                        if len(out) >= self.max_retrieved:
+                            return out
+                frontier = nxt
+        return out
+
+    def retrieved(self, nodes: Iterable[int]) -> None:
+        for n in nodes:
+            if n in self.ltm:
+                self.ltm.discard(n)
+                self._enter_wm(n)
+
+    def restore(self, stm: Iterable[int], wm: Iterable[int], ltm: Iterable[int],
+                weights: Mapping[int, int] | None = None) -> None:
+        """Memberships of a reopened map (WM in entry order)."""
+        self.stm = deque(stm)
+        self._wm = {}
+        for n in wm:
+            self._enter_wm(n)
+        self.ltm = set(ltm)
+        if weights:
+            self.weights.update(weights)
