@@ -96,7 +96,7 @@ class RobotSession:
         with self._cond:
             self.last_active = time.monotonic()
             if self._last_stamp is not None and not frame.stamp > self._last_stamp:
-                self.stats.rejected["stamp_order"] = self.stats.rejected.get("stamp_order", 0) + 1
+                self.reject("stamp_order")  # (the condition's lock is reentrant)
                 return
             self._last_stamp = frame.stamp
             self.stats.received += 1
