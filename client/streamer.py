@@ -133,12 +133,20 @@ class CameraStreamer:
         return bool(self._publisher.matching_status.matching)
 
     def wait_for_subscriber(self, timeout: float) -> bool:
-        """Wait up to `timeout` seconds for a subscriber of the frame key; True if there is one."""
+        """Wait up to `timeout` seconds for a subscriber of the frame key; True if there is one.
+        When one had to be waited for, the camera info is put again: the put at construction
+        reached nobody, and the service admits a robot when its info arrives."""
         end = time.monotonic() + max(0.0, timeout)
+        waited = False
         while not self.has_subscriber:
             if time.monotonic() >= end:
                 return False
+            waited = True
             time.sleep(0.01)
+        if waited:
+            import zenoh
+
+            self.session.put(self.info_key, self.info, congestion_control=zenoh.CongestionControl.BLOCK)
         return True
 
     def encode(self, frame: Frame, seq: int) -> bytes:

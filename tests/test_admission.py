@@ -172,8 +172,22 @@ def test_decoded_size_bomb_is_refused_before_decoding(svc, z, dataset):
     assert _rss_mb(svc.proc.pid) - rss0 < 60  # nothing was decoded (one decode would be 112 MB)
 
 
+class _Rendered:
+    """A dataset's frames rendered beforehand: the client then sends faster than any service."""
+
+    def __init__(self, dataset):
+        self.name, self.calibration = dataset.name, dataset.calibration
+        self.frames = [dataset.frame(i) for i in range(len(dataset))]
+
+    def __len__(self):
+        return len(self.frames)
+
+    def __iter__(self):
+        return iter(self.frames)
+
+
 def test_the_camera_sees_the_services_drops_and_flow_control_avoids_them(tmp_path):
-    ds = open_dataset("synthetic:loop", max_frames=60)
+    ds = _Rendered(open_dataset("synthetic:loop", max_frames=60))
     svc = ServiceProcess(tmp_path / "map.db", {"service": {"queue_size": 1}}).start()
     try:
         fast = stream_dataset(ds, "fast", _settings(svc), rate=500.0, progress=False, wait_for_subscriber=10.0)
