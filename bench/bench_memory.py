@@ -3,9 +3,11 @@ working memory bounded (`memory.max_wm_nodes`) and once unbounded, offline with 
 update inline (the same pipeline as `mnemoslam run`).
 
     python bench/bench_memory.py [DATASET] [--passes 10] [--max-wm 100] [--only bounded|unbounded]
+                                 [--set memory.rehearsal=true ...]
 
-DATASET defaults to $MNEMOSLAM_DATA/7scenes_redkitchen. Prints per run: keyframes after the
-first pass and in all, the largest WM, LTM at the end, transfers / retrievals, map update
+DATASET defaults to $MNEMOSLAM_DATA/7scenes_redkitchen; `--set` overrides config keys of both
+runs. Prints per run: the map's nodes (keyframes not merged by rehearsal) after the first
+pass and in all, the largest WM, LTM at the end, transfers / retrievals, map update
 median and p99 over keyframes 100-300 and over the last 200 (and their ratio), loop links
 whose older node had been transferred to LTM and retrieved before the link (in the last two
 passes), the ATE of the whole run and, for the two runs, the ATE ratio bounded / unbounded
@@ -28,15 +30,15 @@ sys.path.insert(0, str(ROOT))
 
 from client.datasets import open_dataset  # noqa: E402
 from client.datasets.passes import Passes  # noqa: E402
-from service.config import load_config  # noqa: E402
+from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
 from service.evaluation import evaluate  # noqa: E402
 from service.runner import run_dataset  # noqa: E402
 from storage import LinkType, MapStore  # noqa: E402
 
 
-def run(dataset, passes: int, max_wm: int, out: Path) -> dict:
+def run(dataset, passes: int, max_wm: int, out: Path, overrides: dict) -> dict:
     ds = Passes(dataset, passes)
-    cfg = load_config(None, {"memory": {"max_wm_nodes": max_wm}})
+    cfg = load_config(None, merge_overrides(overrides, {"memory": {"max_wm_nodes": max_wm}}))
     t = time.perf_counter()
     result = run_dataset(ds, cfg, out, progress=sys.stderr.isatty())
     seconds = time.perf_counter() - t
@@ -56,7 +58,8 @@ def run(dataset, passes: int, max_wm: int, out: Path) -> dict:
     late_ids = {int(r["keyframe"]) for r in rows[late:]}
     to_retrieved = [(a, b) for a, b in loops if b in late_ids and a in out_at and a in back_at]
     return {
-        "keyframes_first_pass": sum(float(r["stamp"]) <= first_pass_end for r in rows), "keyframes": len(rows),
+        "keyframes_first_pass": sum(float(r["stamp"]) <= first_pass_end and r["merged"] == "0" for r in rows),
+        "keyframes": sum(r["merged"] == "0" for r in rows), "merged": sum(r["merged"] != "0" for r in rows),
         "wm_max": max(int(r["wm"]) for r in rows), "ltm_end": int(rows[-1]["ltm"]),
         "transferred": sum(int(r["transferred"]) for r in rows), "retrieved": sum(int(r["retrieved"]) for r in rows),
         "early": ms[100:300], "last": ms[-200:], "loops": len(loops), "loops_late_to_retrieved": len(to_retrieved),
@@ -73,17 +76,19 @@ def main() -> int:
     ap.add_argument("--max-wm", type=int, default=100)
     ap.add_argument("--only", choices=["bounded", "unbounded"])
     ap.add_argument("--out", default="out/bench_memory")
+    ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="config override (repeatable)")
     args = ap.parse_args()
+    overrides = parse_sets(args.set)
     dataset = open_dataset(args.dataset)
     results = {}
     for name, limit in (("bounded", args.max_wm), ("unbounded", 0)):
         if args.only and args.only != name:
             continue
-        r = results[name] = run(dataset, args.passes, limit, Path(args.out) / name)
+        r = results[name] = run(dataset, args.passes, limit, Path(args.out) / name, overrides)
         e, last = r["early"], r["last"]
-        print(f"{name} (memory.max_wm_nodes={limit}): {r['frames']} frames in {r['seconds']:.0f} s, keyframes "
+        print(f"{name} (memory.max_wm_nodes={limit}): {r['frames']} frames in {r['seconds']:.0f} s, map nodes "
               f"{r['keyframes_first_pass']} after pass 1, {r['keyframes']} after {args.passes} "
-              f"({r['keyframes'] / max(r['keyframes_first_pass'], 1):.2f}x); WM max {r['wm_max']}, LTM at the end "
+              f"({r['keyframes'] / max(r['keyframes_first_pass'], 1):.2f}x; {r['merged']} keyframes merged); WM max {r['wm_max']}, LTM at the end "
               f"{r['ltm_end']}; {r['transferred']} transferred, {r['retrieved']} retrieved")
         print(f"  map update median / p99: keyframes 100-300 {np.median(e):.0f} / {np.percentile(e, 99):.0f} ms, "
               f"last 200 {np.median(last):.0f} / {np.percentile(last, 99):.0f} ms "

@@ -317,12 +317,14 @@ class PoseGraph:
         return noise
 
     def add_loop(self, from_id: int, to_id: int, transform, information, robust: bool | str = True,
-                 check: bool = True) -> LoopOutcome:
+                 check: bool | str = True) -> LoopOutcome:
         """Add a loop link T_from_to between two graph nodes, optimise, and check the graph error.
 
         ``robust``: True = the graph's default kernel, False/"none" = plain Gaussian, or "huber" /
-        "cauchy". ``check=False`` (or ``max_error`` ≤ 0) keeps the link whatever the error. A
-        rejected link is removed again and the estimate restored."""
+        "cauchy". ``check=False`` (or ``max_error`` ≤ 0) keeps the link whatever the error;
+        ``check="link"`` checks the new link's own error only (not the other links': one
+        already at the limit would refuse every link that moves it). A rejected link is removed
+        again and the estimate restored."""
         t0 = time.perf_counter()
         a, b = int(from_id), int(to_id)
         t = _as_pose(transform, "transform")
@@ -358,7 +360,7 @@ class PoseGraph:
             elif err_after > self.max_error:
                 accepted, reason = False, (f"loop link error {err_after:.2f} σ > max {self.max_error:g} σ "
                                            "after optimisation")
-            elif max_err > self.max_error:
+            elif max_err > self.max_error and check != "link":
                 accepted, reason = False, (f"link {worst[0]}->{worst[1]} error {max_err:.2f} σ > max "
                                            f"{self.max_error:g} σ after optimisation")
             else:

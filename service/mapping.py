@@ -9,6 +9,7 @@ bit-for-bit reproducible. The mapper owns the map→odometry correction that tur
 odometry's poses into map poses."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import threading
@@ -20,7 +21,7 @@ import cv2
 import numpy as np
 
 from client.frames import PinholeCamera
-from client.geometry import invert
+from client.geometry import invert, rotation_angle
 from storage import LinkType, MapStore, UnknownIdError
 
 from .config import LoopConfig, MemoryConfig
@@ -85,6 +86,7 @@ class LoopStatistics:
     refined: bool = False  # the accepted link was refined by dense registration
     proximity: list = field(default_factory=list)  # [{node, decision, inliers, refined}] spatial candidates
     path: list = field(default_factory=list)  # [{node, decision, inliers, refined}] recent keyframes of its own path
+    rehearsal: dict = field(default_factory=dict)  # {node, similarity, inliers, distance, rotation, decision}: the node it was or wasn't merged into
     timings_ms: dict = field(default_factory=dict)
     memory: dict = field(default_factory=dict)  # after the update: stm, wm, ltm sizes, transferred / retrieved ids, words
 
@@ -116,6 +118,7 @@ class Mapper:
         self._neighbours: dict[int, list[int]] = {}
         self._segment: dict[int, int] = {}  # node -> first node of its odometry segment
         self._loop_nodes: set[int] = set()  # the older end of the last accepted loop closure (kept in WM)
+        self._merged: dict[int, tuple[int, np.ndarray]] = {}  # keyframe merged by rehearsal -> (survivor, T_survivor_keyframe)
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
@@ -146,14 +149,30 @@ class Mapper:
             camera = store.calibration(sid).camera
         m = cls(camera, config, store, on_event=on_event, memory=memory)
         unmapped = set(store.unmapped_nodes(session_ids=[sid]).get(sid, ()))
-        nodes = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
+        stored = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
+        nodes = [n for n in stored if n.merged_into is None]
+        links = [l for l in store.links(session_id=sid) if l.from_id not in unmapped and l.to_id not in unmapped]
+        m._merged = {l.to_id: (l.from_id, l.transform) for l in links if l.type == LinkType.MERGED}
+        odometry, entries = [], []  # odometry links through merged keyframes: to a node, or (rehearsal) to a survivor
+        for l in links:
+            if l.type != LinkType.NEIGHBOR:
+                continue
+            a, ta = m._merged.get(l.from_id, (l.from_id, np.eye(4)))
+            b, tb = m._merged.get(l.to_id, (l.to_id, np.eye(4)))
+            if l.to_id not in m._merged:
+                odometry.append((a, b, ta @ l.transform, l.information))
+            elif a != b:
+                merge = next(k for k in links if k.type == LinkType.MERGED and k.to_id == l.to_id)
+                entries.append((a, b, ta @ l.transform @ invert(tb), _series_information(l.information, merge.information)))
+        loops = [(l.from_id, l.to_id, l.transform, l.information) for l in links
+                 if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
+        m.graph.restore({n.id: n.pose for n in nodes}, odometry, loops + entries)
+        incoming = {b: a for a, b, _, _ in odometry}
+        for a, b, _, _ in entries:
+            if b not in m._neighbours.setdefault(a, []):
+                m._neighbours[a].append(b)
+                m._neighbours.setdefault(b, []).append(a)
         mapped = {n.id for n in nodes}
-        links = [l for l in store.links(session_id=sid) if l.from_id in mapped and l.to_id in mapped]
-        odometry = [l for l in links if l.type == LinkType.NEIGHBOR]
-        loops = [l for l in links if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
-        m.graph.restore({n.id: n.pose for n in nodes}, [(l.from_id, l.to_id, l.transform, l.information) for l in odometry],
-                        [(l.from_id, l.to_id, l.transform, l.information) for l in loops])
-        incoming = {l.to_id: l.from_id for l in odometry}
         for n in nodes:
             keypoints, descriptors, points, _ = store.load_features(n.id)
             m._features[n.id] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
@@ -165,15 +184,15 @@ class Mapper:
             if src is not None:
                 m._neighbours[n.id].append(src)
                 m._neighbours[src].append(n.id)
-        for l in loops:
-            if l.type != LinkType.LOCAL_TIME:  # as _add_link: path links are not loops
+        for l in links:
+            if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE):  # as _add_link: path links are not loops
                 m.loops.append((l.from_id, l.to_id))
                 m._neighbours[l.to_id].append(l.from_id)
                 m._neighbours[l.from_id].append(l.to_id)
         if config.refine_dense:
             m._views = _StoredViews(store, camera, mapped)
         k = max(len(m._order) - m.memory.stm_size, 0)
-        m.memory.restore(stm=m._order[k:], wm=m._order[:k], ltm=())
+        m.memory.restore(stm=m._order[k:], wm=m._order[:k], ltm=(), weights={n.id: n.weight for n in nodes})
         return m
 
     # -- tracking side ---------------------------------------------------------------------
@@ -198,13 +217,25 @@ class Mapper:
             self._thread.join(timeout)
         self.flush_poses()
 
+    @property
+    def merged(self) -> int:
+        """Keyframes merged into a node by rehearsal (they are not nodes of the map)."""
+        return len(self._merged)
+
     def keyframe_poses(self) -> dict[int, np.ndarray]:
-        return self.graph.poses()
+        """Every keyframe's map pose: the graph's nodes, and each merged keyframe where its
+        survivor sees it."""
+        poses = self.graph.poses()
+        poses.update({m: poses[c] @ t for m, (c, t) in self._merged.items() if c in poses})
+        return poses
 
     def flush_poses(self) -> None:
         """Write every pose that moved at all since it was last written (the graph reports only
-        moves above its tolerance), so that the database holds the graph's final estimate."""
+        moves above its tolerance), and the merged keyframes' poses, so that the database
+        holds the graph's final estimate."""
         self._write_moved((0.0, 0.0))
+        if self._merged and self.store is not None:
+            self.store.update_poses({m: self._pose(m) for m in self._merged})
 
     # -- map update ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -221,6 +252,33 @@ class Mapper:
 
     def _update(self, u: KeyframeUpdate) -> None:
         t0 = time.perf_counter()
+        u = self._through_merges(u)
+        self._add_view(u)
+        stats = LoopStatistics(u.node_id)
+        survivor = self._rehearse(u, stats) if self.memory_config.rehearsal and u.odom_from is not None else None
+        t1 = time.perf_counter()
+        best = survivor if survivor is not None else self._add_keyframe(u, stats)
+        t2 = time.perf_counter()
+        transferred, retrieved = self._manage_memory(u, best, (t2 - t0) * 1e3)
+        stats.timings_ms["rehearsal"] = (t1 - t0) * 1e3
+        stats.timings_ms["memory"] = (time.perf_counter() - t2) * 1e3
+        sizes = self.memory.sizes()
+        stats.memory = {"stamp": u.stamp, "stm": sizes.stm, "wm": sizes.wm, "ltm": sizes.ltm,
+                        "transferred": transferred, "retrieved": retrieved,
+                        "merged": [] if survivor is None else [survivor],
+                        "words": len(self.vocabulary), "dormant_words": self.vocabulary.dormant}
+        self.statistics[u.node_id] = stats
+        self._publish(u.node_id)
+        if self.store is not None:
+            self.store.set_statistics(u.node_id, stats.__dict__)
+        with self._lock:
+            self._correction = self._pose(u.node_id) @ invert(u.odom_pose)
+
+    def _add_keyframe(self, u: KeyframeUpdate, stats: LoopStatistics) -> int | None:
+        """The keyframe becomes a node: graph, memory, vocabulary, then loop closure by
+        appearance, by space and along its path. Returns the best loop hypothesis (for
+        retrieval)."""
+        t0 = time.perf_counter()
         self.graph.add_node(u.node_id, u.odom_pose, u.odom_from, u.transform, u.information)
         self._remember(u)
         t1 = time.perf_counter()
@@ -230,8 +288,8 @@ class Mapper:
         with self.vocabulary.lock:  # other robots' mappers add to the same vocabulary
             hyp = self.detector.process(u.node_id, words, self._neighbours, candidates)
         t3 = time.perf_counter()
-        stats = LoopStatistics(u.node_id, hyp.best_id, float(hyp.posterior),
-                               [(int(i), float(s)) for i, s in hyp.likelihood[:5]])
+        stats.hypothesis, stats.posterior = hyp.best_id, float(hyp.posterior)
+        stats.likelihood_top = [(int(i), float(s)) for i, s in hyp.likelihood[:5]]
         stats.decision = "none" if hyp.best_id is None else ("accepted" if hyp.accepted else f"rejected: {hyp.reason}")
         if hyp.accepted:
             stats.decision, v = self._close_loop(u, hyp.best_id, LinkType.GLOBAL_CLOSURE)
@@ -244,27 +302,120 @@ class Mapper:
         if self.config.proximity_by_time:
             self._link_path(u, candidates, stats)
         t6 = time.perf_counter()
-        transferred, retrieved = self._manage_memory(u, hyp.best_id, (t6 - t0) * 1e3)
-        t7 = time.perf_counter()
         stats.timings_ms = {"graph": (t1 - t0) * 1e3, "vocabulary": (t2 - t1) * 1e3,
                             "detection": (t3 - t2) * 1e3, "verification_optimization": (t4 - t3) * 1e3,
-                            "proximity": (t5 - t4) * 1e3, "path": (t6 - t5) * 1e3, "memory": (t7 - t6) * 1e3}
-        sizes = self.memory.sizes()
-        stats.memory = {"stamp": u.stamp, "stm": sizes.stm, "wm": sizes.wm, "ltm": sizes.ltm,
-                        "transferred": transferred, "retrieved": retrieved, "merged": [],
-                        "words": len(self.vocabulary), "dormant_words": self.vocabulary.dormant}
-        self.statistics[u.node_id] = stats
-        self._publish(u.node_id)
+                            "proximity": (t5 - t4) * 1e3, "path": (t6 - t5) * 1e3}
+        return hyp.best_id
+
+    # -- rehearsal ---------------------------------------------------------------------------
+    def _through_merges(self, u: KeyframeUpdate) -> KeyframeUpdate:
+        """A keyframe whose odometry starts at a merged keyframe starts at its survivor."""
+        if u.odom_from not in self._merged or u.transform is None:
+            return u
+        survivor, t = self._merged[u.odom_from]
+        return dataclasses.replace(u, odom_from=survivor, transform=t @ u.transform)
+
+    def _pose(self, node: int) -> np.ndarray:
+        """A keyframe's map pose: its node's, or for a merged keyframe where its survivor sees it."""
+        if node in self._merged:
+            survivor, t = self._merged[node]
+            return self.graph.pose(survivor) @ t
+        return self.graph.pose(node)
+
+    def _rehearse(self, u: KeyframeUpdate, stats: LoopStatistics) -> int | None:
+        """RTAB-Map's rehearsal, against the map rather than the last node only: the STM or
+        WM node nearest to where odometry puts the keyframe (within twice the merge distance
+        and rotation) is its survivor when the two share `memory.rehearsal_similarity` of
+        their visual words, registration puts them within `memory.rehearsal_max_distance` /
+        `rehearsal_max_rotation`, and the graph accepts the link from the previous keyframe
+        to the survivor (it replaces the odometry link to the keyframe). The keyframe is then
+        merged: no node, no words; the survivor's weight grows. Returns the survivor, or None
+        (the keyframe becomes a node)."""
+        c = self._rehearsal_candidate(u)
+        if c is None:
+            return None
+        mc = self.memory_config
+        r = stats.rehearsal = {"node": c, "similarity": round(self._similarity(u, c), 3)}
+        if r["similarity"] < mc.rehearsal_similarity:
+            r["decision"] = "rejected: similarity"
+            return None
+        decision, v = self._register(u, c)
+        r["inliers"] = 0 if v is None else v.inliers
+        if decision != "ok":
+            r["decision"] = decision
+            return None
+        r["distance"] = float(np.linalg.norm(v.transform[:3, 3]))
+        r["rotation"] = float(rotation_angle(v.transform[:3, :3]))
+        if r["distance"] > mc.rehearsal_max_distance or r["rotation"] > mc.rehearsal_max_rotation:
+            r["decision"] = "rejected: too far"
+            return None
+        p = u.odom_from
+        if p != c:
+            info = _series_information(u.information, v.information)
+            outcome = self.graph.add_loop(p, c, u.transform @ invert(v.transform), info, check="link")
+            if not outcome.accepted:
+                r["decision"] = f"rejected: graph {outcome.reason}"
+                return None
+        r["decision"] = "merged"
+        self._merge(u, c, v, entering=p != c and c not in self._neighbours.get(p, ()))
+        return c
+
+    def _rehearsal_candidate(self, u: KeyframeUpdate) -> int | None:
+        """The STM or WM node closest to where odometry puts the keyframe, by distance over
+        rehearsal_max_distance plus rotation over rehearsal_max_rotation, if that is < 4
+        (e.g. both within twice their limit)."""
+        mc = self.memory_config
+        ram = [n for n in list(self.memory.stm) + self.memory.wm if n in self.vocabulary]
+        if not ram:
+            return None
+        where = self.graph.pose(u.odom_from) @ u.transform
+        poses = np.stack([self.graph.pose(n) for n in ram])
+        dist = np.linalg.norm(poses[:, :3, 3] - where[:3, 3], axis=1)
+        turn = rotation_angle(np.swapaxes(poses[:, :3, :3], 1, 2) @ where[:3, :3])
+        score = dist / mc.rehearsal_max_distance + turn / mc.rehearsal_max_rotation
+        k = int(np.argmin(score))
+        return ram[k] if score[k] < 4.0 else None
+
+    def _similarity(self, u: KeyframeUpdate, node: int) -> float:
+        """Matched words / the larger node's words (RTAB-Map's Signature::compareTo): the
+        keyframe's descriptors are quantized without adding words (one that matches no word
+        counts as a word of its own)."""
+        with self.vocabulary.lock:
+            words = self.vocabulary.query(u.features.descriptors)
+            theirs = self.vocabulary.node_words(node)[0]
+        mine = np.unique(words[words >= 0])
+        n_mine = len(mine) + int(np.count_nonzero(words < 0))
+        shared = len(np.intersect1d(mine, theirs, assume_unique=True))
+        return shared / max(n_mine, len(theirs), 1)
+
+    def _merge(self, u: KeyframeUpdate, survivor: int, v: Verification, entering: bool) -> None:
+        """Keyframe `u` merges into `survivor` (RAM, memory weights, database); `entering`:
+        the path just came back to the survivor's part of the map (counts as a loop closure)."""
+        self._merged[u.node_id] = (survivor, v.transform.copy())
+        self._views.pop(u.node_id, None)
+        self.memory.rehearsed(survivor)
+        p = u.odom_from
+        if p != survivor and survivor not in self._neighbours[p]:
+            self._neighbours[p].append(survivor)
+            self._neighbours[survivor].append(p)
+        if entering:
+            self.loops.append((survivor, p))
+            self._loop_nodes = {survivor}
+            self.memory.loop_closed()
         if self.store is not None:
-            self.store.set_statistics(u.node_id, stats.__dict__)
-        with self._lock:
-            self._correction = self.graph.pose(u.node_id) @ invert(u.odom_pose)
+            self.store.merge_node(u.node_id, survivor, v.transform, v.information)
+            self.store.update_poses({u.node_id: self._pose(u.node_id)})
+        if entering:
+            self.on_event("loop_closed", {"from": survivor, "to": p, "inliers": v.inliers, "link": "rehearsal"})
+
+    def _add_view(self, u: KeyframeUpdate) -> None:
+        f = u.features
+        if self.config.refine_dense and f.depth is not None and f.grey is not None:
+            self._views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
 
     def _remember(self, u: KeyframeUpdate) -> None:
         f = u.features
         self._features[u.node_id] = FrameFeatures(f.keypoints, f.descriptors, f.points, f.octaves)  # no images
-        if self.config.refine_dense and f.depth is not None and f.grey is not None:
-            self._views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
         self._stamps[u.node_id] = u.stamp
         self._order.append(u.node_id)
         self.memory.add(u.node_id)
@@ -298,7 +449,7 @@ class Mapper:
         looking within proximity_angle of its way), nearest first: one R*Tree query of the
         stored poses (the graph's estimates)."""
         c = self.config
-        pose = self.graph.pose(u.node_id)
+        pose = self._pose(u.node_id)
         r = c.proximity_radius
         box = (tuple(pose[:3, 3] - r), tuple(pose[:3, 3] + r))
         nodes = [n for n in self.store.nodes(bbox=box, limit=None) if n.id in self.memory.ltm]
@@ -315,7 +466,7 @@ class Mapper:
             keep.update(self._neighbours.get(s, ()))
         wm, near = self.memory.wm, set()
         if wm and self.memory_config.local_radius > 0:
-            here = self.graph.pose(u.node_id)[:3, 3]
+            here = self._pose(u.node_id)[:3, 3]
             centres = np.stack([self.graph.pose(n)[:3, 3] for n in wm])
             close = np.linalg.norm(centres - here, axis=1) <= self.memory_config.local_radius
             near = set(np.asarray(wm)[close].tolist())
@@ -460,6 +611,14 @@ class Mapper:
         if decision == "ok":
             decision = self._add_link(u, candidate, kind, v)
         return decision, v
+
+
+def _series_information(a: np.ndarray | None, b: np.ndarray) -> np.ndarray:
+    """Information of two relative poses chained (covariances add; frames not rotated: the
+    links chained by rehearsal are short)."""
+    if a is None:
+        return b
+    return np.linalg.inv(np.linalg.inv(a) + np.linalg.inv(b))
 
 
 class _StoredViews(dict):

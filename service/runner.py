@@ -42,9 +42,11 @@ class RunSummary:
     seconds: float
     fps: float
     loops: int = 0  # accepted loop closures
+    merged: int = 0  # keyframes merged into a node the map had (rehearsal): the map has keyframes - merged nodes
 
     def line(self) -> str:
-        return (f"{self.dataset}: {self.frames} frames, {self.tracked} tracked, {self.keyframes} keyframes, "
+        merged = f" ({self.merged} merged)" if self.merged else ""
+        return (f"{self.dataset}: {self.frames} frames, {self.tracked} tracked, {self.keyframes} keyframes{merged}, "
                 f"{self.lost} lost, {self.skipped} skipped, {self.bad} unreadable, {self.segments} segment(s), "
                 f"{self.loops} loop(s), {self.fps:.1f} frames/s")
 
@@ -90,6 +92,7 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             out.online = out.trajectory
             out.trajectory = _anchored(out.results, final)
             out.summary.loops = len(mapper.loops)
+            out.summary.merged = mapper.merged
     if out_dir is not None:
         write_tum(out_dir / "trajectory.tum", out.trajectory)
         write_tum(out_dir / "trajectory_online.tum", out.online)
@@ -103,7 +106,7 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
 
 
 UPDATE_COLUMNS = ("keyframe", "stamp", "update_ms", "stm", "wm", "ltm", "transferred", "retrieved", "merged", "words")
-UPDATE_STEPS = ("graph", "vocabulary", "detection", "verification_optimization", "proximity", "path", "memory")
+UPDATE_STEPS = ("rehearsal", "graph", "vocabulary", "detection", "verification_optimization", "proximity", "path", "memory")
 
 
 def write_updates(path: Path, statistics: dict) -> None:

@@ -89,6 +89,15 @@ class WorkingMemory:
         """A loop closure was accepted: the nodes that enter WM from now on are 'recent'."""
         self._last_loop_entry = self._entries
 
+    def rehearsed(self, survivor: int, merged_weight: int = 0) -> int:
+        """A new keyframe (of weight `merged_weight`) was merged into `survivor`, an STM or WM
+        node: the survivor's weight grows by it + 1 (RTAB-Map's); the keyframe never enters
+        memory. Returns the new weight."""
+        if survivor not in self._wm and survivor not in self.stm:
+            raise ValueError(f"node {survivor} is not in STM or WM")
+        self.weights[survivor] = self.weights.get(survivor, 0) + int(merged_weight) + 1
+        return self.weights[survivor]
+
     def over_limit(self, update_ms: float) -> bool:
         return (self.max_wm_nodes > 0 and len(self._wm) > self.max_wm_nodes) or \
             (self.time_threshold_ms > 0 and update_ms > self.time_threshold_ms)

@@ -107,8 +107,15 @@ def m002_session_end_reason(db: sqlite_utils.Database) -> None:
     db.execute("UPDATE sessions SET end_reason = 'stopped' WHERE ended_at IS NOT NULL")
 
 
+def m003_merged_nodes(db: sqlite_utils.Database) -> None:
+    """v3: `nodes.merged_into`, the node a keyframe was merged into by rehearsal (NULL for a
+    node of the map). A merged keyframe keeps its row (stamp, pose, the links tracking wrote)
+    and gets a `merged` link from its survivor; its features and images are gone."""
+    db.execute("ALTER TABLE nodes ADD COLUMN merged_into INTEGER")
+
+
 #: Applied in order: MIGRATIONS[i] upgrades schema version i to i + 1.
-MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason)
+MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason, m003_merged_nodes)
 
 #: Tables a v1 database has (for "is this a mnemoslam database" checks).
 TABLES = ("admin", "sessions", "nodes", "links", "features", "words", "images", "statistics")

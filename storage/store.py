@@ -83,6 +83,7 @@ class LinkType(IntEnum):
     NEIGHBOR_MERGED = 6
     POSE_PRIOR = 7
     LANDMARK = 8
+    MERGED = 10  # rehearsal: T_survivor_merged, from the node a keyframe was merged into (not RTAB-Map's)
 
 
 # -- records --------------------------------------------------------------------------------
@@ -114,6 +115,7 @@ class NodeRecord:
     pose: np.ndarray  # 4×4 float64 camera-to-world
     weight: int
     label: str | None
+    merged_into: int | None = None  # the node rehearsal merged this keyframe into (None: a map node)
 
     @property
     def position(self) -> np.ndarray:
@@ -367,11 +369,11 @@ def _bbox(bbox) -> tuple[tuple[float, float, float], tuple[float, float, float]]
     return lo, hi
 
 
-_NODE_COLUMNS = "n.id, n.session_id, n.robot, n.stamp, n.pose, n.weight, n.label"
+_NODE_COLUMNS = "n.id, n.session_id, n.robot, n.stamp, n.pose, n.weight, n.label, n.merged_into"
 
 
 def _node(row) -> NodeRecord:
-    return NodeRecord(row[0], row[1], row[2], row[3], _unpack(row[4], np.float64, (4, 4)), row[5], row[6])
+    return NodeRecord(row[0], row[1], row[2], row[3], _unpack(row[4], np.float64, (4, 4)), row[5], row[6], row[7])
 
 
 def _link(row) -> LinkRecord:
@@ -829,7 +831,7 @@ class MapStore:
         try:
             t = LinkType(_as_int(type, "link type"))
         except ValueError as e:
-            raise ValueError(f"unknown link type {type!r} (RTAB-Map's 0..8: {', '.join(f'{x.value} {x.name.lower()}' for x in LinkType)})") from e
+            raise ValueError(f"unknown link type {type!r} (known: {', '.join(f'{x.value} {x.name.lower()}' for x in LinkType)})") from e
         T = _pack(_rigid(transform, "transform"), np.float64)
         info = _pack(np.eye(6) if information is None else _matrix(information, (6, 6), "information"), np.float64)
         verb = "INSERT OR REPLACE" if replace else "INSERT"
@@ -842,6 +844,32 @@ class MapStore:
                     missing = [i for i in (a, b) if c.execute("SELECT 1 FROM nodes WHERE id = ?", (i,)).fetchone() is None]
                     raise UnknownIdError(f"link {a} -> {b}: no node {', '.join(map(str, missing))}") from e
                 raise StoreError(f"link {a} -> {b} of type {t.name.lower()} already exists (pass replace=True)") from e
+
+    def merge_node(self, node_id: int, into_id: int, transform: np.ndarray, information: np.ndarray) -> int:
+        """Rehearsal: keyframe `node_id` is merged into node `into_id`, which it sees from
+        T_into_node (`transform`). In one transaction: the node is marked merged, a `merged`
+        link into -> node keeps the transform, the survivor's weight grows by the node's + 1
+        (RTAB-Map's), and the node's features and images are deleted (its row, statistics and
+        the links tracking wrote stay). Returns the survivor's new weight."""
+        a, b = _as_int(node_id, "node_id"), _as_int(into_id, "into_id")
+        if a == b:
+            raise ValueError(f"node {a} cannot be merged into itself")
+        T = _pack(_rigid(transform, "transform"), np.float64)
+        info = _pack(_matrix(information, (6, 6), "information"), np.float64)
+        with self._write("merge_node") as c:
+            rows = dict(c.execute("SELECT id, merged_into FROM nodes WHERE id IN (?, ?)", (a, b)).fetchall())
+            missing = [i for i in (a, b) if i not in rows]
+            if missing:
+                raise UnknownIdError(f"merge {a} into {b}: no node {', '.join(map(str, missing))}")
+            if rows[a] is not None or rows[b] is not None:
+                raise StoreError(f"merge {a} into {b}: node {a if rows[a] is not None else b} is merged already")
+            c.execute("UPDATE nodes SET weight = weight + (SELECT weight + 1 FROM nodes WHERE id = ?) WHERE id = ?", (a, b))
+            c.execute("UPDATE nodes SET merged_into = ? WHERE id = ?", (b, a))
+            c.execute("INSERT OR REPLACE INTO links (from_id, to_id, type, transform, information) VALUES (?, ?, ?, ?, ?)",
+                      (b, a, int(LinkType.MERGED), T, info))
+            c.execute("DELETE FROM features WHERE node_id = ?", (a,))
+            c.execute("DELETE FROM images WHERE node_id = ?", (a,))
+            return c.execute("SELECT weight FROM nodes WHERE id = ?", (b,)).fetchone()[0]
 
     def delete_links(self, to_ids: Iterable[int], types: Iterable[int]) -> int:
         """Delete the links of the given `types` that end at one of `to_ids`, in one
@@ -1117,8 +1145,10 @@ class MapStore:
             row = c.execute("SELECT data FROM statistics WHERE node_id = ?", (_as_int(node_id, "node_id"),)).fetchone()
         return None if row is None else json.loads(row[0])
 
-    def _node_filter(self, session_id, robot, bbox) -> tuple[str, list]:
+    def _node_filter(self, session_id, robot, bbox, merged=None) -> tuple[str, list]:
         where, params = [], []
+        if merged is not None:
+            where.append("n.merged_into IS NOT NULL" if merged else "n.merged_into IS NULL")
         if session_id is not None:
             where.append("n.session_id = ?")
             params.append(_as_int(session_id, "session_id"))
@@ -1136,10 +1166,11 @@ class MapStore:
         return (" WHERE " + " AND ".join(where)) if where else "", params
 
     def nodes(self, session_id: int | None = None, robot: str | None = None, bbox=None,
-              limit: int | None = 100, offset: int = 0) -> list[NodeRecord]:
+              limit: int | None = 100, offset: int = 0, merged: bool | None = None) -> list[NodeRecord]:
         """Nodes matching every given filter, ordered by id; `bbox` = ((xmin, ymin, zmin),
-        (xmax, ymax, zmax)) on the node positions, bounds included; `limit=None` = all."""
-        where, params = self._node_filter(session_id, robot, bbox)
+        (xmax, ymax, zmax)) on the node positions, bounds included; `limit=None` = all;
+        `merged` False = the map's nodes only, True = merged keyframes only, None = both."""
+        where, params = self._node_filter(session_id, robot, bbox, merged)
         lim = -1 if limit is None else _as_int(limit, "limit")
         off = _as_int(offset, "offset")
         if lim < -1 or off < 0:
@@ -1149,8 +1180,9 @@ class MapStore:
                              params + [lim, off]).fetchall()
         return [_node(r) for r in rows]
 
-    def count_nodes(self, session_id: int | None = None, robot: str | None = None, bbox=None) -> int:
-        where, params = self._node_filter(session_id, robot, bbox)
+    def count_nodes(self, session_id: int | None = None, robot: str | None = None, bbox=None,
+                    merged: bool | None = None) -> int:
+        where, params = self._node_filter(session_id, robot, bbox, merged)
         with self._read() as c:
             return c.execute(f"SELECT COUNT(*) FROM nodes n{where}", params).fetchone()[0]
 

@@ -1,0 +1,84 @@
+"""Rehearsal (issue 11): a keyframe taken where the map already has a similar node is merged
+into it instead of becoming a node, so a path walked again and again adds few nodes."""
+import csv
+
+import numpy as np
+import pytest
+
+from client.datasets import open_dataset
+from client.datasets.passes import Passes
+from service.config import load_config
+from service.evaluation import evaluate
+from service.mapping import Mapper
+from service.runner import run_dataset
+from storage import LinkType, MapStore
+
+PASSES = 3
+
+
+@pytest.fixture(scope="module")
+def walked(tmp_path_factory):
+    """walk_a there, back and there again with rehearsal on (and the same without)."""
+    base = open_dataset("synthetic:walk_a", rate=10, noise=True, duration=12, width=320, height=240)
+    ds = Passes(base, PASSES)
+    out_dir = tmp_path_factory.mktemp("rehearsal")
+    cfg = load_config(None, {"memory": {"rehearsal": True}})
+    out = run_dataset(ds, cfg, out_dir, progress=False)
+    rows = list(csv.DictReader(open(out_dir / "updates.csv")))
+    first_pass_end = ds.stamps[len(base) - 1]
+    return {"ds": ds, "out": out, "dir": out_dir, "cfg": cfg, "rows": rows,
+            "pass1": [r for r in rows if float(r["stamp"]) <= first_pass_end]}
+
+
+def test_a_path_walked_again_adds_few_nodes_and_stays_accurate(walked):
+    rows, out = walked["rows"], walked["out"]
+    nodes_pass1 = sum(r["merged"] == "0" for r in walked["pass1"])
+    nodes = sum(r["merged"] == "0" for r in rows)
+    merged = sum(int(r["merged"]) for r in rows)
+    assert merged == out.summary.merged and len(rows) == out.summary.keyframes
+    later = len(rows) - len(walked["pass1"])  # keyframes of passes 2 and 3
+    assert merged >= 0.6 * later, (merged, later)
+    assert nodes <= 1.5 * nodes_pass1, (nodes, nodes_pass1)
+    # every frame still has a pose (merged keyframes through their survivor), and it is accurate
+    assert len(out.trajectory) == len(walked["ds"])
+    assert evaluate(walked["ds"].ground_truth, out.trajectory).ate_rmse < 0.03
+
+
+def test_merged_keyframes_keep_their_row_and_links_but_not_their_data(walked):
+    with MapStore(walked["dir"] / "map.db") as store:
+        merged = store.nodes(limit=None, merged=True)
+        nodes = store.nodes(limit=None, merged=False)
+        assert len(merged) == walked["out"].summary.merged
+        assert len(merged) + len(nodes) == store.count_nodes() == walked["out"].summary.keyframes
+        links = store.links(type=LinkType.MERGED)
+        assert {(l.from_id, l.to_id) for l in links} == {(n.merged_into, n.id) for n in merged}
+        survivors = {n.id: n for n in nodes}
+        for n in merged:
+            assert n.merged_into in survivors  # never merged into a merged keyframe
+            with pytest.raises(Exception):
+                store.load_features(n.id)
+            assert store.load_images(n.id) == (None, None)
+            assert store.statistics(n.id)["rehearsal"]["decision"] == "merged"
+        # the odometry links tracking wrote are kept
+        neighbour_to = {l.to_id for l in store.links(type=LinkType.NEIGHBOR)}
+        assert all(n.id in neighbour_to for n in merged)
+        # weights: each merge adds 1 to its survivor
+        assert sum(n.weight for n in nodes) == len(merged)
+        # a merged keyframe's stored pose is where its survivor sees it
+        poses = {l.to_id: survivors[l.from_id].pose @ l.transform for l in links}
+        for n in merged:
+            assert np.allclose(n.pose, poses[n.id], atol=1e-6)
+
+
+def test_a_resumed_mapper_rebuilds_the_merged_map(walked):
+    cfg = walked["cfg"]
+    with MapStore(walked["dir"] / "map.db") as store:
+        session = store.sessions()[0].id
+        m = Mapper.resume(store, session, cfg.loop, memory=cfg.memory)
+        stored = {n.id: n.pose for n in store.nodes(limit=None)}
+        merged = {n.id for n in store.nodes(limit=None, merged=True)}
+    assert m.merged == len(merged) and set(m.graph.poses()) == set(stored) - merged
+    poses = m.keyframe_poses()
+    assert set(poses) == set(stored)
+    worst = max(np.linalg.norm(poses[n][:3, 3] - stored[n][:3, 3]) for n in stored)
+    assert worst < 0.01, worst
