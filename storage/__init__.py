@@ -1,6 +1,8 @@
 """SQLite long-term memory (LTM) of the map: sessions, nodes (keyframes), links, features,
-words, images and statistics in one file. See `storage.store` for the encodings and the
-durability / threading guarantees, `storage.schema` for the tables and migrations."""
+words, images and statistics in one file. See `storage.store` for how `MapStore` is split by
+concern, `storage.records` for the encodings, `storage.connection` for the durability /
+threading guarantees, `storage.schema` for the tables and migrations and
+`storage.repository` for the interface the service uses."""
 from .store import (
     KeyframeRecord,
     LinkRecord,
