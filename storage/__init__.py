@@ -3,6 +3,7 @@ words, images and statistics in one file. See `storage.store` for how `MapStore`
 concern, `storage.records` for the encodings, `storage.connection` for the durability /
 threading guarantees, `storage.schema` for the tables and migrations and
 `storage.repository` for the interface the service uses."""
+from .repository import MapRepository
 from .store import (
     KeyframeRecord,
     LinkRecord,
@@ -15,6 +16,6 @@ from .store import (
 )
 
 __all__ = [
-    "KeyframeRecord", "LinkRecord", "LinkType", "MapStore", "NodeRecord", "SessionRecord", "StoreError",
-    "UnknownIdError",
+    "KeyframeRecord", "LinkRecord", "LinkType", "MapRepository", "MapStore", "NodeRecord", "SessionRecord",
+    "StoreError", "UnknownIdError",
 ]
