@@ -19,24 +19,8 @@ from __future__ import annotations
 
 from .nodes import Nodes
 from .queries import Queries
-from .records import (
-    MAP_UPDATE_LINKS,
-    KeyframeRecord,
-    LinkRecord,
-    LinkType,
-    NodeRecord,
-    SessionRecord,
-    StoreError,
-    UnknownIdError,
-    _pack,
-    _unpack,
-)
+from .records import MAP_UPDATE_LINKS, StoreError, _pack, _unpack  # noqa: F401 (imported from here before the split)
 from .words import Words
-
-__all__ = [
-    "MAP_UPDATE_LINKS", "KeyframeRecord", "LinkRecord", "LinkType", "MapStore", "NodeRecord", "SessionRecord",
-    "StoreError", "UnknownIdError", "_pack", "_unpack",
-]
 
 
 class MapStore(Nodes, Words, Queries):
