@@ -11,6 +11,7 @@ from fastapi.responses import PlainTextResponse
 
 from client.protocol import ROBOT_PATTERN
 from client.trajectory import format_tum
+from storage import MapRepository
 
 from .server import SlamService
 
@@ -52,7 +53,7 @@ def create_app(service: SlamService) -> FastAPI:
     app = FastAPI(title="mnemoslam", description="Long-term visual SLAM service: map state and queries.",
                   version="0.1.0")
 
-    def store():
+    def store() -> MapRepository:
         if service.store is None:
             raise HTTPException(503, "the service is not running")
         return service.store

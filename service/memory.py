@@ -9,7 +9,7 @@ import numpy as np
 
 from client.frames import Calibration, Frame
 from client.geometry import invert
-from storage import KeyframeRecord, MapStore
+from storage import KeyframeRecord, MapRepository
 
 from .config import Config, to_dict
 from .features import FrameFeatures
@@ -24,7 +24,7 @@ def odometry_information(inliers: int) -> np.ndarray:
 
 
 class Memory:
-    def __init__(self, store: MapStore, robot: str, calibration: Calibration, config: Config):
+    def __init__(self, store: MapRepository, robot: str, calibration: Calibration, config: Config):
         self.store = store
         self.config = config
         self.session_id = store.begin_session(robot, calibration, to_dict(config))

@@ -1,18 +1,13 @@
 """SQLite long-term memory (LTM) of the map: sessions, nodes (keyframes), links, features,
-words, images and statistics in one file. See `storage.store` for the encodings and the
-durability / threading guarantees, `storage.schema` for the tables and migrations."""
-from .store import (
-    KeyframeRecord,
-    LinkRecord,
-    LinkType,
-    MapStore,
-    NodeRecord,
-    SessionRecord,
-    StoreError,
-    UnknownIdError,
-)
+words, images and statistics in one file. See `storage.store` for how `MapStore` is split by
+concern, `storage.records` for the encodings, `storage.connection` for the durability /
+threading guarantees, `storage.schema` for the tables and migrations and
+`storage.repository` for the interface the service uses."""
+from .records import KeyframeRecord, LinkRecord, LinkType, NodeRecord, SessionRecord, StoreError, UnknownIdError
+from .repository import MapRepository
+from .store import MapStore
 
 __all__ = [
-    "KeyframeRecord", "LinkRecord", "LinkType", "MapStore", "NodeRecord", "SessionRecord", "StoreError",
-    "UnknownIdError",
+    "KeyframeRecord", "LinkRecord", "LinkType", "MapRepository", "MapStore", "NodeRecord", "SessionRecord",
+    "StoreError", "UnknownIdError",
 ]

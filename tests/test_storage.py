@@ -1,8 +1,10 @@
 """The SQLite long-term memory: real database files in tmp_path, no mocks."""
 from __future__ import annotations
 
+import inspect
 import json
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -16,7 +18,7 @@ import pytest
 
 from client.frames import Calibration, PinholeCamera
 from client.trajectory import read_tum
-from storage import KeyframeRecord, LinkType, MapStore, StoreError, UnknownIdError
+from storage import KeyframeRecord, LinkType, MapRepository, MapStore, StoreError, UnknownIdError
 from storage.cli import db_export, db_info
 from storage.store import _pack, _unpack
 
@@ -64,6 +66,27 @@ def rng():
 def store(tmp_path):
     with MapStore(tmp_path / "map.db") as s:
         yield s
+
+
+# -- the repository interface ---------------------------------------------------------------
+
+
+def test_map_store_implements_the_repository_protocol(store):
+    protocol = {n for n, v in vars(MapRepository).items() if callable(v) and not n.startswith("_")}
+    assert isinstance(store, MapRepository)
+    for name in sorted(protocol):  # same parameters, defaults and annotations
+        assert inspect.signature(getattr(MapStore, name)) == inspect.signature(getattr(MapRepository, name)), name
+
+    class Partial:  # any method missing: not a repository
+        pass
+    for name in protocol - {"close"}:
+        setattr(Partial, name, getattr(MapStore, name))
+    assert not isinstance(Partial(), MapRepository)
+
+    # Every map method the service calls is in the protocol.
+    called = {m.group(1) for p in (ROOT / "service").glob("*.py")
+              for m in re.finditer(r"(?<![\w])_?store(?:\(\))?\.(\w+)\(", p.read_text())}
+    assert called and called <= protocol, sorted(called - protocol)
 
 
 # -- round trip / encodings -----------------------------------------------------------------

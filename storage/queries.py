@@ -1,0 +1,253 @@
+"""The read side of the map: `Queries` gets nodes (by id, label, session, robot, bbox),
+their features, images and statistics, links, trajectories, counts and file sizes, an
+integrity check, and exports trajectories (TUM) and the graph (JSON). Row decoders are
+`storage.records`'; read connections are `storage.connection`'s."""
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from client.trajectory import Trajectory, format_tum
+
+from .connection import Connection
+from .records import (
+    _NODE_COLUMNS,
+    _SESSION_COLUMNS,
+    LinkRecord,
+    NodeRecord,
+    UnknownIdError,
+    _as_int,
+    _bbox,
+    _jsonable,
+    _link,
+    _link_name,
+    _node,
+    _session,
+    _unpack,
+)
+
+
+class Queries(Connection):
+    """Reads of nodes, links, trajectories and statistics, and the export (the `MapStore`
+    methods of those)."""
+
+    # -- reads ------------------------------------------------------------------------------
+    def get_node(self, node_id: int) -> NodeRecord | None:
+        with self._read() as c:
+            row = c.execute(f"SELECT {_NODE_COLUMNS} FROM nodes n WHERE n.id = ?",
+                            (_as_int(node_id, "node_id"),)).fetchone()
+        return None if row is None else _node(row)
+
+    def node_by_label(self, label: str) -> NodeRecord | None:
+        with self._read() as c:
+            row = c.execute(f"SELECT {_NODE_COLUMNS} FROM nodes n WHERE n.label = ?", (label,)).fetchone()
+        return None if row is None else _node(row)
+
+    def load_features(self, node_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """(keypoints N×2 float32, descriptors N×32 uint8, points N×3 float32, word_ids N int32 | None),
+        bit-exact as written. Raises UnknownIdError for an unknown node."""
+        nid = _as_int(node_id, "node_id")
+        with self._read() as c:
+            row = c.execute("SELECT count, keypoints, descriptors, points, word_ids FROM features WHERE node_id = ?",
+                            (nid,)).fetchone()
+        if row is None:
+            raise UnknownIdError(f"no features for node {nid}")
+        n = row[0]
+        return (_unpack(row[1], np.float32, (n, 2)), _unpack(row[2], np.uint8, (n, 32)),
+                _unpack(row[3], np.float32, (n, 3)), None if row[4] is None else _unpack(row[4], np.int32, (n,)))
+
+    def load_images(self, node_id: int) -> tuple[bytes | None, bytes | None]:
+        """(JPEG colour, PNG-16 millimetre depth) as stored; (None, None) when not kept."""
+        nid = _as_int(node_id, "node_id")
+        with self._read() as c:
+            row = c.execute("SELECT n.id, i.color, i.depth FROM nodes n LEFT JOIN images i ON i.node_id = n.id "
+                            "WHERE n.id = ?", (nid,)).fetchone()
+        if row is None:
+            raise UnknownIdError(f"no node {nid}")
+        return row[1], row[2]
+
+    def statistics(self, node_id: int) -> dict | None:
+        with self._read() as c:
+            row = c.execute("SELECT data FROM statistics WHERE node_id = ?", (_as_int(node_id, "node_id"),)).fetchone()
+        return None if row is None else json.loads(row[0])
+
+    def _node_filter(self, session_id, robot, bbox, merged=None) -> tuple[str, list]:
+        where, params = [], []
+        if merged is not None:
+            where.append("n.merged_into IS NOT NULL" if merged else "n.merged_into IS NULL")
+        if session_id is not None:
+            where.append("n.session_id = ?")
+            params.append(_as_int(session_id, "session_id"))
+        if robot is not None:
+            where.append("n.robot = ?")
+            params.append(str(robot))
+        if bbox is not None:
+            lo, hi = _bbox(bbox)
+            if self._rtree:
+                where.append("n.id IN (SELECT id FROM nodes_rtree WHERE max_x >= ? AND min_x <= ? "
+                             "AND max_y >= ? AND min_y <= ? AND max_z >= ? AND min_z <= ?)")
+                params += [lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]]
+            where.append("n.x BETWEEN ? AND ? AND n.y BETWEEN ? AND ? AND n.z BETWEEN ? AND ?")
+            params += [lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]]
+        return (" WHERE " + " AND ".join(where)) if where else "", params
+
+    def nodes(self, session_id: int | None = None, robot: str | None = None, bbox=None,
+              limit: int | None = 100, offset: int = 0, merged: bool | None = None) -> list[NodeRecord]:
+        """Nodes matching every given filter, ordered by id; `bbox` = ((xmin, ymin, zmin),
+        (xmax, ymax, zmax)) on the node positions, bounds included; `limit=None` = all;
+        `merged` False = the map's nodes only, True = merged keyframes only, None = both."""
+        where, params = self._node_filter(session_id, robot, bbox, merged)
+        lim = -1 if limit is None else _as_int(limit, "limit")
+        off = _as_int(offset, "offset")
+        if lim < -1 or off < 0:
+            raise ValueError(f"limit and offset must be >= 0, got {limit}, {offset}")
+        with self._read() as c:
+            rows = c.execute(f"SELECT {_NODE_COLUMNS} FROM nodes n{where} ORDER BY n.id LIMIT ? OFFSET ?",
+                             params + [lim, off]).fetchall()
+        return [_node(r) for r in rows]
+
+    def count_nodes(self, session_id: int | None = None, robot: str | None = None, bbox=None,
+                    merged: bool | None = None) -> int:
+        where, params = self._node_filter(session_id, robot, bbox, merged)
+        with self._read() as c:
+            return c.execute(f"SELECT COUNT(*) FROM nodes n{where}", params).fetchone()[0]
+
+    def links(self, session_id: int | None = None, node_ids: Iterable[int] | None = None,
+              type: int | None = None) -> list[LinkRecord]:
+        """Links ordered by (from, to, type): touching a node of `session_id`, touching one
+        of `node_ids`, of link `type` — every given filter applies."""
+        with self._read() as c:
+            return self._links(c, session_id, node_ids, type)
+
+    def _links(self, c, session_id=None, node_ids=None, type=None, both_in_session=False) -> list[LinkRecord]:
+        where, params = [], []
+        if session_id is not None:
+            sub = "(SELECT id FROM nodes WHERE session_id = ?)"
+            where.append(f"(from_id IN {sub} {'AND' if both_in_session else 'OR'} to_id IN {sub})")
+            params += [_as_int(session_id, "session_id")] * 2
+        if node_ids is not None:
+            ids = json.dumps([_as_int(i, "node id") for i in node_ids])
+            where.append("(from_id IN (SELECT value FROM json_each(?)) OR to_id IN (SELECT value FROM json_each(?)))")
+            params += [ids, ids]
+        if type is not None:
+            where.append("type = ?")
+            params.append(_as_int(type, "link type"))
+        sql = "SELECT from_id, to_id, type, transform, information FROM links"
+        if where:
+            sql += " WHERE " + " AND ".join(where)
+        rows = c.execute(sql + " ORDER BY from_id, to_id, type", params).fetchall()
+        return [_link(r) for r in rows]
+
+    def trajectory(self, session_id: int) -> Trajectory:
+        """The session's node poses ordered by stamp (then id)."""
+        with self._read(snapshot=True) as c:
+            return self._trajectory(c, _as_int(session_id, "session_id"))
+
+    def _trajectory(self, c, sid: int) -> Trajectory:
+        if c.execute("SELECT 1 FROM sessions WHERE id = ?", (sid,)).fetchone() is None:
+            raise UnknownIdError(f"no session {sid}")
+        rows = c.execute("SELECT stamp, pose FROM nodes WHERE session_id = ? ORDER BY stamp, id", (sid,)).fetchall()
+        poses = np.array([_unpack(r[1], np.float64, (4, 4)) for r in rows]).reshape(-1, 4, 4)
+        return Trajectory(np.array([r[0] for r in rows], dtype=np.float64), poses)
+
+    def file_bytes(self) -> tuple[int, int]:
+        """(database file, WAL file) sizes in bytes."""
+        def size(p: Path) -> int:
+            try:
+                return p.stat().st_size
+            except OSError:
+                return 0
+        return size(self.path), size(self.path.with_name(self.path.name + "-wal"))
+
+    def stats(self) -> dict:
+        """Counts (one consistent snapshot) and file sizes; JSON-encodable."""
+        with self._read(snapshot=True) as c:
+            one = lambda sql: c.execute(sql).fetchone()[0]  # noqa: E731
+            by_type = {_link_name(t): n for t, n in c.execute("SELECT type, COUNT(*) FROM links GROUP BY type ORDER BY type")}
+            out = {
+                "schema_version": one("PRAGMA user_version"),
+                "sessions": one("SELECT COUNT(*) FROM sessions"),
+                "nodes": one("SELECT COUNT(*) FROM nodes"),
+                "links": sum(by_type.values()),
+                "links_by_type": by_type,
+                "features": one("SELECT COUNT(*) FROM features"),
+                "keypoints": one("SELECT COALESCE(SUM(count), 0) FROM features"),
+                "words": one("SELECT COUNT(*) FROM words"),
+                "images": one("SELECT COUNT(*) FROM images"),
+                "statistics": one("SELECT COUNT(*) FROM statistics"),
+            }
+        db, wal = self.file_bytes()
+        out.update(file_bytes=db + wal, wal_bytes=wal)
+        return out
+
+    def session_stats(self) -> dict[int, dict]:
+        """{session id: {nodes, first_stamp, last_stamp}} for every session (one snapshot)."""
+        with self._read(snapshot=True) as c:
+            out = {r[0]: {"nodes": 0, "first_stamp": None, "last_stamp": None}
+                   for r in c.execute("SELECT id FROM sessions ORDER BY id")}
+            for sid, n, first, last in c.execute(
+                    "SELECT session_id, COUNT(*), MIN(stamp), MAX(stamp) FROM nodes GROUP BY session_id"):
+                out[sid] = {"nodes": n, "first_stamp": first, "last_stamp": last}
+        return out
+
+    def integrity_check(self) -> str:
+        """'ok', or SQLite's integrity / foreign-key problems, one per line."""
+        with self._read() as c:
+            problems = [r[0] for r in c.execute("PRAGMA integrity_check").fetchall()]
+            if problems == ["ok"]:
+                problems = []
+            problems += [f"foreign key: {r[0]} row {r[1]} -> {r[2]}" for r in c.execute("PRAGMA foreign_key_check")]
+        return "\n".join(problems) if problems else "ok"
+
+    # -- export -----------------------------------------------------------------------------
+    def export(self, out_dir: str | Path, session_id: int | None = None) -> list[Path]:
+        """Write TUM trajectories and graph.json into `out_dir`; return the written paths.
+
+        With `session_id`: `trajectory.tum` of that session and its graph. Without: one
+        session → `trajectory.tum`; several → `trajectory_<session id>.tum` each (their
+        stamps are on unrelated clocks, so they are not merged); graph.json holds them all.
+        graph.json = {sessions: [...], nodes: [{id, session, stamp, pose (16 floats,
+        row-major), weight, label}], links: [{from, to, type, transform (16), information (36)}]}.
+        """
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        written = []
+        with self._read(snapshot=True) as c:
+            if session_id is not None:
+                sid = _as_int(session_id, "session_id")
+                trajs = {sid: self._trajectory(c, sid)}
+                names = {sid: "trajectory.tum"}
+                rows = c.execute(f"SELECT {_SESSION_COLUMNS} FROM sessions WHERE id = ?", (sid,)).fetchall()
+                nodes = c.execute("SELECT id, session_id, stamp, pose, weight, label FROM nodes "
+                                  "WHERE session_id = ? ORDER BY id", (sid,)).fetchall()
+                links = self._links(c, session_id=sid, both_in_session=True)
+            else:
+                rows = c.execute(f"SELECT {_SESSION_COLUMNS} FROM sessions ORDER BY id").fetchall()
+                trajs = {r[0]: self._trajectory(c, r[0]) for r in rows}
+                names = {s: ("trajectory.tum" if len(rows) == 1 else f"trajectory_{s}.tum") for s in trajs}
+                nodes = c.execute("SELECT id, session_id, stamp, pose, weight, label FROM nodes ORDER BY id").fetchall()
+                links = self._links(c)
+        if not trajs:
+            (out / "trajectory.tum").write_text("")
+            written.append(out / "trajectory.tum")
+        for sid, traj in trajs.items():
+            p = out / names[sid]
+            p.write_text(format_tum(traj))
+            written.append(p)
+        graph = {
+            "sessions": [_session(r).to_dict() for r in rows],
+            "nodes": [{"id": r[0], "session": r[1], "stamp": r[2],
+                       "pose": _unpack(r[3], np.float64, (4, 4)).reshape(-1).tolist(),
+                       "weight": r[4], "label": r[5]} for r in nodes],
+            "links": [{"from": l.from_id, "to": l.to_id, "type": int(l.type),
+                       "transform": l.transform.reshape(-1).tolist(),
+                       "information": l.information.reshape(-1).tolist()} for l in links],
+        }
+        p = out / "graph.json"
+        p.write_text(json.dumps(_jsonable(graph, "graph"), indent=1))
+        written.append(p)
+        return written
+

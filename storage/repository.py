@@ -1,0 +1,86 @@
+"""The narrow interface of the long-term memory: `MapRepository` lists exactly the methods
+the service (`service/`) calls on the map it is given, with `MapStore`'s signatures. Code
+that takes a map should depend on it rather than on `MapStore`, so the store can change
+(or be replaced by a fake in a test) behind it; `MapStore` implements it (see
+tests/test_storage.py). Semantics, errors and threading are `MapStore`'s: see its methods.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from client.frames import Calibration
+from client.trajectory import Trajectory
+
+from .records import KeyframeRecord, LinkRecord, NodeRecord, SessionRecord
+
+
+@runtime_checkable
+class MapRepository(Protocol):
+    """The map as the service uses it: sessions, keyframes, the pose graph, visual words and
+    the read side the REST API serves."""
+
+    # -- sessions (service.memory, service.recovery, service.api) -----------------------------
+    def begin_session(self, robot: str, calibration: Calibration, config: dict | None = None) -> int: ...
+
+    def end_session(self, session_id: int, reason: str = "stopped") -> None: ...
+
+    def end_open_sessions(self, reason: str = "crashed") -> list[SessionRecord]: ...
+
+    def session(self, session_id: int) -> SessionRecord | None: ...
+
+    def sessions(self, robot: str | None = None) -> list[SessionRecord]: ...
+
+    def calibration(self, session_id: int) -> Calibration: ...
+
+    def unmapped_nodes(self, session_ids: Iterable[int] | None = None,
+                       end_reason: str | None = None) -> dict[int, list[int]]: ...
+
+    # -- graph writes (service.memory, service.mapping, service.recovery) ---------------------
+    def add_keyframe(self, rec: KeyframeRecord) -> int: ...
+
+    def add_link(self, from_id: int, to_id: int, type: int, transform: np.ndarray,
+                 information: np.ndarray | None = None, *, replace: bool = False) -> None: ...
+
+    def merge_node(self, node_id: int, into_id: int, transform: np.ndarray, information: np.ndarray) -> int: ...
+
+    def delete_links(self, to_ids: Iterable[int], types: Iterable[int]) -> int: ...
+
+    def update_poses(self, poses: Mapping[int, np.ndarray]) -> int: ...
+
+    def set_statistics(self, node_id: int, statistics: dict) -> None: ...
+
+    # -- visual words (service.vocabulary, service.mapping) -----------------------------------
+    def save_node_words(self, node_id: int, word_ids: np.ndarray, new_word_ids: np.ndarray | None = None,
+                        new_descriptors: np.ndarray | None = None) -> None: ...
+
+    def load_words(self, word_ids: Iterable[int] | None = None) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def load_vocabulary_state(self) -> dict[str, np.ndarray]: ...
+
+    # -- reads (service.mapping, service.recovery, service.evaluation, service.api) -----------
+    def get_node(self, node_id: int) -> NodeRecord | None: ...
+
+    def load_features(self, node_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]: ...
+
+    def load_images(self, node_id: int) -> tuple[bytes | None, bytes | None]: ...
+
+    def statistics(self, node_id: int) -> dict | None: ...
+
+    def nodes(self, session_id: int | None = None, robot: str | None = None, bbox=None,
+              limit: int | None = 100, offset: int = 0, merged: bool | None = None) -> list[NodeRecord]: ...
+
+    def count_nodes(self, session_id: int | None = None, robot: str | None = None, bbox=None,
+                    merged: bool | None = None) -> int: ...
+
+    def links(self, session_id: int | None = None, node_ids: Iterable[int] | None = None,
+              type: int | None = None) -> list[LinkRecord]: ...
+
+    def trajectory(self, session_id: int) -> Trajectory: ...
+
+    def stats(self) -> dict: ...
+
+    # -- lifetime (service.server, service.mapping_process) -----------------------------------
+    def close(self) -> None: ...
