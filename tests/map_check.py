@@ -9,7 +9,8 @@ What a consistent map is, whatever happened to the process that wrote it:
   seen at an earlier check) is still a node;
 - every node belongs to a session, has a finite rigid pose, its features load
   (`MapStore.load_features`: counts and blobs agree) and every word id they point at is a
-  stored word; its images load;
+  stored word; its images load; a keyframe merged by rehearsal instead has a survivor that is
+  a node of the map, a `merged` link from it, and neither features nor images;
 - every link's endpoints are nodes, its transform is finite and rigid; a node has at most
   one incoming odometry link, from a node of its own session;
 - every statistics row parses; the memory moves it records (`memory.transferred`,
@@ -74,6 +75,15 @@ def check_map(path: str | Path, committed=(), *, mapped: bool = False) -> MapChe
                 problems.append(f"node {nid}: no session {n.session_id}")
             if not _rigid(n.pose):
                 problems.append(f"node {nid}: pose not rigid/finite")
+            if n.merged_into is not None:
+                survivor = nodes.get(n.merged_into)
+                if survivor is None or survivor.merged_into is not None:
+                    problems.append(f"node {nid}: merged into {n.merged_into}, which is not a node of the map")
+                if not store.links(node_ids=[nid], type=LinkType.MERGED):
+                    problems.append(f"node {nid}: merged without a merged link")
+                if store.load_images(nid) != (None, None):
+                    problems.append(f"node {nid}: merged but its images are still stored")
+                continue
             try:
                 kp, desc, pts, word_ids = store.load_features(nid)
                 if not (len(kp) == len(desc) == len(pts)) or (word_ids is not None and len(word_ids) != len(kp)):
