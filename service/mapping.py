@@ -31,7 +31,7 @@ from .loop_detection import LoopDetector
 from .memory import decode_images
 from .proximity import nearby
 from .verification import DenseView, Verification, refine, register_dense, verify
-from .vocabulary import Vocabulary
+from .vocabulary import Quantized, Vocabulary
 from .working_memory import WorkingMemory
 
 log = logging.getLogger("mnemoslam.mapping")
@@ -255,9 +255,10 @@ class Mapper:
         u = self._through_merges(u)
         self._add_view(u)
         stats = LoopStatistics(u.node_id)
-        survivor = self._rehearse(u, stats) if self.memory_config.rehearsal and u.odom_from is not None else None
+        survivor, quantized = (self._rehearse(u, stats) if self.memory_config.rehearsal and u.odom_from is not None
+                               else (None, None))
         t1 = time.perf_counter()
-        best = survivor if survivor is not None else self._add_keyframe(u, stats)
+        best = survivor if survivor is not None else self._add_keyframe(u, stats, quantized)
         t2 = time.perf_counter()
         transferred, retrieved = self._manage_memory(u, best, (t2 - t0) * 1e3)
         stats.timings_ms["rehearsal"] = (t1 - t0) * 1e3
@@ -274,15 +275,16 @@ class Mapper:
         with self._lock:
             self._correction = self._pose(u.node_id) @ invert(u.odom_pose)
 
-    def _add_keyframe(self, u: KeyframeUpdate, stats: LoopStatistics) -> int | None:
-        """The keyframe becomes a node: graph, memory, vocabulary, then loop closure by
-        appearance, by space and along its path. Returns the best loop hypothesis (for
-        retrieval)."""
+    def _add_keyframe(self, u: KeyframeUpdate, stats: LoopStatistics, quantized: Quantized | None = None) -> int | None:
+        """The keyframe becomes a node: graph, memory, vocabulary (`quantized`: its descriptors
+        searched already, by rehearsal), then loop closure by appearance, by space and along
+        its path. Returns the best loop hypothesis (for retrieval)."""
         t0 = time.perf_counter()
         self.graph.add_node(u.node_id, u.odom_pose, u.odom_from, u.transform, u.information)
         self._remember(u)
         t1 = time.perf_counter()
-        words = self.vocabulary.add(u.node_id, u.features.descriptors, store=self.store)  # + its new words, one commit
+        words = self.vocabulary.add(u.node_id, u.features.descriptors, store=self.store,
+                                    quantized=quantized)  # + its new words, one commit
         t2 = time.perf_counter()
         candidates = {n for n in self.memory.wm if u.stamp - self._stamps[n] >= self.config.min_age}
         with self.vocabulary.lock:  # other robots' mappers add to the same vocabulary
@@ -322,7 +324,7 @@ class Mapper:
             return self.graph.pose(survivor) @ t
         return self.graph.pose(node)
 
-    def _rehearse(self, u: KeyframeUpdate, stats: LoopStatistics) -> int | None:
+    def _rehearse(self, u: KeyframeUpdate, stats: LoopStatistics) -> tuple[int | None, Quantized | None]:
         """RTAB-Map's rehearsal, against the map rather than the last node only: the STM or
         WM node nearest to where odometry puts the keyframe (within twice the merge distance
         and rotation) is its survivor when the two share `memory.rehearsal_similarity` of
@@ -330,35 +332,39 @@ class Mapper:
         `rehearsal_max_rotation`, and the graph accepts the link from the previous keyframe
         to the survivor (it replaces the odometry link to the keyframe). The keyframe is then
         merged: no node, no words; the survivor's weight grows. Returns the survivor, or None
-        (the keyframe becomes a node)."""
+        (the keyframe becomes a node), and the search of its descriptors in the vocabulary
+        (for `Vocabulary.add`; None if none was made or it merged)."""
         c = self._rehearsal_candidate(u)
         if c is None:
-            return None
+            return None, None
         mc = self.memory_config
-        r = stats.rehearsal = {"node": c, "similarity": round(self._similarity(u, c), 3)}
-        if r["similarity"] < mc.rehearsal_similarity:
+        with self.vocabulary.lock:
+            quantized = self.vocabulary.quantize(u.features.descriptors)
+            similarity = self._similarity(quantized.words, c)
+        r = stats.rehearsal = {"node": c, "similarity": round(similarity, 3)}
+        if similarity < mc.rehearsal_similarity:
             r["decision"] = "rejected: similarity"
-            return None
+            return None, quantized
         decision, v = self._register(u, c)
         r["inliers"] = 0 if v is None else v.inliers
         if decision != "ok":
             r["decision"] = decision
-            return None
+            return None, quantized
         r["distance"] = float(np.linalg.norm(v.transform[:3, 3]))
         r["rotation"] = float(rotation_angle(v.transform[:3, :3]))
         if r["distance"] > mc.rehearsal_max_distance or r["rotation"] > mc.rehearsal_max_rotation:
             r["decision"] = "rejected: too far"
-            return None
+            return None, quantized
         p = u.odom_from
         if p != c:
             info = _series_information(u.information, v.information)
             outcome = self.graph.add_loop(p, c, u.transform @ invert(v.transform), info, check="link")
             if not outcome.accepted:
                 r["decision"] = f"rejected: graph {outcome.reason}"
-                return None
+                return None, quantized
         r["decision"] = "merged"
         self._merge(u, c, v, entering=p != c and c not in self._neighbours.get(p, ()))
-        return c
+        return c, None
 
     def _rehearsal_candidate(self, u: KeyframeUpdate) -> int | None:
         """The STM or WM node closest to where odometry puts the keyframe, by distance over
@@ -376,13 +382,11 @@ class Mapper:
         k = int(np.argmin(score))
         return ram[k] if score[k] < 4.0 else None
 
-    def _similarity(self, u: KeyframeUpdate, node: int) -> float:
-        """Matched words / the larger node's words (RTAB-Map's Signature::compareTo): the
-        keyframe's descriptors are quantized without adding words (one that matches no word
-        counts as a word of its own)."""
-        with self.vocabulary.lock:
-            words = self.vocabulary.query(u.features.descriptors)
-            theirs = self.vocabulary.node_words(node)[0]
+    def _similarity(self, words: np.ndarray, node: int) -> float:
+        """Matched words / the larger node's words (RTAB-Map's Signature::compareTo), for the
+        keyframe's descriptors quantized without adding words (`words`; -1, a descriptor that
+        matches no word, counts as a word of its own)."""
+        theirs = self.vocabulary.node_words(node)[0]
         mine = np.unique(words[words >= 0])
         n_mine = len(mine) + int(np.count_nonzero(words < 0))
         shared = len(np.intersect1d(mine, theirs, assume_unique=True))
