@@ -9,6 +9,7 @@ bit-for-bit reproducible. The mapper owns the map→odometry correction that tur
 odometry's poses into map poses."""
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import queue
@@ -35,6 +36,8 @@ from .vocabulary import Quantized, Vocabulary
 from .working_memory import WorkingMemory
 
 log = logging.getLogger("mnemoslam.mapping")
+
+STATISTICS_KEPT = 1000  # map updates whose LoopStatistics a Mapper keeps in RAM (RAM stays flat on long runs)
 
 
 @dataclass
@@ -122,7 +125,8 @@ class Mapper:
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
-        self.statistics: dict[int, LoopStatistics] = {}
+        # the statistics of the last STATISTICS_KEPT updates (every update's are in the database)
+        self.statistics: collections.OrderedDict[int, LoopStatistics] = collections.OrderedDict()
         self._queue: queue.Queue | None = None
         self.submitted = 0  # keyframe updates handed to the map update ...
         self.mapped = 0  # ... and done (the difference is the backlog)
@@ -269,6 +273,8 @@ class Mapper:
                         "merged": [] if survivor is None else [survivor],
                         "words": len(self.vocabulary), "dormant_words": self.vocabulary.dormant}
         self.statistics[u.node_id] = stats
+        while len(self.statistics) > STATISTICS_KEPT:
+            self.statistics.popitem(last=False)
         self._publish(u.node_id)
         if self.store is not None:
             self.store.set_statistics(u.node_id, stats.__dict__)
@@ -509,7 +515,7 @@ class Mapper:
         ids = np.fromiter(sorted(candidates - set(self._neighbours[u.node_id])), np.int64)
         if not len(ids):
             return
-        poses = self.graph.poses()
+        poses = {i: self.graph.pose(i) for i in ids.tolist() + [u.node_id]}  # WM only, not the whole graph
         near = nearby(np.stack([poses[i] for i in ids.tolist()]), ids, poses[u.node_id], c.proximity_radius,
                       c.proximity_angle, c.proximity_max_candidates)
         for k, candidate in enumerate(near.tolist()):
@@ -536,7 +542,7 @@ class Mapper:
                 recent.append(n)
         if not recent:
             return
-        poses = self.graph.poses()
+        poses = {i: self.graph.pose(i) for i in recent + [u.node_id]}
         ids = np.array(recent, np.int64)
         near = np.sort(nearby(np.stack([poses[i] for i in recent]), ids, poses[u.node_id], c.proximity_radius,
                               c.proximity_angle, len(ids)))  # oldest first (node ids grow with time)

@@ -101,7 +101,8 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             write_tum(out_dir / "groundtruth.tum", dataset.ground_truth)
         (out_dir / "summary.json").write_text(json.dumps(asdict(out.summary), indent=2) + "\n")
         if mapper is not None:
-            write_updates(out_dir / "updates.csv", mapper.statistics)
+            with MapStore(db, create=False) as reader:  # every update's statistics (the mapper keeps the last ones)
+                write_updates(out_dir / "updates.csv", ((n, reader.statistics(n)) for n in ids))
     return out
 
 
@@ -109,16 +110,18 @@ UPDATE_COLUMNS = ("keyframe", "stamp", "update_ms", "stm", "wm", "ltm", "transfe
 UPDATE_STEPS = ("rehearsal", "graph", "vocabulary", "detection", "verification_optimization", "proximity", "path", "memory")
 
 
-def write_updates(path: Path, statistics: dict) -> None:
+def write_updates(path: Path, statistics) -> None:
     """One row per map update (keyframe): its time in all and per step (ms), the STM / WM /
     LTM sizes after it, how many nodes it transferred to LTM, retrieved and merged, and the
-    vocabulary's searchable words."""
+    vocabulary's searchable words. `statistics`: (node id, its stored statistics dict) in
+    keyframe order; keyframes without statistics are left out."""
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(UPDATE_COLUMNS + tuple(f"{s}_ms" for s in UPDATE_STEPS))
-        for node in sorted(statistics):
-            st = statistics[node]
-            m, t = st.memory, st.timings_ms
+        for node, st in statistics:
+            if not st:
+                continue
+            m, t = st.get("memory") or {}, st.get("timings_ms") or {}
             w.writerow([node, f"{m.get('stamp', float('nan')):.6f}", f"{sum(t.values()):.3f}", m.get("stm", ""),
                         m.get("wm", ""), m.get("ltm", ""), len(m.get("transferred", ())), len(m.get("retrieved", ())),
                         len(m.get("merged", ())), m.get("words", "")] + [f"{t.get(s, 0.0):.3f}" for s in UPDATE_STEPS])
