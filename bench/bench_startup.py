@@ -12,6 +12,11 @@ to --words), odometry links and a loop link every 50 nodes, one ended session.
     python bench/bench_startup.py [--nodes 100000] [--words 300000] [--max-wm 100] [--out out/bench_startup]
 
 Prints seconds and RSS (current, this process: the new start-up is measured first) of each.
+
+Measured 2026-11-25 (2 cores shared with other jobs; the 2.8 GB file in the page cache):
+100,000 nodes, 300,000 words, max_wm_nodes=100: new 0.57-0.84 s, RSS +33-63 MB (WM 100,
+LTM 99,900, 1,383 words, 100 graph nodes; the ids-only queries of the nodes and links take
+~0.4 s of it); old 48.6 s, RSS +3.2 GB (every node's postings in RAM): 85x faster.
 """
 from __future__ import annotations
 
