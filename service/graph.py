@@ -308,6 +308,40 @@ class PoseGraph:
             self._publish_locked()
             self._published = {k: v.copy() for k, v in poses.items()}
 
+    def add_anchored(self, poses, sigmas=FIRST_PRIOR_SIGMAS) -> None:
+        """Add nodes that are already placed, e.g. a previous session's optimised map: each at
+        its given pose ({id: 4×4}) with a prior of ``sigmas`` (default the tight first-node
+        prior, so they anchor whatever links to them), no link between them; one iSAM2
+        update. The given poses count as published (``changed_poses`` reports only moves
+        away from them). Later segments (``add_node`` without ``odom_from``) get the loose
+        segment prior, so a loop link to these nodes places them."""
+        poses = {int(k): _as_pose(v, f"pose of node {k}") for k, v in poses.items()}
+        sig = np.asarray(sigmas, np.float64)
+        if not poses:
+            return
+        with self._lock:
+            for nid in poses:
+                if nid in self._raw:
+                    raise ValueError(f"node {nid} is already in the graph")
+            graph = gtsam.NonlinearFactorGraph()
+            values = gtsam.Values()
+            noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
+            for nid, pose in poses.items():
+                values.insert(nid, _pose3(pose))
+                graph.add(gtsam.PriorFactorPose3(nid, _pose3(pose), noise))
+                self._priors[nid] = (pose.copy(), sig, self._n_factors)
+                self._n_factors += 1
+                self._nodes.append(nid)
+                self._raw[nid] = pose.copy()
+            self._isam.update(graph, values)
+            if self._cache is not None:  # priors alone: the others' optimum does not move
+                self._cache.update({nid: _ro(p.copy()) for nid, p in poses.items()})
+            with self._snap_lock:
+                snap = dict(self._snap)
+                snap.update({nid: _ro(p.copy()) for nid, p in poses.items()})
+                self._snap = snap
+            self._published.update({nid: p.copy() for nid, p in poses.items()})
+
     def _loop_noise(self, info: np.ndarray, kernel: str):
         noise = gtsam.noiseModel.Gaussian.Information(info)
         if kernel == "huber":

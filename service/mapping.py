@@ -97,16 +97,17 @@ class LoopStatistics:
 class Mapper:
     def __init__(self, camera: PinholeCamera, config: LoopConfig, store: MapStore | None = None,
                  on_event: Callable[[str, dict], None] | None = None, background: bool = False,
-                 memory: MemoryConfig | None = None):
+                 memory: MemoryConfig | None = None, previous_map: bool = True):
         self.camera = camera
         self.config = config
         self.memory_config = mc = memory if memory is not None else MemoryConfig()
         self.store = store
         self.on_event = on_event or (lambda kind, data: None)
-        # The map's vocabulary: loaded from the store when the map is reopened, shared by every
-        # mapper (robot) of that store, persisted with each keyframe.
-        self.vocabulary = (Vocabulary.for_store(store, nndr=config.nndr_ratio) if store is not None
-                           else Vocabulary(nndr=config.nndr_ratio))
+        # The map's vocabulary: shared by every mapper (robot) of that store, persisted with each
+        # keyframe; on a reopened map with a WM limit it starts without words (those of the nodes
+        # in RAM come with them), else it is loaded whole from the store.
+        self.vocabulary = (Vocabulary.for_store(store, words=mc.max_wm_nodes <= 0, nndr=config.nndr_ratio)
+                           if store is not None else Vocabulary(nndr=config.nndr_ratio))
         self.detector = LoopDetector(self.vocabulary, loop_threshold=config.threshold, stm_size=mc.stm_size)
         self.graph = PoseGraph(max_error=config.optimize_max_error)
         # STM / WM / LTM: which keyframes are loop candidates with features and words in RAM
@@ -130,6 +131,8 @@ class Mapper:
         self._queue: queue.Queue | None = None
         self.submitted = 0  # keyframe updates handed to the map update ...
         self.mapped = 0  # ... and done (the difference is the backlog)
+        if store is not None and previous_map:
+            self._load_previous_map()
         if background:
             self._queue = queue.Queue()
             self._thread = threading.Thread(target=self._run, name="mapper", daemon=True)
@@ -151,7 +154,7 @@ class Mapper:
         sid = int(session_id)
         if camera is None:
             camera = store.calibration(sid).camera
-        m = cls(camera, config, store, on_event=on_event, memory=memory)
+        m = cls(camera, config, store, on_event=on_event, memory=memory, previous_map=False)
         unmapped = set(store.unmapped_nodes(session_ids=[sid]).get(sid, ()))
         stored = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
         nodes = [n for n in stored if n.merged_into is None]
@@ -177,8 +180,9 @@ class Mapper:
                 m._neighbours[a].append(b)
                 m._neighbours.setdefault(b, []).append(a)
         mapped = {n.id for n in nodes}
+        words = {}
         for n in nodes:
-            keypoints, descriptors, points, _ = store.load_features(n.id)
+            keypoints, descriptors, points, words[n.id] = store.load_features(n.id)
             m._features[n.id] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
             m._stamps[n.id] = n.stamp
             m._order.append(n.id)
@@ -195,6 +199,7 @@ class Mapper:
                 m._neighbours[l.from_id].append(l.to_id)
         if config.refine_dense:
             m._views = _StoredViews(store, camera, mapped)
+        m._index_words(words)  # those the vocabulary does not hold (it loads only WM's with a WM limit)
         k = max(len(m._order) - m.memory.stm_size, 0)
         m.memory.restore(stm=m._order[k:], wm=m._order[:k], ltm=(), weights={n.id: n.weight for n in nodes})
         return m
@@ -499,7 +504,9 @@ class Mapper:
         except UnknownIdError:
             return False
         self._features[node] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
-        if word_ids is not None:
+        if node not in self.graph:  # a node of the previous map, in no graph of this mapper yet
+            self._place_previous([node])
+        if word_ids is not None and node not in self.vocabulary:  # an old node another mapper holds is indexed
             with self.vocabulary.lock:
                 missing = self.vocabulary.missing_words(word_ids[word_ids >= 0])
                 self.vocabulary.reload_node(node, word_ids, descriptors=self.store.load_words(missing) if len(missing)
@@ -507,6 +514,64 @@ class Mapper:
         if isinstance(self._views, _StoredViews):
             self._views.defer(node)
         return True
+
+    # -- start-up on a reopened map -----------------------------------------------------------
+    def _load_previous_map(self) -> None:
+        """RTAB-Map's start-up on a reopened map (`Memory::loadLastNodes`,
+        `Mem/InitWMWithAllNodes` false): the nodes of its ended sessions (the previous map;
+        open sessions' are other mappers') go to LTM, ids only, except the newest
+        `memory.max_wm_nodes` (all of them with an unlimited WM), which start in WM: their
+        features (one query) and words (only their words' descriptors are read), in the
+        graph at their stored poses (`_place_previous`). The old nodes' graph adjacency
+        (one query, ids only) serves the loop detector's prediction and retrieval; they are
+        never "recent" for transfer (the new session's nodes stay first)."""
+        store = self.store
+        ids = store.node_ids(ended=True)
+        if not len(ids):
+            return
+        k = self.memory.max_wm_nodes
+        first_wm = ids[-k:] if 0 < k < len(ids) else ids
+        features = store.load_features_many(first_wm.tolist())
+        wm = [n for n in first_wm.tolist() if n in features]  # a node without features stays in LTM
+        pairs = store.link_pairs((LinkType.NEIGHBOR, LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE))
+        pairs = pairs[np.isin(pairs, ids).all(axis=1)]
+        nb = self._neighbours
+        for a, b in pairs.tolist():
+            nb.setdefault(a, []).append(b)
+            nb.setdefault(b, []).append(a)
+        self._place_previous(wm)
+        for n in wm:
+            kp, desc, pts, _ = features[n]
+            self._features[n] = FrameFeatures(kp, desc, pts, np.zeros(len(kp), np.int8))
+            if self.config.refine_dense and isinstance(self._views, _StoredViews):
+                self._views.defer(n)
+        self._index_words({n: features[n][3] for n in wm})
+        in_ram = set(wm)
+        self.memory.restore(stm=(), wm=wm, ltm=[n for n in ids.tolist() if n not in in_ram])  # keeps weights
+        self.memory.loop_closed()  # the old nodes are not "recent": they leave WM first
+
+    def _place_previous(self, node_ids) -> None:
+        """Nodes of the previous map (not in this mapper's graph) enter it at their stored
+        poses, each with the tight prior: that map is already optimised, so it stays where it
+        is and anchors the new session (whose first node has the loose segment prior), which a
+        loop link to it places in the old map's frame. Their stamps count as older than any
+        `loop.min_age`; their weights are the stored ones."""
+        records = [r for r in self.store.get_nodes(node_ids) if r.id not in self.graph]
+        self.graph.add_anchored({r.id: r.pose for r in records})
+        for r in records:
+            self._stamps[r.id] = -np.inf  # another session's: always old enough to be a candidate
+            self._neighbours.setdefault(r.id, [])
+            self.memory.weights[r.id] = r.weight
+
+    def _index_words(self, words: dict) -> None:
+        """Index the words of nodes ({node: word id per feature, or None}) the vocabulary
+        does not hold yet, the descriptors of its missing words read in one query."""
+        with self.vocabulary.lock:
+            todo = {n: w for n, w in words.items() if w is not None and n not in self.vocabulary}
+            if not todo:
+                return
+            missing = self.vocabulary.missing_words(np.concatenate([np.asarray(w, np.int64) for w in todo.values()]))
+            self.vocabulary.reload_nodes(todo, descriptors=self.store.load_words(missing) if len(missing) else None)
 
     def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics) -> None:
         """Proximity detection: verify the nearest older keyframes the graph places around this

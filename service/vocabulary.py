@@ -679,6 +679,26 @@ class Vocabulary:
                     d.clear()
                     d.update(items)
 
+    def reload_nodes(self, nodes, descriptors=None) -> None:
+        """`reload_node` of many nodes ({node id: word id per feature as stored}, none of
+        them in RAM), with one link pass for all their words: the same vocabulary as
+        reloading them one by one. `descriptors`: the `(ids, W×32)` pair of
+        `MapStore.load_words` for the words this vocabulary does not hold (any superset)."""
+        with self.lock:
+            items = sorted((int(n), np.asarray(w, np.int64).ravel()) for n, w in nodes.items())
+            for n, _ in items:
+                if n in self._nodes:
+                    raise ValueError(f"node {n} is in RAM already (unload_node it first)")
+            if not items:
+                return
+            allw = np.unique(np.concatenate([w[w >= 0] for _, w in items]))
+            missing = allw[~self._held(allw)]
+            if len(missing):
+                self._add_held(items[0][0], missing, allw, descriptors)
+            self._wake(allw)
+            for n, w in items:  # postings: ascending node ids as reload_node keeps them
+                self.reload_node(n, w)
+
     def _add_held(self, node_id: int, missing: np.ndarray, uw: np.ndarray, descriptors) -> None:
         """Store the descriptors of words this vocabulary did not hold, as dormant words
         (`_wake` then links them); raises MissingWordsError before changing anything."""
@@ -809,17 +829,27 @@ class Vocabulary:
         return cls.from_state(store.load_vocabulary_state(), **params)
 
     @classmethod
-    def for_store(cls, store, **params) -> Vocabulary:
+    def for_store(cls, store, words: bool = True, **params) -> Vocabulary:
         """The one vocabulary of a map for this process: loaded with `from_store` by the
-        first caller, the same object for every later one while that `store` object lives (their
-        `params` are then ignored). Hold its `lock` around anything that reads it while
-        another thread may add to it."""
+        first caller (with `words=False`: `empty_for` instead, the caller reloads the nodes
+        it wants in RAM), the same object for every later one while that `store` object
+        lives (their `words` and `params` are then ignored). Hold its `lock` around
+        anything that reads it while another thread may add to it."""
         with _SHARED_LOCK:
             v = _SHARED.get(store)
             if v is None:
-                v = cls.from_store(store, **params)
+                v = cls.from_store(store, **params) if words else cls.empty_for(store, **params)
                 _SHARED[store] = v
             return v
+
+    @classmethod
+    def empty_for(cls, store, **params) -> Vocabulary:
+        """A vocabulary of a stored map that holds none of its words yet (RTAB-Map's start-up
+        loads only working memory's): new words get ids after the map's
+        (`MapStore.next_word_id`); nodes come in with `reload_node(s)` and the descriptors
+        of their words from `MapStore.load_words`."""
+        return cls.from_state({"word_ids": np.zeros(0, np.int64), "descriptors": np.zeros((0, 32), np.uint8),
+                               "next_id": np.array([store.next_word_id()], np.int64)}, **params)
 
 
 _SHARED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # store -> its Vocabulary

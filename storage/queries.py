@@ -59,6 +59,54 @@ class Queries(Connection):
         return (_unpack(row[1], np.float32, (n, 2)), _unpack(row[2], np.uint8, (n, 32)),
                 _unpack(row[3], np.float32, (n, 3)), None if row[4] is None else _unpack(row[4], np.int32, (n,)))
 
+    def get_nodes(self, node_ids: Iterable[int]) -> list[NodeRecord]:
+        """The given nodes (unknown ids left out), ordered by id: one query."""
+        ids = json.dumps(sorted({_as_int(i, "node id") for i in node_ids}))
+        with self._read() as c:
+            rows = c.execute(f"SELECT {_NODE_COLUMNS} FROM nodes n WHERE n.id IN (SELECT value FROM json_each(?)) "
+                             "ORDER BY n.id", (ids,)).fetchall()
+        return [_node(r) for r in rows]
+
+    def node_ids(self, ended: bool | None = None, merged: bool | None = False) -> np.ndarray:
+        """Ids (int64, ascending: in time) of the nodes, ids only, one query: `ended` True =
+        of sessions that have ended (a map reopened by a new session: its previous map),
+        False = of open sessions, None = all; `merged` as for `nodes` (default: the map's
+        nodes, not the keyframes merged into them)."""
+        where, params = self._node_filter(None, None, None, merged)
+        if ended is not None:
+            where += (" AND " if where else " WHERE ") + \
+                f"n.session_id IN (SELECT id FROM sessions WHERE ended_at IS {'NOT ' if ended else ''}NULL)"
+        with self._read() as c:
+            rows = c.execute(f"SELECT n.id FROM nodes n{where} ORDER BY n.id", params).fetchall()
+        return np.fromiter((r[0] for r in rows), np.int64, len(rows))
+
+    def load_features_many(self, node_ids: Iterable[int]) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                             np.ndarray | None]]:
+        """`load_features` of many nodes in one query: {node id: (keypoints, descriptors, points,
+        word_ids | None)} in ascending id order; nodes without features are left out."""
+        ids = json.dumps(sorted({_as_int(i, "node id") for i in node_ids}))
+        with self._read(snapshot=True) as c:
+            rows = c.execute("SELECT node_id, count, keypoints, descriptors, points, word_ids FROM features "
+                             "WHERE node_id IN (SELECT value FROM json_each(?)) ORDER BY node_id", (ids,)).fetchall()
+        return {r[0]: (_unpack(r[2], np.float32, (r[1], 2)), _unpack(r[3], np.uint8, (r[1], 32)),
+                       _unpack(r[4], np.float32, (r[1], 3)), None if r[5] is None else _unpack(r[5], np.int32, (r[1],)))
+                for r in rows}
+
+    def link_pairs(self, types: Iterable[int] | None = None) -> np.ndarray:
+        """(from, to) of every link (of `types`), (L, 2) int64, one query, ids only; a merged
+        keyframe's end is its survivor's (links that then join a node to itself are left out):
+        the graph adjacency of the map's nodes."""
+        where, params = "", []
+        if types is not None:
+            where = " WHERE l.type IN (SELECT value FROM json_each(?))"
+            params.append(json.dumps([_as_int(t, "link type") for t in types]))
+        sql = ("SELECT COALESCE(a.merged_into, l.from_id), COALESCE(b.merged_into, l.to_id) FROM links l "
+               "JOIN nodes a ON a.id = l.from_id JOIN nodes b ON b.id = l.to_id" + where)
+        with self._read() as c:
+            rows = c.execute(sql, params).fetchall()
+        pairs = np.array(rows, np.int64).reshape(-1, 2)
+        return pairs[pairs[:, 0] != pairs[:, 1]]
+
     def load_images(self, node_id: int) -> tuple[bytes | None, bytes | None]:
         """(JPEG colour, PNG-16 millimetre depth) as stored; (None, None) when not kept."""
         nid = _as_int(node_id, "node_id")

@@ -135,6 +135,14 @@ class Words(Connection):
             ids, desc = ids[order], desc[order]
         return ids, desc
 
+    def next_word_id(self) -> int:
+        """One past the highest word id ever stored (what a vocabulary that loads no words
+        must hand out next: ids are never reused)."""
+        with self._read(snapshot=True) as c:
+            top = c.execute("SELECT MAX(id) FROM words").fetchone()[0]
+            mark = c.execute("SELECT value FROM admin WHERE key = 'next_word_id'").fetchone()
+        return max(0 if top is None else int(top) + 1, 0 if mark is None else int(mark[0]))
+
     def load_vocabulary_state(self) -> dict[str, np.ndarray]:
         """Everything `service.vocabulary.Vocabulary.from_state` needs, from one snapshot:
         `word_ids` (W,) ascending and `descriptors` W×32 uint8 from `words`; the inverted
