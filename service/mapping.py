@@ -171,9 +171,14 @@ class Mapper:
             elif a != b:
                 merge = next(k for k in links if k.type == LinkType.MERGED and k.to_id == l.to_id)
                 entries.append((a, b, ta @ l.transform @ invert(tb), _series_information(l.information, merge.information)))
+        own = {n.id for n in nodes}
         loops = [(l.from_id, l.to_id, l.transform, l.information) for l in links
                  if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
-        m.graph.restore({n.id: n.pose for n in nodes}, odometry, loops + entries)
+        across = [k for k in loops if not (k[0] in own and k[1] in own)]  # to the previous map's nodes
+        m.graph.restore({n.id: n.pose for n in nodes}, odometry, [k for k in loops if k not in across] + entries)
+        m._place_previous({a for a, b, _, _ in across if a not in own} | {b for a, b, _, _ in across if b not in own})
+        for a, b, t, info in across:
+            m.graph.add_loop(a, b, t, info, check=False)  # checked when it was added
         incoming = {b: a for a, b, _, _ in odometry}
         for a, b, _, _ in entries:
             if b not in m._neighbours.setdefault(a, []):
