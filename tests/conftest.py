@@ -1,3 +1,4 @@
+import dataclasses
 import os
 import sys
 from pathlib import Path
@@ -33,3 +34,36 @@ def _missing(msg: str):
     if os.environ.get("MNEMOSLAM_REQUIRE_DATA"):
         pytest.fail(msg + " and MNEMOSLAM_REQUIRE_DATA is set")
     pytest.skip(msg)
+
+
+# ------------------------------------------------------------------------------------------
+# Synthetic frames rendered once per test session
+
+from client.synthetic import SyntheticDataset  # noqa: E402 (after the sys.path insert)
+
+_RENDERED: dict = {}
+
+
+class _RenderedOnce(SyntheticDataset):
+    """The synthetic dataset, each frame rendered once per test session (see `synthetic`)."""
+
+    def frame(self, i: int):
+        key = (self.trajectory, self.path.duration, self.rate, self.camera, self.noise, self.seed, i)
+        f = _RENDERED.get(key) if 0 <= i < len(self) else None
+        if f is None:
+            f = super().frame(i)  # IndexError out of range, as the dataset's own
+            _RENDERED[key] = f
+        return dataclasses.replace(f, image=f.image.copy(), depth=f.depth.copy(),
+                                   extras={k: v.copy() for k, v in f.extras.items()})
+
+
+def synthetic(trajectory: str, **options) -> SyntheticDataset:
+    """`open_dataset(f"synthetic:{trajectory}", **options)`, but each frame is rendered once per
+    test session and shared by every test that opens the same sequence (same path, duration,
+    rate, camera, noise and seed: frame i is then the same frame, whatever `max_frames`).
+    Rendering is deterministic by (seed, frame index), so the frames are those a fresh dataset
+    renders; every `frame` call returns its own copy of the arrays, so a consumer that writes
+    into a frame cannot change another test's input. Meant for the sequences several tests
+    play (figure-8 at 10 Hz in 40 s: its 401 frames hold ~1.5 GB)."""
+    assert "scene" not in options, "the cache is keyed on the default scene of the seed"
+    return _RenderedOnce(trajectory=trajectory, **options)

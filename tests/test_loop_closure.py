@@ -12,11 +12,14 @@ from service.config import load_config
 from service.evaluation import evaluate, evaluate_map_loops
 from storage import LinkType, MapStore
 
+from conftest import synthetic
 
-def _run(out_dir, trajectory, enabled=True, dataset=None, **loop):
+
+def _run(out_dir, trajectory, enabled=True, dataset=None, rendered_once=False, **loop):
     from service.runner import run_dataset
 
-    ds = open_dataset(f"synthetic:{trajectory}", **(dataset or dict(rate=15, noise=True)))
+    options = dataset or dict(rate=15, noise=True)
+    ds = synthetic(trajectory, **options) if rendered_once else open_dataset(f"synthetic:{trajectory}", **options)
     cfg = load_config(overrides={"loop": {"enabled": enabled, **loop}})
     out = run_dataset(ds, cfg, out_dir, progress=False)
     return ds, out, cfg
@@ -78,8 +81,9 @@ def test_repeated_texture_walk_makes_no_false_link(tmp_path):
 
 
 def test_proximity_and_refinement_can_be_switched_off(tmp_path):
-    # a figure-8 walked in 40 s at 10 Hz: the second lap revisits the first
-    ds, out, cfg = _run(tmp_path, "figure8", dataset=dict(rate=10, noise=True, duration=40),
+    # a figure-8 walked in 40 s at 10 Hz: the second lap revisits the first (its frames rendered
+    # once for the session: the other figure-8 tests play the same ones, tests/conftest.py)
+    ds, out, cfg = _run(tmp_path, "figure8", dataset=dict(rate=10, noise=True, duration=40), rendered_once=True,
                         proximity_by_space=False, proximity_by_time=False, refine_dense=False)
     with MapStore(tmp_path / "map.db", create=False) as store:
         assert not store.links(type=LinkType.LOCAL_SPACE) and not store.links(type=LinkType.LOCAL_TIME)

@@ -18,6 +18,8 @@ from service.memory import Memory
 from service.pipeline import Pipeline
 from storage import LinkType, MapStore
 
+from conftest import synthetic
+
 # figure-8 walked in 40 s at 10 Hz: the second lap revisits the first (loops from ~frame 280)
 SEQUENCE = dict(rate=10, noise=True, duration=40)
 
@@ -39,7 +41,7 @@ class _Tee:
 
 @pytest.fixture(scope="module")
 def mapped(tmp_path_factory):
-    ds = open_dataset("synthetic:figure8", **SEQUENCE)
+    ds = synthetic("figure8", **SEQUENCE)  # rendered once for the session (tests/conftest.py)
     cfg = load_config()
     db = tmp_path_factory.mktemp("mp") / "map.db"
     store = MapStore(db)

@@ -26,9 +26,12 @@ from service.recovery import recover
 from service.runner import run_dataset
 from storage import LinkType, MapStore
 
+from conftest import synthetic
+
 LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)
 # figure-8 at 10 Hz: the second lap revisits the first; its first 260 frames give ~200
-# keyframes, loops from keyframe ~143 (frame ~190) on.
+# keyframes, loops from keyframe ~143 (frame ~190) on. Its frames are rendered once for the
+# session (tests/conftest.py `synthetic`): the other figure-8 tests play the same ones.
 FIGURE8 = dict(rate=10, noise=True, duration=40, max_frames=260)
 
 
@@ -71,7 +74,7 @@ class _Crash:
 
 
 def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path):
-    ds = open_dataset("synthetic:figure8", **FIGURE8)
+    ds = synthetic("figure8", **FIGURE8)
     cfg = load_config()
     cfg = dataclasses.replace(cfg, storage=dataclasses.replace(cfg.storage, path=str(tmp_path / "map.db")))
     cut = 150  # after the first loops: the mapped part has loop links too
@@ -210,7 +213,7 @@ def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path):
     """kill -9 of `mnemoslam serve` while the map update is behind tracking; the next start
     ends the session "crashed" and maps its backlog (loops included) before it serves."""
     db = tmp_path / "map.db"
-    ds = open_dataset("synthetic:figure8", **FIGURE8)
+    ds = synthetic("figure8", **FIGURE8)
     svc = ServiceProcess(db, {"service": {"queue_size": 10000}}).start()
     settings = ZenohSettings(connect=[svc.endpoint])
     t = threading.Thread(target=stream_dataset, args=(ds, "k9", settings),

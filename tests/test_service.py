@@ -226,6 +226,20 @@ def test_sigkill_mid_stream_keeps_every_reported_keyframe(tmp_path):
         svc2.stop()
 
 
+@pytest.fixture(scope="module")
+def service_with_p1(tmp_path_factory):
+    """A service holding one short session (robot p1, 5 frames), shared by the parameter
+    cases: each only reads it, and each used to start its own service holding the same."""
+    svc = ServiceProcess(tmp_path_factory.mktemp("p1") / "map.db", {"service": {"queue_size": 10000}}).start()
+    try:
+        ds = open_dataset("synthetic:loop", max_frames=5)
+        stream_dataset(ds, "p1", _settings(svc), rate=None, progress=False, wait_for_subscriber=10.0)
+        svc.wait_processed("p1", 5)
+        yield svc
+    finally:
+        svc.stop()
+
+
 @pytest.mark.parametrize("path,status", [
     ("/sessions/999/nodes", 404),
     ("/robots/nobody", 404),
@@ -235,10 +249,9 @@ def test_sigkill_mid_stream_keeps_every_reported_keyframe(tmp_path):
     ("/sessions/1/trajectory?format=xml", 422),
     ("/sessions/abc/graph", 422),
 ])
-def test_rest_bad_parameters_are_clear_4xx(service, path, status):
-    ds = open_dataset("synthetic:loop", max_frames=5)
-    stream_dataset(ds, "p1", _settings(service), rate=None, progress=False, wait_for_subscriber=10.0)
-    service.wait_processed("p1", 5)
+def test_rest_bad_parameters_are_clear_4xx(service_with_p1, path, status):
+    service = service_with_p1
+    assert [s["robot"] for s in service.api.sessions()] == ["p1"]  # the one session, as in a fresh service
     with pytest.raises(ApiError) as e:
         service.api.get(path)
     assert e.value.status == status and e.value.detail

@@ -56,13 +56,14 @@ def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(t
     them; the map's accuracy holds."""
     import csv
 
-    from client.datasets import open_dataset
     from service.config import load_config
     from service.evaluation import evaluate
     from service.runner import run_dataset
     from storage import MapStore
 
-    ds = open_dataset("synthetic:figure8", rate=10, noise=True, duration=40)
+    from conftest import synthetic
+
+    ds = synthetic("figure8", rate=10, noise=True, duration=40)  # rendered once for the session (conftest)
     cfg = load_config(None, {"memory": {"max_wm_nodes": 20}})
     out = run_dataset(ds, cfg, tmp_path, progress=False)
     rows = list(csv.DictReader(open(tmp_path / "updates.csv")))
