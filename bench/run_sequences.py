@@ -1,7 +1,7 @@
 """Run every sequence in MNEMOSLAM_DATA and the synthetic scene through the offline
 pipeline; print ATE RMSE, frames/s and peak memory per sequence as a table.
 
-    python bench/run_sequences.py [--only NAME] [--synthetic-frames N]
+    python bench/run_sequences.py [--only NAME] [--synthetic-frames N] [--set KEY=VALUE ...]
 
 Frames/s is end to end (file decoding + pipeline) in one process: "fps e2e" for tracking
 alone (odometry + keyframes + memory, what the service's tracking thread does; its map update
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from client.datasets import open_dataset  # noqa: E402
-from service.config import load_config  # noqa: E402
+from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
 from service.evaluation import evaluate  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
 from service.runner import run_dataset  # noqa: E402
@@ -53,10 +53,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", help="run sequences whose name contains this")
     ap.add_argument("--synthetic-frames", type=int, default=900)
+    ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="config override (repeatable)")
     args = ap.parse_args()
     data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
-    config = load_config()
-    odometry_only = load_config(overrides={"loop": {"enabled": False}})
+    overrides = parse_sets(args.set)
+    config = load_config(overrides=overrides)
+    odometry_only = load_config(overrides=merge_overrides(overrides, {"loop": {"enabled": False}}))
     rows = []
     for name, path, opts in sequences(data, args.synthetic_frames):
         if args.only and args.only not in name:
@@ -71,12 +73,12 @@ def main() -> int:
         ev_odom = evaluate(ds.ground_truth, odom.trajectory) if ds.ground_truth is not None else None
         s = out.summary
         h, w = ds.calibration.camera.height, ds.calibration.camera.width
-        rows.append((name, f"{w}x{h}", s.frames, s.tracked, s.lost, s.keyframes,
+        rows.append((name, f"{w}x{h}", s.frames, s.tracked, s.lost, s.keyframes, s.merged,
                      f"{ev_odom.ate_rmse * 100:.2f}" if ev else "-",
                      f"{ev.ate_rmse * 100:.2f}" if ev else "-", f"{ev.ate_percent_of_path:.2f}" if ev else "-",
                      f"{odom.summary.fps:.1f}", f"{s.fps:.1f}", f"{pipeline_fps(ds, config):.1f}",
                      f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f}"))
-    head = ("sequence", "size", "frames", "tracked", "lost", "kf", "ATE odom cm", "ATE cm", "ATE %path", "fps e2e",
+    head = ("sequence", "size", "frames", "tracked", "lost", "kf", "merged", "ATE odom cm", "ATE cm", "ATE %path", "fps e2e",
             "fps e2e+loops", "fps pipeline", "peak MB")
     widths = [max(len(str(r[i])) for r in rows + [head]) for i in range(len(head))]
     for r in [head] + rows:
