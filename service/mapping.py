@@ -94,6 +94,17 @@ class LoopStatistics:
     memory: dict = field(default_factory=dict)  # after the update: stm, wm, ltm sizes, transferred / retrieved ids, words
 
 
+@dataclass
+class Rehearsal:
+    """What rehearsal did for one keyframe: the node it merged into (None: it becomes a node),
+    the vocabulary search of its descriptors, and a verified link to a node it did not merge
+    into, (node, verification), which proximity detection reuses."""
+
+    survivor: int | None = None
+    quantized: Quantized | None = None
+    verified: tuple[int, Verification] | None = None
+
+
 class Mapper:
     def __init__(self, camera: PinholeCamera, config: LoopConfig, store: MapStore | None = None,
                  on_event: Callable[[str, dict], None] | None = None, background: bool = False,
@@ -269,10 +280,10 @@ class Mapper:
         u = self._through_merges(u)
         self._add_view(u)
         stats = LoopStatistics(u.node_id)
-        survivor, quantized = (self._rehearse(u, stats) if self.memory_config.rehearsal and u.odom_from is not None
-                               else (None, None))
+        r = self._rehearse(u, stats) if self.memory_config.rehearsal and u.odom_from is not None else Rehearsal()
         t1 = time.perf_counter()
-        best = survivor if survivor is not None else self._add_keyframe(u, stats, quantized)
+        survivor = r.survivor
+        best = survivor if survivor is not None else self._add_keyframe(u, stats, r)
         t2 = time.perf_counter()
         transferred, retrieved = self._manage_memory(u, best, (t2 - t0) * 1e3)
         stats.timings_ms["rehearsal"] = (t1 - t0) * 1e3
@@ -291,16 +302,16 @@ class Mapper:
         with self._lock:
             self._correction = self._pose(u.node_id) @ invert(u.odom_pose)
 
-    def _add_keyframe(self, u: KeyframeUpdate, stats: LoopStatistics, quantized: Quantized | None = None) -> int | None:
-        """The keyframe becomes a node: graph, memory, vocabulary (`quantized`: its descriptors
-        searched already, by rehearsal), then loop closure by appearance, by space and along
-        its path. Returns the best loop hypothesis (for retrieval)."""
+    def _add_keyframe(self, u: KeyframeUpdate, stats: LoopStatistics, rehearsal: Rehearsal) -> int | None:
+        """The keyframe becomes a node: graph, memory, vocabulary, then loop closure by
+        appearance, by space and along its path (reusing what a failed `rehearsal` searched
+        and verified). Returns the best loop hypothesis (for retrieval)."""
         t0 = time.perf_counter()
         self.graph.add_node(u.node_id, u.odom_pose, u.odom_from, u.transform, u.information)
         self._remember(u)
         t1 = time.perf_counter()
         words = self.vocabulary.add(u.node_id, u.features.descriptors, store=self.store,
-                                    quantized=quantized)  # + its new words, one commit
+                                    quantized=rehearsal.quantized)  # + its new words, one commit
         t2 = time.perf_counter()
         candidates = {n for n in self.memory.wm if u.stamp - self._stamps[n] >= self.config.min_age}
         with self.vocabulary.lock:  # other robots' mappers add to the same vocabulary
@@ -315,7 +326,7 @@ class Mapper:
                 stats.matches, stats.inliers, stats.refined = v.matches, v.inliers, v.refined
         t4 = time.perf_counter()
         if self.config.proximity_by_space:
-            self._close_nearby(u, candidates, stats)
+            self._close_nearby(u, candidates, stats, rehearsal.verified)
         t5 = time.perf_counter()
         if self.config.proximity_by_time:
             self._link_path(u, candidates, stats)
@@ -340,19 +351,18 @@ class Mapper:
             return self.graph.pose(survivor) @ t
         return self.graph.pose(node)
 
-    def _rehearse(self, u: KeyframeUpdate, stats: LoopStatistics) -> tuple[int | None, Quantized | None]:
+    def _rehearse(self, u: KeyframeUpdate, stats: LoopStatistics) -> Rehearsal:
         """RTAB-Map's rehearsal, against the map rather than the last node only: the STM or
         WM node nearest to where odometry puts the keyframe (within twice the merge distance
         and rotation) is its survivor when the two share `memory.rehearsal_similarity` of
         their visual words, registration puts them within `memory.rehearsal_max_distance` /
         `rehearsal_max_rotation`, and the graph accepts the link from the previous keyframe
         to the survivor (it replaces the odometry link to the keyframe). The keyframe is then
-        merged: no node, no words; the survivor's weight grows. Returns the survivor, or None
-        (the keyframe becomes a node), and the search of its descriptors in the vocabulary
-        (for `Vocabulary.add`; None if none was made or it merged)."""
+        merged: no node, no words; the survivor's weight grows. Returns the survivor (None: the
+        keyframe becomes a node) and what was searched and verified on the way."""
         c = self._rehearsal_candidate(u)
         if c is None:
-            return None, None
+            return Rehearsal()
         mc = self.memory_config
         with self.vocabulary.lock:
             quantized = self.vocabulary.quantize(u.features.descriptors)
@@ -360,27 +370,27 @@ class Mapper:
         r = stats.rehearsal = {"node": c, "similarity": round(similarity, 3)}
         if similarity < mc.rehearsal_similarity:
             r["decision"] = "rejected: similarity"
-            return None, quantized
+            return Rehearsal(None, quantized)
         decision, v = self._register(u, c)
         r["inliers"] = 0 if v is None else v.inliers
         if decision != "ok":
             r["decision"] = decision
-            return None, quantized
+            return Rehearsal(None, quantized)
         r["distance"] = float(np.linalg.norm(v.transform[:3, 3]))
         r["rotation"] = float(rotation_angle(v.transform[:3, :3]))
         if r["distance"] > mc.rehearsal_max_distance or r["rotation"] > mc.rehearsal_max_rotation:
             r["decision"] = "rejected: too far"
-            return None, quantized
+            return Rehearsal(None, quantized, (c, v))
         p = u.odom_from
         if p != c:
             info = _series_information(u.information, v.information)
             outcome = self.graph.add_loop(p, c, u.transform @ invert(v.transform), info, check="link")
             if not outcome.accepted:
                 r["decision"] = f"rejected: graph {outcome.reason}"
-                return None, quantized
+                return Rehearsal(None, quantized, (c, v))
         r["decision"] = "merged"
         self._merge(u, c, v, entering=p != c and c not in self._neighbours.get(p, ()))
-        return c, None
+        return Rehearsal(c)
 
     def _rehearsal_candidate(self, u: KeyframeUpdate) -> int | None:
         """The STM or WM node closest to where odometry puts the keyframe, by distance over
@@ -578,9 +588,11 @@ class Mapper:
             missing = self.vocabulary.missing_words(np.concatenate([np.asarray(w, np.int64) for w in todo.values()]))
             self.vocabulary.reload_nodes(todo, descriptors=self.store.load_words(missing) if len(missing) else None)
 
-    def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics) -> None:
+    def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics,
+                      verified: tuple[int, Verification] | None = None) -> None:
         """Proximity detection: verify the nearest older keyframes the graph places around this
-        one (looking the same way) and link the first that passes."""
+        one (looking the same way) and link the first that passes (`verified`: a candidate
+        verified already, by rehearsal)."""
         c = self.config
         ids = np.fromiter(sorted(candidates - set(self._neighbours[u.node_id])), np.int64)
         if not len(ids):
@@ -590,7 +602,11 @@ class Mapper:
                       c.proximity_angle, c.proximity_max_candidates)
         for k, candidate in enumerate(near.tolist()):
             prior = invert(poses[candidate]) @ poses[u.node_id] if k == 0 and c.proximity_dense else None
-            decision, v = self._close_loop(u, candidate, LinkType.LOCAL_SPACE, prior)
+            if verified is not None and verified[0] == candidate:
+                v = verified[1]
+                decision = self._add_link(u, candidate, LinkType.LOCAL_SPACE, v)
+            else:
+                decision, v = self._close_loop(u, candidate, LinkType.LOCAL_SPACE, prior)
             stats.proximity.append({"node": candidate, "decision": decision,
                                     "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined)})
             if decision == "accepted":
