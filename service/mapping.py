@@ -29,10 +29,11 @@ from .config import LoopConfig, MemoryConfig
 from .features import FrameFeatures
 from .graph import PoseGraph
 from .loop_detection import LoopDetector
+from .odometry import _match
 from .memory import decode_images
 from .proximity import nearby
 from .verification import DenseView, Verification, refine, register_dense, verify
-from .vocabulary import Quantized, Vocabulary
+from .vocabulary import Vocabulary
 from .working_memory import WorkingMemory
 
 log = logging.getLogger("mnemoslam.mapping")
@@ -97,11 +98,10 @@ class LoopStatistics:
 @dataclass
 class Rehearsal:
     """What rehearsal did for one keyframe: the node it merged into (None: it becomes a node),
-    the vocabulary search of its descriptors, and a verified link to a node it did not merge
-    into, (node, verification), which proximity detection reuses."""
+    and a verified link to a node it did not merge into, (node, verification), which
+    proximity detection reuses."""
 
     survivor: int | None = None
-    quantized: Quantized | None = None
     verified: tuple[int, Verification] | None = None
 
 
@@ -283,7 +283,7 @@ class Mapper:
         r = self._rehearse(u, stats) if self.memory_config.rehearsal and u.odom_from is not None else Rehearsal()
         t1 = time.perf_counter()
         survivor = r.survivor
-        best = survivor if survivor is not None else self._add_keyframe(u, stats, r)
+        best = survivor if survivor is not None else self._add_keyframe(u, stats, r.verified)
         t2 = time.perf_counter()
         transferred, retrieved = self._manage_memory(u, best, (t2 - t0) * 1e3)
         stats.timings_ms["rehearsal"] = (t1 - t0) * 1e3
@@ -302,16 +302,16 @@ class Mapper:
         with self._lock:
             self._correction = self._pose(u.node_id) @ invert(u.odom_pose)
 
-    def _add_keyframe(self, u: KeyframeUpdate, stats: LoopStatistics, rehearsal: Rehearsal) -> int | None:
+    def _add_keyframe(self, u: KeyframeUpdate, stats: LoopStatistics,
+                      verified: tuple[int, Verification] | None = None) -> int | None:
         """The keyframe becomes a node: graph, memory, vocabulary, then loop closure by
-        appearance, by space and along its path (reusing what a failed `rehearsal` searched
-        and verified). Returns the best loop hypothesis (for retrieval)."""
+        appearance, by space and along its path (`verified`: a link rehearsal verified but did
+        not merge). Returns the best loop hypothesis (for retrieval)."""
         t0 = time.perf_counter()
         self.graph.add_node(u.node_id, u.odom_pose, u.odom_from, u.transform, u.information)
         self._remember(u)
         t1 = time.perf_counter()
-        words = self.vocabulary.add(u.node_id, u.features.descriptors, store=self.store,
-                                    quantized=rehearsal.quantized)  # + its new words, one commit
+        words = self.vocabulary.add(u.node_id, u.features.descriptors, store=self.store)  # + its new words, one commit
         t2 = time.perf_counter()
         candidates = {n for n in self.memory.wm if u.stamp - self._stamps[n] >= self.config.min_age}
         with self.vocabulary.lock:  # other robots' mappers add to the same vocabulary
@@ -326,7 +326,7 @@ class Mapper:
                 stats.matches, stats.inliers, stats.refined = v.matches, v.inliers, v.refined
         t4 = time.perf_counter()
         if self.config.proximity_by_space:
-            self._close_nearby(u, candidates, stats, rehearsal.verified)
+            self._close_nearby(u, candidates, stats, verified)
         t5 = time.perf_counter()
         if self.config.proximity_by_time:
             self._link_path(u, candidates, stats)
@@ -359,35 +359,37 @@ class Mapper:
         `rehearsal_max_rotation`, and the graph accepts the link from the previous keyframe
         to the survivor (it replaces the odometry link to the keyframe). The keyframe is then
         merged: no node, no words; the survivor's weight grows. Returns the survivor (None: the
-        keyframe becomes a node) and what was searched and verified on the way."""
+        keyframe becomes a node) and what was verified on the way."""
         c = self._rehearsal_candidate(u)
         if c is None:
             return Rehearsal()
         mc = self.memory_config
-        with self.vocabulary.lock:
-            quantized = self.vocabulary.quantize(u.features.descriptors)
-            similarity = self._similarity(quantized.words, c)
-        r = stats.rehearsal = {"node": c, "similarity": round(similarity, 3)}
+        t0 = time.perf_counter()
+        similarity = self._similarity(u.features.descriptors, c)
+        t1 = time.perf_counter()
+        r = stats.rehearsal = {"node": c, "similarity": round(similarity, 3), "search_ms": (t1 - t0) * 1e3}
         if similarity < mc.rehearsal_similarity:
             r["decision"] = "rejected: similarity"
-            return Rehearsal(None, quantized)
+            return Rehearsal()
         decision, v = self._register(u, c)
         r["inliers"] = 0 if v is None else v.inliers
+        r["verify_ms"] = (time.perf_counter() - t1) * 1e3
         if decision != "ok":
             r["decision"] = decision
-            return Rehearsal(None, quantized)
+            return Rehearsal()
         r["distance"] = float(np.linalg.norm(v.transform[:3, 3]))
         r["rotation"] = float(rotation_angle(v.transform[:3, :3]))
         if r["distance"] > mc.rehearsal_max_distance or r["rotation"] > mc.rehearsal_max_rotation:
             r["decision"] = "rejected: too far"
-            return Rehearsal(None, quantized, (c, v))
+            return Rehearsal(None, (c, v))
         p = u.odom_from
         if p != c:
             info = _series_information(u.information, v.information)
             outcome = self.graph.add_loop(p, c, u.transform @ invert(v.transform), info, check="link")
+            r["graph_ms"] = outcome.duration_ms
             if not outcome.accepted:
                 r["decision"] = f"rejected: graph {outcome.reason}"
-                return Rehearsal(None, quantized, (c, v))
+                return Rehearsal(None, (c, v))
         r["decision"] = "merged"
         self._merge(u, c, v, entering=p != c and c not in self._neighbours.get(p, ()))
         return Rehearsal(c)
@@ -408,15 +410,15 @@ class Mapper:
         k = int(np.argmin(score))
         return ram[k] if score[k] < 4.0 else None
 
-    def _similarity(self, words: np.ndarray, node: int) -> float:
-        """Matched words / the larger node's words (RTAB-Map's Signature::compareTo), for the
-        keyframe's descriptors quantized without adding words (`words`; -1, a descriptor that
-        matches no word, counts as a word of its own)."""
-        theirs = self.vocabulary.node_words(node)[0]
-        mine = np.unique(words[words >= 0])
-        n_mine = len(mine) + int(np.count_nonzero(words < 0))
-        shared = len(np.intersect1d(mine, theirs, assume_unique=True))
-        return shared / max(n_mine, len(theirs), 1)
+    def _similarity(self, descriptors: np.ndarray, node: int) -> float:
+        """Shared words / the larger node's words (RTAB-Map's Signature::compareTo): the
+        keyframe's descriptors matched against the node's words only (nearest word within the
+        vocabulary's distance and ratio, one descriptor per word), not searched in the whole
+        vocabulary: a few hundred by a few hundred Hamming distances instead of a search."""
+        with self.vocabulary.lock:
+            theirs = self.vocabulary.descriptors(self.vocabulary.node_words(node)[0])
+        shared, _ = _match(descriptors, theirs, self.vocabulary.nndr, self.vocabulary.max_distance)
+        return len(shared) / max(len(descriptors), len(theirs), 1)
 
     def _merge(self, u: KeyframeUpdate, survivor: int, v: Verification, entering: bool) -> None:
         """Keyframe `u` merges into `survivor` (RAM, memory weights, database); `entering`:

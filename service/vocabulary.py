@@ -45,7 +45,6 @@ words, `dormant` the others.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
 import weakref
 
 import numpy as np
@@ -92,17 +91,6 @@ def hamming(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
     return np.bitwise_count(np.bitwise_xor(a64, b64)).sum(axis=-1, dtype=np.int32)
 
 
-@dataclass(frozen=True)
-class Quantized:
-    """One search of a node's descriptors: packed descriptors, word of each (-1: none
-    accepted), distance to the nearest word, and the vocabulary generation it is valid for."""
-
-    q64: np.ndarray
-    words: np.ndarray
-    d1: np.ndarray
-    generation: int
-
-
 class Vocabulary:
     def __init__(self, nndr: float = 0.8, max_distance: int = 70, n_tables: int = 16,
                  key_bits: int = 16, max_chain: int = 40, capacity: int = 1 << 21, seed: int = 7):
@@ -137,7 +125,6 @@ class Vocabulary:
         self.last_queries = 0
         self.last_new_words = np.zeros(0, np.int64)  # ids of the words the last add() created
         self.lock = threading.RLock()  # for callers sharing the vocabulary between threads
-        self._generation = 0  # bumped whenever the searchable words change (a search result's validity)
 
     # -- storage arrays -----------------------------------------------------------------
     def _alloc(self, cap: int) -> None:
@@ -219,7 +206,6 @@ class Vocabulary:
     def _link(self, slots: np.ndarray, keys: np.ndarray) -> None:
         """Push words (slots (n,), keys (n, L)) on their buckets, table by table (L is
         small; each table is one vectorized pass, a radix sort for keys of ≤ 16 bits)."""
-        self._generation += 1
         slots = slots.astype(np.int64)
         key_dtype = np.uint16 if self.key_bits <= 16 else np.int64
         for t in range(keys.shape[1]):
@@ -246,7 +232,6 @@ class Vocabulary:
         `_link` in id order builds, but a few tables at a time in table-major scratch arrays
         (contiguous scatters instead of ones strided by the row length), copied into the
         per-word links once per group. 4-5x faster than `_link` for a whole vocabulary."""
-        self._generation += 1
         n, L = len(slots), self.n_tables
         if n == 0:
             return
@@ -280,7 +265,6 @@ class Vocabulary:
         each run is spliced out in one write (all the words of a run write the same links).
         The kept words keep their order, so the tables are those of a vocabulary that never
         had the removed words."""
-        self._generation += 1
         slots = np.unique(np.asarray(slots, np.int64))
         if not len(slots):
             return
@@ -319,7 +303,6 @@ class Vocabulary:
         exactly. Vectorized over the words of a table: their successors are found by one
         walk of all the chains at once, words falling between the same two chain words are
         chained together (descending ids) and spliced in."""
-        self._generation += 1
         slots = np.unique(np.asarray(slots, np.int64))
         if not len(slots):
             return
@@ -417,17 +400,12 @@ class Vocabulary:
     def query(self, descriptors: np.ndarray) -> np.ndarray:
         """Word of each descriptor without inserting anything: (N,) int64, -1 when the
         descriptor matches no word (it would make a new one)."""
-        return self.quantize(descriptors).words
-
-    def quantize(self, descriptors: np.ndarray) -> "Quantized":
-        """The search `add` starts with, kept: `add(..., quantized=)` reuses it while the
-        searchable words have not changed since."""
         q64 = _as_u64(descriptors)
         w1, d1, d2 = self._search(q64)
-        return Quantized(q64, np.where(self._accept(d1, d2), w1, -1), d1, self._generation)
+        return np.where(self._accept(d1, d2), w1, -1)
 
     # -- insertion ----------------------------------------------------------------------
-    def add(self, node_id: int, descriptors: np.ndarray, store=None, quantized: "Quantized | None" = None) -> np.ndarray:
+    def add(self, node_id: int, descriptors: np.ndarray, store=None) -> np.ndarray:
         """Quantize a node's descriptors, creating new words as needed, and index the node.
         Returns the word id of each descriptor (N,) int64; `last_new_words` holds the ids of
         the words created. With a `store` (MapStore holding the node's features) the word
@@ -435,10 +413,10 @@ class Vocabulary:
         fails, the node and its new words are taken back out and the error propagates, so
         the vocabulary never holds words the map does not."""
         with self.lock:
-            if quantized is None or quantized.generation != self._generation:
-                quantized = self.quantize(descriptors)
-            q64, words, d1 = quantized.q64, quantized.words.copy(), quantized.d1
+            q64 = _as_u64(descriptors)
             first_new = self._next_id
+            w1, d1, d2 = self._search(q64)
+            words = np.where(self._accept(d1, d2), w1, -1)
             new = np.nonzero(words < 0)[0]
             if len(new):
                 words[new] = self._create_words(q64[new], d1[new])
