@@ -68,14 +68,14 @@ import gtsam
 
 from client.synthetic import SyntheticDataset
 from service.config import Config, load_config
-from service.graph import PoseGraph
-from service.mapping import Mapper
-from service.mapping_process import MappingProcess
-from service.memory import Memory
-from service.odometry import _match
+from service.mapping.graph import PoseGraph
+from service.mapping.mapper import Mapper
+from service.mapping.process import MappingProcess
+from service.mapping.verification import verify
+from service.mapping.vocabulary import Vocabulary
+from service.memory.long_term import Memory
 from service.pipeline import Pipeline
-from service.verification import verify
-from service.vocabulary import Vocabulary
+from service.tracking.odometry import _match
 from storage import LinkType, MapStore
 
 PREFILL_NODE = 10_000_000  # ids of the pre-filled vocabulary nodes / graph nodes: never the store's

@@ -12,10 +12,10 @@ import numpy as np
 from client.frames import Calibration, Frame
 
 from .config import Config
-from .features import FeatureExtractor
-from .keyframes import KeyframePolicy
-from .mapping import KeyframeUpdate
-from .odometry import Odometry
+from .mapping.mapper import KeyframeUpdate
+from .tracking.features import FeatureExtractor
+from .tracking.keyframes import KeyframePolicy
+from .tracking.odometry import Odometry
 
 log = logging.getLogger("mnemoslam.pipeline")
 

@@ -33,8 +33,8 @@ from storage import MapStore, SessionRecord
 from storage.store import MAP_UPDATE_LINKS
 
 from .config import Config
-from .mapping import KeyframeUpdate, Mapper
-from .mapping_process import LOCK_WAIT_S, map_update_lock
+from .mapping.mapper import KeyframeUpdate, Mapper
+from .mapping.process import LOCK_WAIT_S, map_update_lock
 
 log = logging.getLogger("mnemoslam.recovery")
 

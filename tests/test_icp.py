@@ -12,7 +12,7 @@ import pytest
 
 from client.frames import PinholeCamera
 from client.geometry import invert, look_at, make_pose, rotation_angle
-from service import icp
+from service.tracking import icp
 from tests.conftest import require
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)

@@ -12,8 +12,8 @@ from conftest import require
 from client.datasets import open_dataset
 from service.config import load_config
 from service.evaluation import evaluate
-from service.features import FeatureExtractor
 from service.runner import run_dataset
+from service.tracking.features import FeatureExtractor
 
 pytestmark = pytest.mark.data
 
