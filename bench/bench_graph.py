@@ -1,4 +1,4 @@
-"""iSAM2 pose-graph timings (service/graph.py PoseGraph).
+"""iSAM2 pose-graph timings (service/mapping/graph.py PoseGraph).
 
     .venv/bin/python bench/bench_graph.py [--nodes 10000] [--lap 1000] [--loops-at 1000,5000,10000] [--batch]
 

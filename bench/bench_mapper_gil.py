@@ -37,7 +37,7 @@ ratios against scenario 1 of the same process.
    waits up to one switch interval while a Python thread runs). OpenCV runs on 1 thread
    during the probe ("cores" = the op's CPU / wall).
 
-4. + the service's mapping process (service/mapping_process.py, loop.process): the same
+4. + the service's mapping process (service/mapping/process.py, loop.process): the same
    mapper in one spawned child at nice loop.process_nice (--mapper-nice), its own GIL and
    its own connection to the map; tracking gets the corrections it sends back.
 --switch-interval S runs everything with sys.setswitchinterval(S) (e.g. 0.0005).

@@ -1,4 +1,4 @@
-"""PoseGraph (service/graph.py): iSAM2 pose graph with loop links and the graph-error check."""
+"""PoseGraph (service/mapping/graph.py): iSAM2 pose graph with loop links and the graph-error check."""
 from __future__ import annotations
 
 import threading

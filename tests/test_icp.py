@@ -1,4 +1,4 @@
-"""Dense RGB-D registration (service/icp.py): point-to-plane ICP joined with a photometric term.
+"""Dense RGB-D registration (service/tracking/icp.py): point-to-plane ICP joined with a photometric term.
 
 Synthetic cases are ray-cast here with numpy (rectangles with optional random texture), so
 the expected answers are exact; the real-data case runs the first frames of TUM fr3/cabinet

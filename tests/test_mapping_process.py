@@ -1,4 +1,4 @@
-"""The service's map update in a child process (service/mapping_process.py): a real spawned
+"""The service's map update in a child process (service/mapping/process.py): a real spawned
 child, the real SQLite file written by two processes, the real mapper."""
 import os
 import signal

@@ -1,4 +1,4 @@
-"""STM/WM/LTM bookkeeping (service/working_memory.py): who moves, in which order."""
+"""STM/WM/LTM bookkeeping (service/memory/working_memory.py): who moves, in which order."""
 from service.memory.working_memory import WorkingMemory
 
 
