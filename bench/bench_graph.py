@@ -1,4 +1,4 @@
-"""iSAM2 pose-graph timings (service/graph.py PoseGraph).
+"""iSAM2 pose-graph timings (service/mapping/graph.py PoseGraph).
 
     .venv/bin/python bench/bench_graph.py [--nodes 10000] [--lap 1000] [--loops-at 1000,5000,10000] [--batch]
 
@@ -44,7 +44,7 @@ def main() -> int:
 
     import gtsam
 
-    from service.graph import PoseGraph
+    from service.mapping.graph import PoseGraph
 
     rng = np.random.default_rng(args.seed)
     side = args.lap // 4

@@ -37,7 +37,7 @@ ratios against scenario 1 of the same process.
    waits up to one switch interval while a Python thread runs). OpenCV runs on 1 thread
    during the probe ("cores" = the op's CPU / wall).
 
-4. + the service's mapping process (service/mapping_process.py, loop.process): the same
+4. + the service's mapping process (service/mapping/process.py, loop.process): the same
    mapper in one spawned child at nice loop.process_nice (--mapper-nice), its own GIL and
    its own connection to the map; tracking gets the corrections it sends back.
 --switch-interval S runs everything with sys.setswitchinterval(S) (e.g. 0.0005).
@@ -68,14 +68,14 @@ import gtsam
 
 from client.synthetic import SyntheticDataset
 from service.config import Config, load_config
-from service.graph import PoseGraph
-from service.mapping import Mapper
-from service.mapping_process import MappingProcess
-from service.memory import Memory
-from service.odometry import _match
+from service.mapping.graph import PoseGraph
+from service.mapping.mapper import Mapper
+from service.mapping.process import MappingProcess
+from service.mapping.verification import verify
+from service.mapping.vocabulary import Vocabulary
+from service.memory.long_term import Memory
 from service.pipeline import Pipeline
-from service.verification import verify
-from service.vocabulary import Vocabulary
+from service.tracking.odometry import _match
 from storage import LinkType, MapStore
 
 PREFILL_NODE = 10_000_000  # ids of the pre-filled vocabulary nodes / graph nodes: never the store's

@@ -1,1 +1,3 @@
-"""The mnemoslam SLAM server: tracking, mapping, memory, semantics and the REST API."""
+"""The mnemoslam SLAM server, by stage: `tracking`, `mapping`, `memory` (semantics later);
+the shell at this level: `server`, `session`, `api`, `cli`, `pipeline`, `builder`, `runner`,
+`recovery`, `demo`, `config`, `evaluation`."""

@@ -10,9 +10,9 @@ from client.frames import Calibration
 from storage import MapStore
 
 from .config import Config
-from .mapping import Mapper
-from .mapping_process import MappingProcess
-from .memory import Memory
+from .mapping.mapper import Mapper
+from .mapping.process import MappingProcess
+from .memory.long_term import Memory
 from .pipeline import Pipeline
 
 

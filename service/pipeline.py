@@ -12,10 +12,10 @@ import numpy as np
 from client.frames import Calibration, Frame
 
 from .config import Config
-from .features import FeatureExtractor
-from .keyframes import KeyframePolicy
-from .mapping import KeyframeUpdate
-from .odometry import Odometry
+from .mapping.mapper import KeyframeUpdate
+from .tracking.features import FeatureExtractor
+from .tracking.keyframes import KeyframePolicy
+from .tracking.odometry import Odometry
 
 log = logging.getLogger("mnemoslam.pipeline")
 
@@ -47,8 +47,8 @@ class Pipeline:
     def __init__(self, calibration: Calibration, config: Config, memory=None, mapper=None):
         self.calibration = calibration
         self.config = config
-        self.memory = memory  # service.memory.Memory, or None for odometry alone
-        self.mapper = mapper  # service.mapping.Mapper (loop closure + graph), or None
+        self.memory = memory  # service.memory.long_term.Memory, or None for odometry alone
+        self.mapper = mapper  # service.mapping.mapper.Mapper (loop closure + graph), or None
         self.extractor = FeatureExtractor(calibration, config.features, config.stereo)
         self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed, stereo=config.stereo,
                                  baseline=calibration.baseline)

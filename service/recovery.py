@@ -16,7 +16,7 @@ mapping process and the Zenoh subscriptions exist:
    already written for a keyframe (loop links; its words are redone) is replaced.
 
 It runs synchronously in the service's process while holding the map update's lock
-(`mapping_process.map_update_lock`), so nothing else writes the vocabulary meanwhile and
+(`mapping.process.map_update_lock`), so nothing else writes the vocabulary meanwhile and
 the mapping child of the killed service, if it is still finishing an update, is waited
 for. A keyframe whose update fails is logged and counted and stays unmapped (the next
 start tries again); nothing here stops the service from starting. Sessions recorded
@@ -33,8 +33,8 @@ from storage import MapStore, SessionRecord
 from storage.store import MAP_UPDATE_LINKS
 
 from .config import Config
-from .mapping import KeyframeUpdate, Mapper
-from .mapping_process import LOCK_WAIT_S, map_update_lock
+from .mapping.mapper import KeyframeUpdate, Mapper
+from .mapping.process import LOCK_WAIT_S, map_update_lock
 
 log = logging.getLogger("mnemoslam.recovery")
 

@@ -19,7 +19,7 @@ from storage import MapStore
 
 from .builder import build_pipeline
 from .config import Config, to_dict
-from .mapping_process import MappingProcess
+from .mapping.process import MappingProcess
 from .pipeline import FrameResult, Pipeline
 from .recovery import recover
 from .session import RobotSession

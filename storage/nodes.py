@@ -89,7 +89,7 @@ class Nodes(Connection):
     def unmapped_nodes(self, session_ids: Iterable[int] | None = None,
                        end_reason: str | None = None) -> dict[int, list[int]]:
         """{session id: [node ids ascending]} of the keyframes that have no map update yet: no
-        `statistics` row, which the map update (service.mapping.Mapper) writes last, after the
+        `statistics` row, which the map update (service.mapping.mapper.Mapper) writes last, after the
         keyframe's words, links and poses. Only sessions in `session_ids` and/or that ended
         with `end_reason`, when given; sessions without such keyframes are left out."""
         where, params = [], []

@@ -21,7 +21,7 @@ Encodings:
 - JSON text for session calibration / config and per-node statistics.
 - sessions: `ended_at` (wall time) and `end_reason` once ended: "stopped" for a normal
   end, "crashed" for one the service found still open when it started again.
-- statistics: the map update's (service.mapping) last write for a keyframe, after its words,
+- statistics: the map update's (service.mapping.mapper) last write for a keyframe, after its words,
   links and poses: a node without a statistics row has not been through the map update.
 """
 from __future__ import annotations
@@ -383,5 +383,5 @@ def _session(row) -> SessionRecord:
 
 _SESSION_COLUMNS = "id, robot, map_id, started_at, ended_at, calibration, config, end_reason"
 
-#: Link types the map update (service.mapping.Mapper) writes; each goes *to* the keyframe being updated.
+#: Link types the map update (service.mapping.mapper.Mapper) writes; each goes *to* the keyframe being updated.
 MAP_UPDATE_LINKS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)

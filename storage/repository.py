@@ -22,7 +22,7 @@ class MapRepository(Protocol):
     """The map as the service uses it: sessions, keyframes, the pose graph, visual words and
     the read side the REST API serves."""
 
-    # -- sessions (service.memory, service.recovery, service.api) -----------------------------
+    # -- sessions (service.memory.long_term, service.recovery, service.api) -------------------
     def begin_session(self, robot: str, calibration: Calibration, config: dict | None = None) -> int: ...
 
     def end_session(self, session_id: int, reason: str = "stopped") -> None: ...
@@ -38,7 +38,7 @@ class MapRepository(Protocol):
     def unmapped_nodes(self, session_ids: Iterable[int] | None = None,
                        end_reason: str | None = None) -> dict[int, list[int]]: ...
 
-    # -- graph writes (service.memory, service.mapping, service.recovery) ---------------------
+    # -- graph writes (service.memory.long_term, service.mapping.mapper, service.recovery) ----
     def add_keyframe(self, rec: KeyframeRecord) -> int: ...
 
     def add_link(self, from_id: int, to_id: int, type: int, transform: np.ndarray,
@@ -52,7 +52,7 @@ class MapRepository(Protocol):
 
     def set_statistics(self, node_id: int, statistics: dict) -> None: ...
 
-    # -- visual words (service.vocabulary, service.mapping) -----------------------------------
+    # -- visual words (service.mapping.vocabulary, service.mapping.mapper) --------------------
     def save_node_words(self, node_id: int, word_ids: np.ndarray, new_word_ids: np.ndarray | None = None,
                         new_descriptors: np.ndarray | None = None) -> None: ...
 
@@ -62,7 +62,7 @@ class MapRepository(Protocol):
 
     def next_word_id(self) -> int: ...
 
-    # -- reads (service.mapping, service.recovery, service.evaluation, service.api) -----------
+    # -- reads (service.mapping.mapper, service.recovery, service.evaluation, service.api) ----
     def get_node(self, node_id: int) -> NodeRecord | None: ...
 
     def load_features(self, node_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]: ...
@@ -93,5 +93,5 @@ class MapRepository(Protocol):
 
     def stats(self) -> dict: ...
 
-    # -- lifetime (service.server, service.mapping_process) -----------------------------------
+    # -- lifetime (service.server, service.mapping.process) -----------------------------------
     def close(self) -> None: ...

@@ -70,7 +70,7 @@ def load_frames(path):
 
 def instrument(hold: tuple[str, int, str] | None) -> None:
     """Announce every memory move of every Mapper in this process; hold the chosen one."""
-    from service.mapping import Mapper
+    from service.mapping.mapper import Mapper
 
     counts = {"transfer": 0, "retrieve": 0}
     originals = {"transfer": Mapper._transfer, "retrieve": Mapper._retrieve}

@@ -1,4 +1,4 @@
-"""PoseGraph (service/graph.py): iSAM2 pose graph with loop links and the graph-error check."""
+"""PoseGraph (service/mapping/graph.py): iSAM2 pose graph with loop links and the graph-error check."""
 from __future__ import annotations
 
 import threading
@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from service.graph import PoseGraph, normalized_errors, se3_log
+from service.mapping.graph import PoseGraph, normalized_errors, se3_log
 
 SIGMAS = np.array([np.deg2rad(0.5)] * 3 + [0.01] * 3)  # odometry σ: rotation first
 INFO = np.diag(1.0 / SIGMAS**2)

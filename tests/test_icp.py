@@ -1,4 +1,4 @@
-"""Dense RGB-D registration (service/icp.py): point-to-plane ICP joined with a photometric term.
+"""Dense RGB-D registration (service/tracking/icp.py): point-to-plane ICP joined with a photometric term.
 
 Synthetic cases are ray-cast here with numpy (rectangles with optional random texture), so
 the expected answers are exact; the real-data case runs the first frames of TUM fr3/cabinet
@@ -12,7 +12,7 @@ import pytest
 
 from client.frames import PinholeCamera
 from client.geometry import invert, look_at, make_pose, rotation_angle
-from service import icp
+from service.tracking import icp
 from tests.conftest import require
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)

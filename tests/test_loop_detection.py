@@ -3,8 +3,8 @@ time allows, on the synthetic figure-eight scene."""
 import numpy as np
 import pytest
 
-from service.loop_detection import LoopDetector, LoopHypothesis
-from service.vocabulary import Vocabulary
+from service.mapping.loop_detection import LoopDetector, LoopHypothesis
+from service.mapping.vocabulary import Vocabulary
 
 N_DESC = 400
 
@@ -140,7 +140,7 @@ def test_no_candidates():
 def _run_synthetic(trajectory, rate=1.0):
     from client.synthetic import SyntheticDataset
     from service.config import load_config
-    from service.features import FeatureExtractor
+    from service.tracking.features import FeatureExtractor
 
     ds = SyntheticDataset(trajectory, rate=rate, noise=True, width=320, height=240, fx=262.5)
     cfg = load_config()

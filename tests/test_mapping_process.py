@@ -1,4 +1,4 @@
-"""The service's map update in a child process (service/mapping_process.py): a real spawned
+"""The service's map update in a child process (service/mapping/process.py): a real spawned
 child, the real SQLite file written by two processes, the real mapper."""
 import os
 import signal
@@ -12,9 +12,9 @@ import pytest
 
 from client.datasets import open_dataset
 from service.config import load_config
-from service.mapping import Mapper
-from service.mapping_process import MappingProcess
-from service.memory import Memory
+from service.mapping.mapper import Mapper
+from service.mapping.process import MappingProcess
+from service.memory.long_term import Memory
 from service.pipeline import Pipeline
 from storage import LinkType, MapStore
 
@@ -129,7 +129,7 @@ def test_child_exits_when_its_parent_is_killed(tmp_path, mid_message):
         import os, struct, sys, time
         sys.path.insert(0, {os.getcwd()!r})
         from service.config import load_config
-        from service.mapping_process import MappingProcess
+        from service.mapping.process import MappingProcess
         from storage import MapStore
         MapStore({str(tmp_path / 'map.db')!r}).close()
         mp = MappingProcess({str(tmp_path / 'map.db')!r}, load_config().loop)

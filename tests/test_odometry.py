@@ -7,9 +7,9 @@ import pytest
 from client.frames import Calibration, Frame, PinholeCamera
 from client.geometry import invert, make_pose, rotation_angle
 from service.config import load_config
-from service.features import FeatureExtractor, FrameFeatures
-from service.keyframes import KeyframePolicy
-from service.odometry import Odometry, TrackResult
+from service.tracking.features import FeatureExtractor, FrameFeatures
+from service.tracking.keyframes import KeyframePolicy
+from service.tracking.odometry import Odometry, TrackResult
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 

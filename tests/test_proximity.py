@@ -2,7 +2,7 @@
 import numpy as np
 
 from client.geometry import look_at
-from service.proximity import nearby
+from service.mapping.proximity import nearby
 
 
 def _pose(position, target):

@@ -19,8 +19,8 @@ from client.transport import ZenohSettings
 from service.config import load_config
 from service.demo import ServiceProcess
 from service.evaluation import evaluate
-from service.mapping import KeyframeUpdate, Mapper
-from service.memory import Memory
+from service.mapping.mapper import KeyframeUpdate, Mapper
+from service.memory.long_term import Memory
 from service.pipeline import Pipeline
 from service.recovery import recover
 from service.runner import run_dataset

@@ -3,7 +3,7 @@ import cv2
 import numpy as np
 
 from client.geometry import invert, make_pose
-from service.refinement import mahalanobis2, refine_pose
+from service.tracking.refinement import mahalanobis2, refine_pose
 
 K = np.array([[700.0, 0, 620], [0, 700.0, 185], [0, 0, 1]])
 

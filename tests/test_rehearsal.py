@@ -9,7 +9,7 @@ from client.datasets import open_dataset
 from client.datasets.passes import Passes
 from service.config import load_config
 from service.evaluation import evaluate
-from service.mapping import Mapper
+from service.mapping.mapper import Mapper
 from service.runner import run_dataset
 from storage import LinkType, MapStore
 

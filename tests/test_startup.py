@@ -8,8 +8,8 @@ from client.datasets import open_dataset
 from service.builder import build_pipeline
 from service.config import load_config
 from service.evaluation import evaluate
-from service.mapping import Mapper
-from service.vocabulary import Vocabulary
+from service.mapping.mapper import Mapper
+from service.mapping.vocabulary import Vocabulary
 from storage import LinkType, MapStore
 
 WM = 5

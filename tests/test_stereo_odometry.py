@@ -4,7 +4,7 @@ depth uncertainty that weighs far stereo points in pose refinement.
 Sequence b's stereo pair disagrees with its ground truth by a disparity offset of about
 1.5 px (far hills measure a negative disparity; a fixed offset of 1.5 px gives 0.15 % of
 path), a about 0.3 px, which stretched the odometry's scale by ~6 % on b (1.58 % of path).
-The odometry now estimates the offset online (service/stereo_calibration.py): b 0.43 %."""
+The odometry now estimates the offset online (service/tracking/stereo_calibration.py): b 0.43 %."""
 import numpy as np
 import pytest
 from conftest import require
@@ -12,8 +12,8 @@ from conftest import require
 from client.datasets import open_dataset
 from service.config import load_config
 from service.evaluation import evaluate
-from service.features import FeatureExtractor
 from service.runner import run_dataset
+from service.tracking.features import FeatureExtractor
 
 pytestmark = pytest.mark.data
 

@@ -84,7 +84,7 @@ def test_map_store_implements_the_repository_protocol(store):
     assert not isinstance(Partial(), MapRepository)
 
     # Every map method the service calls is in the protocol.
-    called = {m.group(1) for p in (ROOT / "service").glob("*.py")
+    called = {m.group(1) for p in (ROOT / "service").rglob("*.py")
               for m in re.finditer(r"(?<![\w])_?store(?:\(\))?\.(\w+)\(", p.read_text())}
     assert called and called <= protocol, sorted(called - protocol)
 

@@ -1,5 +1,5 @@
-"""STM/WM/LTM bookkeeping (service/working_memory.py): who moves, in which order."""
-from service.working_memory import WorkingMemory
+"""STM/WM/LTM bookkeeping (service/memory/working_memory.py): who moves, in which order."""
+from service.memory.working_memory import WorkingMemory
 
 
 def test_stm_feeds_wm_in_order():

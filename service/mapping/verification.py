@@ -12,8 +12,8 @@ import numpy as np
 from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rotation_angle
 
-from . import icp
-from .odometry import _match
+from ..tracking import icp
+from ..tracking.odometry import _match
 
 
 def loop_information(inliers: int) -> np.ndarray:

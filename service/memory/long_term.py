@@ -11,8 +11,8 @@ from client.frames import Calibration, Frame
 from client.geometry import invert
 from storage import KeyframeRecord, MapRepository
 
-from .config import Config, to_dict
-from .features import FrameFeatures
+from ..config import Config, to_dict
+from ..tracking.features import FrameFeatures
 
 
 def odometry_information(inliers: int) -> np.ndarray:

@@ -25,16 +25,16 @@ from client.frames import PinholeCamera
 from client.geometry import invert, rotation_angle
 from storage import LinkType, MapStore, UnknownIdError
 
-from .config import LoopConfig, MemoryConfig
-from .features import FrameFeatures
+from ..config import LoopConfig, MemoryConfig
+from ..memory.long_term import decode_images
+from ..memory.working_memory import WorkingMemory
+from ..tracking.features import FrameFeatures
+from ..tracking.odometry import _match
 from .graph import PoseGraph
 from .loop_detection import LoopDetector
-from .odometry import _match
-from .memory import decode_images
 from .proximity import nearby
 from .verification import DenseView, Verification, refine, register_dense, verify
 from .vocabulary import Vocabulary
-from .working_memory import WorkingMemory
 
 log = logging.getLogger("mnemoslam.mapping")
 

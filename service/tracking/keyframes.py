@@ -7,7 +7,7 @@ import numpy as np
 
 from client.geometry import invert, rotation_angle
 
-from .config import KeyframeConfig
+from ..config import KeyframeConfig
 from .odometry import TrackResult
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import StereoConfig
+from ..config import StereoConfig
 
 
 class DisparityOffsetEstimator:

@@ -42,8 +42,8 @@ import numpy as np
 
 from client.frames import PinholeCamera
 
-from .config import LoopConfig, MemoryConfig
-from .mapping import KeyframeUpdate
+from ..config import LoopConfig, MemoryConfig
+from .mapper import KeyframeUpdate
 
 log = logging.getLogger("mnemoslam.mapping")
 
@@ -81,7 +81,7 @@ def map_update_lock(db_path, timeout: float = LOCK_WAIT_S) -> Iterator[bool]:
 
 def _slim(update: KeyframeUpdate, keep_images: bool) -> KeyframeUpdate:
     """The update with only what the mapper keeps and uses (no colour image etc.)."""
-    from .features import FrameFeatures
+    from ..tracking.features import FrameFeatures
 
     f = update.features
     features = FrameFeatures(f.keypoints, f.descriptors, f.points, f.octaves,
@@ -126,7 +126,7 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
             log.warning("mapping process: os.nice(%d) failed: %s", config.process_nice, e)
     from storage import MapStore
 
-    from .mapping import Mapper
+    from .mapper import Mapper
 
     send_lock = threading.Lock()
 
@@ -170,7 +170,7 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
 
 
 def _handle(msg, config, memory, store, cameras, mappers, counts, send) -> None:
-    from .mapping import Mapper
+    from .mapper import Mapper
 
     op, key = msg[0], msg[1]
     if op == "open":

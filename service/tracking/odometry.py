@@ -19,7 +19,7 @@ from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rotation_angle
 
 from . import icp
-from .config import OdometryConfig, StereoConfig
+from ..config import OdometryConfig, StereoConfig
 from .features import FrameFeatures
 from .refinement import mahalanobis2, offset_information, refine_pose
 from .stereo_calibration import DisparityOffsetEstimator

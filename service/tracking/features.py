@@ -11,7 +11,7 @@ import numpy as np
 
 from client.frames import Calibration, Frame
 
-from .config import FeatureConfig, StereoConfig
+from ..config import FeatureConfig, StereoConfig
 
 
 @dataclass
