@@ -48,6 +48,7 @@ def run(dataset, passes: int, max_wm: int, out: Path, overrides: dict) -> dict:
     with MapStore(out / "map.db") as store:
         stats = {n.id: store.statistics(n.id) for n in store.nodes(limit=None)}
         loops = [(l.from_id, l.to_id) for l in store.links() if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)]
+        merges = [(l.from_id, l.to_id) for l in store.links(type=LinkType.MERGED)]  # (survivor, merged keyframe)
     out_at, back_at = {}, {}
     for node, st in sorted(stats.items()):
         for n in st["memory"]["transferred"]:
@@ -57,12 +58,15 @@ def run(dataset, passes: int, max_wm: int, out: Path, overrides: dict) -> dict:
     late = int(len(rows) * (passes - 2) / passes)  # keyframes of the last two passes
     late_ids = {int(r["keyframe"]) for r in rows[late:]}
     to_retrieved = [(a, b) for a, b in loops if b in late_ids and a in out_at and a in back_at]
+    merged_late = [(a, b) for a, b in merges if b in late_ids]
+    merged_to_retrieved = [(a, b) for a, b in merged_late if a in out_at and a in back_at]
     return {
         "keyframes_first_pass": sum(float(r["stamp"]) <= first_pass_end and r["merged"] == "0" for r in rows),
         "keyframes": sum(r["merged"] == "0" for r in rows), "merged": sum(r["merged"] != "0" for r in rows),
         "wm_max": max(int(r["wm"]) for r in rows), "ltm_end": int(rows[-1]["ltm"]),
         "transferred": sum(int(r["transferred"]) for r in rows), "retrieved": sum(int(r["retrieved"]) for r in rows),
         "early": ms[100:300], "last": ms[-200:], "loops": len(loops), "loops_late_to_retrieved": len(to_retrieved),
+        "merged_late": len(merged_late), "merged_late_to_retrieved": len(merged_to_retrieved),
         "ate": evaluate(ds.ground_truth, result.trajectory).ate_rmse, "seconds": seconds, "frames": len(ds),
         "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
@@ -94,7 +98,8 @@ def main() -> int:
               f"last 200 {np.median(last):.0f} / {np.percentile(last, 99):.0f} ms "
               f"(p99 ratio {np.percentile(last, 99) / np.percentile(e, 99):.2f})")
         print(f"  loop links {r['loops']}; in the last two passes to nodes retrieved from LTM: "
-              f"{r['loops_late_to_retrieved']}; ATE {r['ate'] * 100:.2f} cm; peak RSS {r['rss_mb']:.0f} MB")
+              f"{r['loops_late_to_retrieved']}; keyframes merged there {r['merged_late']}, into nodes retrieved from "
+              f"LTM {r['merged_late_to_retrieved']}; ATE {r['ate'] * 100:.2f} cm; peak RSS {r['rss_mb']:.0f} MB")
     if len(results) == 2:
         print(f"ATE bounded / unbounded: {results['bounded']['ate'] / results['unbounded']['ate']:.3f}")
     return 0
