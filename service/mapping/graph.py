@@ -405,12 +405,14 @@ class PoseGraph:
             return LoopOutcome(accepted, reason, err_before, err_after, max_err, worst, iterations,
                                (time.perf_counter() - t0) * 1e3)
 
-    def remove_loop(self, from_id: int, to_id: int) -> int:
-        """Remove the loop link(s) between two nodes (either direction) and re-optimise.
-        Returns how many links were removed."""
+    def remove_loop(self, from_id: int, to_id: int, transform=None) -> int:
+        """Remove the loop link(s) between two nodes (either direction; with ``transform``,
+        only the link from_id -> to_id with that T_from_to) and re-optimise. Returns how many
+        links were removed."""
         a, b = int(from_id), int(to_id)
         with self._lock:
-            gone = [l for l in self._links if l.loop and {l.from_id, l.to_id} == {a, b}]
+            gone = [l for l in self._links if l.loop and {l.from_id, l.to_id} == {a, b}
+                    and (transform is None or (l.from_id == a and np.array_equal(l.transform, transform)))]
             if gone:
                 self._remove_links_locked(gone, restore=None)
                 self._publish_locked()

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import cv2
+import gtsam
 import numpy as np
 
 from client.frames import PinholeCamera
@@ -134,6 +135,7 @@ class Mapper:
         self._segment: dict[int, int] = {}  # node -> first node of its odometry segment
         self._loop_nodes: set[int] = set()  # the older end of the last accepted loop closure (kept in WM)
         self._merged: dict[int, tuple[int, np.ndarray]] = {}  # keyframe merged by rehearsal -> (survivor, T_survivor_keyframe)
+        self._merge_links: dict[frozenset, _MergeLink] = {}  # node pair -> the one graph link merges between them made
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
@@ -186,10 +188,12 @@ class Mapper:
         loops = [(l.from_id, l.to_id, l.transform, l.information) for l in links
                  if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
         across = [k for k in loops if not (k[0] in own and k[1] in own)]  # to the previous map's nodes
-        m.graph.restore({n.id: n.pose for n in nodes}, odometry, [k for k in loops if k not in across] + entries)
+        m.graph.restore({n.id: n.pose for n in nodes}, odometry, [k for k in loops if k not in across])
         m._place_previous({a for a, b, _, _ in across if a not in own} | {b for a, b, _, _ in across if b not in own})
         for a, b, t, info in across:
             m.graph.add_loop(a, b, t, info, check=False)  # checked when it was added
+        for a, b, t, info in sorted(entries, key=lambda e: e[1]):  # as _rehearse made them (checked then)
+            m._link_merge(a, b, t, info, check=False)
         incoming = {b: a for a, b, _, _ in odometry}
         for a, b, _, _ in entries:
             if b not in m._neighbours.setdefault(a, []):
@@ -384,8 +388,8 @@ class Mapper:
             return Rehearsal(None, (c, v))
         p = u.odom_from
         if p != c:
-            info = _series_information(u.information, v.information)
-            outcome = self.graph.add_loop(p, c, u.transform @ invert(v.transform), info, check="link")
+            outcome = self._link_merge(p, c, u.transform @ invert(v.transform),
+                                       _series_information(u.information, v.information))
             r["graph_ms"] = outcome.duration_ms
             if not outcome.accepted:
                 r["decision"] = f"rejected: graph {outcome.reason}"
@@ -393,6 +397,29 @@ class Mapper:
         r["decision"] = "merged"
         self._merge(u, c, v, entering=p != c and c not in self._neighbours.get(p, ()))
         return Rehearsal(c)
+
+    def _link_merge(self, a: int, b: int, transform: np.ndarray, information: np.ndarray, check: str | bool = "link"):
+        """The graph link a merge makes between two nodes (T_a_b): the first merge between
+        them adds it; a later one replaces it by the running mean of their measurements, its
+        information that of one measurement times their count (up to 3), so repeated passes
+        refine one link per pair instead of adding one per keyframe (iSAM2 grows ~7 kB per
+        link). Returns the graph's outcome."""
+        key = frozenset((a, b))
+        old = self._merge_links.get(key)
+        n = 0
+        if old is not None:
+            t = transform if old.from_id == a else invert(transform)
+            a, b, n = old.from_id, old.to_id, old.count
+            step = gtsam.Pose3.Logmap(gtsam.Pose3(invert(old.transform) @ t)) / (n + 1)
+            transform = old.transform @ gtsam.Pose3.Expmap(step).matrix()
+            information = information * min(n + 1, 3)
+            self.graph.remove_loop(a, b, old.transform)
+        outcome = self.graph.add_loop(a, b, transform, information, check=check)
+        if outcome.accepted:
+            self._merge_links[key] = _MergeLink(a, b, transform, information, n + 1)
+        elif old is not None:  # the previous link goes back
+            self.graph.add_loop(old.from_id, old.to_id, old.transform, old.information, check=False)
+        return outcome
 
     def _rehearsal_candidate(self, u: KeyframeUpdate) -> int | None:
         """The WM node closest to where odometry puts the keyframe, by distance over
@@ -711,6 +738,17 @@ class Mapper:
         if decision == "ok":
             decision = self._add_link(u, candidate, kind, v)
         return decision, v
+
+
+@dataclass
+class _MergeLink:
+    """The graph link merges made between two nodes: T_from_to (mean of `count` measurements)."""
+
+    from_id: int
+    to_id: int
+    transform: np.ndarray
+    information: np.ndarray
+    count: int
 
 
 def _series_information(a: np.ndarray | None, b: np.ndarray) -> np.ndarray:
