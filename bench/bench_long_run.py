@@ -49,7 +49,7 @@ from client.geometry import invert  # noqa: E402
 from client.synthetic import SyntheticDataset  # noqa: E402
 from service.builder import build_pipeline  # noqa: E402
 from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
-from service.runner import UPDATE_COLUMNS, UPDATE_STEPS, _frames  # noqa: E402
+from service.runner import UPDATE_COLUMNS, UPDATE_STEPS, _frames, update_row  # noqa: E402
 from storage import MapStore  # noqa: E402
 
 ON_DEFAULTS = ("memory.rehearsal=true", "memory.max_wm_nodes=100")
@@ -129,10 +129,7 @@ def run_one(name: str, args) -> dict:
                 kf_wm.append(m.get("wm", 0))
                 kf_merged.append(bool(m.get("merged")))
                 kf_frame.append(r.index)
-                w.writerow([r.node_id, f"{m.get('stamp', float('nan')):.6f}", f"{ms:.3f}", m.get("stm", ""),
-                            m.get("wm", ""), m.get("ltm", ""), len(m.get("transferred", ())),
-                            len(m.get("retrieved", ())), len(m.get("merged", ())), m.get("words", "")]
-                           + [f"{t.get(s, 0.0):.3f}" for s in UPDATE_STEPS])
+                w.writerow(update_row(r.node_id, m, t))
                 bar.update()
                 if len(kf_ms) % 100 == 0:
                     bar.set_postfix_str(f"wm {kf_wm[-1]} upd {np.median(kf_ms[-100:]):.0f} ms "

@@ -121,10 +121,15 @@ def write_updates(path: Path, statistics) -> None:
         for node, st in statistics:
             if not st:
                 continue
-            m, t = st.get("memory") or {}, st.get("timings_ms") or {}
-            w.writerow([node, f"{m.get('stamp', float('nan')):.6f}", f"{sum(t.values()):.3f}", m.get("stm", ""),
-                        m.get("wm", ""), m.get("ltm", ""), len(m.get("transferred", ())), len(m.get("retrieved", ())),
-                        len(m.get("merged", ())), m.get("words", "")] + [f"{t.get(s, 0.0):.3f}" for s in UPDATE_STEPS])
+            w.writerow(update_row(node, st.get("memory") or {}, st.get("timings_ms") or {}))
+
+
+def update_row(node: int, memory: dict, timings: dict) -> list:
+    """The updates.csv row of one map update from its statistics' `memory` and `timings_ms`."""
+    m, t = memory, timings
+    return [node, f"{m.get('stamp', float('nan')):.6f}", f"{sum(t.values()):.3f}", m.get("stm", ""), m.get("wm", ""),
+            m.get("ltm", ""), len(m.get("transferred", ())), len(m.get("retrieved", ())), len(m.get("merged", ())),
+            m.get("words", "")] + [f"{t.get(s, 0.0):.3f}" for s in UPDATE_STEPS]
 
 
 def _frames(dataset: Dataset, ahead: int = 2):

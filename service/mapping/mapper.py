@@ -172,7 +172,8 @@ class Mapper:
         stored = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
         nodes = [n for n in stored if n.merged_into is None]
         links = [l for l in store.links(session_id=sid) if l.from_id not in unmapped and l.to_id not in unmapped]
-        m._merged = {l.to_id: (l.from_id, l.transform) for l in links if l.type == LinkType.MERGED}
+        merges = {l.to_id: l for l in links if l.type == LinkType.MERGED}
+        m._merged = {k: (l.from_id, l.transform) for k, l in merges.items()}
         odometry, entries = [], []  # odometry links through merged keyframes: to a node, or (rehearsal) to a survivor
         for l in links:
             if l.type != LinkType.NEIGHBOR:
@@ -182,8 +183,8 @@ class Mapper:
             if l.to_id not in m._merged:
                 odometry.append((a, b, ta @ l.transform, l.information))
             elif a != b:
-                merge = next(k for k in links if k.type == LinkType.MERGED and k.to_id == l.to_id)
-                entries.append((a, b, ta @ l.transform @ invert(tb), _series_information(l.information, merge.information)))
+                entries.append((a, b, ta @ l.transform @ invert(tb),
+                                _series_information(l.information, merges[l.to_id].information)))
         own = {n.id for n in nodes}
         loops = [(l.from_id, l.to_id, l.transform, l.information) for l in links
                  if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
