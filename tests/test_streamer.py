@@ -389,11 +389,11 @@ def test_stream_synthetic_labels(collector, tmp_path, capsys):
     assert info.classes == DEFAULT_CLASSES and info.classes[15] == "door"
     # raw labels through stream_dataset; without labels: version 1 frames and no class table
     stats = stream_dataset(dataset, "raw-bot", collector.client_settings, prefix=collector.keyspace.prefix,
-                           progress=False, max_frames=2, wait_for_subscriber=5.0, color="raw", depth="raw",
+                           progress=False, max_frames=2, wait_for_subscriber=5.0, color="raw", depth="raw", rate=100.0,
                            labels=True)
     assert stats.encoding == "raw/raw+labels"
     plain = stream_dataset(dataset, "plain-bot", collector.client_settings, prefix=collector.keyspace.prefix,
-                           progress=False, max_frames=2, wait_for_subscriber=5.0, color="raw", depth="raw")
+                           progress=False, max_frames=2, wait_for_subscriber=5.0, color="raw", depth="raw", rate=100.0)
     assert plain.encoding == "raw/raw"
     got = collector.wait_frames(8)
     by_robot: dict[str, list] = {}
