@@ -367,7 +367,8 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
             session.close()
     secs = max(seconds, 1e-9)
     return StreamStats(sent, streamer.bytes_sent, seconds, sent / secs, streamer.bytes_sent * 8 / 1e6 / secs, matched,
-                       f"{color}/{depth}" + ("+labels" if labels else ""), streamer.answered, streamer.service_dropped, rate, skipped)
+                       f"{color}/{depth}" + ("+labels" if labels else ""), streamer.answered,
+                       streamer.service_dropped, rate, skipped)
 
 
 # ------------------------------------------------------------------------------------------

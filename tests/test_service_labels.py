@@ -46,7 +46,8 @@ def _until(cond, timeout=60.0):
 @pytest.fixture
 def service(tmp_path):
     port = free_port()
-    config = load_config(overrides={"zenoh": {"listen": [endpoint(port)]}, "storage": {"path": str(tmp_path / "map.db")},
+    config = load_config(overrides={"zenoh": {"listen": [endpoint(port)]},
+                                    "storage": {"path": str(tmp_path / "map.db")},
                                     "loop": {"process": False}, "service": {"queue_size": 1000}})
     svc = RecordingService(config).start()
     svc.endpoint = endpoint(port)
@@ -91,7 +92,8 @@ def test_bad_label_images_are_counted_drops(service):
             good.extras["labels"] = (good.extras["labels"] > 0).astype(np.uint8)  # ids 0, 1: fine
             cam.send(good, 1)
             # hand-made messages on the robot's key: garbage label PNG, wrong size, wrong dtype
-            pub = z.declare_publisher(protocol.KeySpace().frame("small"), congestion_control=zenoh.CongestionControl.BLOCK)
+            pub = z.declare_publisher(protocol.KeySpace().frame("small"),
+                                      congestion_control=zenoh.CongestionControl.BLOCK)
             f = ds.frame(2)
             f.extras["labels"] = np.zeros((240, 320), np.uint8)  # half size: the encoder refuses it ...
             with pytest.raises(protocol.ProtocolError):

@@ -373,7 +373,7 @@ def test_stream_synthetic_labels(collector, tmp_path, capsys):
     dataset = open_dataset("synthetic:loop", max_frames=4)
     args = _parse(["stream", "synthetic:loop", "--robot", "lab-bot", "--connect", endpoint(collector.port),
                    "--prefix", collector.keyspace.prefix, "--max-frames", "4", "--labels", "--encoding", "jpeg",
-                   "--depth-encoding", "png", "-q"])
+                   "--depth-encoding", "png", "--rate", "100", "-q"])
     assert args.labels and args.func(args) == 0
     assert "png+labels" in capsys.readouterr().out
     got = collector.wait_frames(4)
