@@ -165,6 +165,8 @@ class ApiConfig:
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = 8080
+    token: str = ""  # bearer token the endpoints that change the map need (env MNEMOSLAM_API_TOKEN overrides); "" = those endpoints answer 403
+    protect_reads: bool = False  # true: every endpoint but /health needs the token too (then a token must be set)
 
 
 @dataclass
@@ -272,7 +274,12 @@ def merge_overrides(a: dict, b: dict) -> dict:
 
 
 def to_dict(config: Config) -> dict:
-    return dataclasses.asdict(config)
+    """The config as plain data, as shown (REST /config) and stored with each session: the API
+    token is never included (a set token shows as "***")."""
+    d = dataclasses.asdict(config)
+    if d.get("api", {}).get("token"):
+        d["api"]["token"] = "***"
+    return d
 
 
 def default_yaml() -> str:

@@ -209,6 +209,11 @@ class _Graph:
         return dist, prev
 
 
+_EMPTY = {"id": np.zeros(0, np.int64), "class_id": np.zeros(0, np.int64), "labels": np.zeros(0, object),
+          "position": np.zeros((0, 3)), "extent": np.zeros((0, 3)), "confidence": np.zeros(0),
+          "observations": np.zeros(0, np.int64), "node_id": np.zeros(0, np.int64)}
+
+
 def data_version_of(path) -> Callable[[], int]:
     """A cheap change counter of the SQLite file at `path`: `PRAGMA data_version` on a
     private read-only connection (it changes whenever another connection or process commits)."""
@@ -263,12 +268,13 @@ class ObjectIndex:
 
     def _rebuild(self) -> None:
         v = self._current_version()
-        if not hasattr(self.store, "object_arrays"):
-            raise Unavailable("this map has no objects (its storage predates semantic objects)")
-        try:
-            arrays = self.store.object_arrays()
-        except Exception as e:  # a database before schema v4, or closed
-            raise Unavailable(f"cannot read the map's objects: {e}") from e
+        if not hasattr(self.store, "object_arrays"):  # a store without objects: an empty map of them
+            arrays = _EMPTY
+        else:
+            try:
+                arrays = self.store.object_arrays()
+            except Exception as e:  # the store is closed
+                raise Unavailable(f"cannot read the map's objects: {e}") from e
         self._snap = _Snapshot.from_arrays(arrays, v)
         with self._state_lock:
             self._seen_version = v
@@ -378,8 +384,18 @@ class ObjectIndex:
             rows = rows[order[offset:end]]
         else:
             total = len(rows)
-            rows = rows[offset:offset + limit]
+            offset = min(offset, total)
+            rows = rows[offset:offset + min(limit, total)]
         return Page(total, [snap.view(int(r)) for r in rows])
+
+    def delete(self, object_id: int) -> int:
+        """Remove an object from the map (`store.delete_objects`); the index forgets it at once."""
+        self.get(object_id)  # NotFound when it is not in the map
+        n = self.store.delete_objects([int(object_id)])
+        if not n:
+            raise NotFound(f"no object {object_id}")
+        self.refresh()
+        return int(n)
 
     # -- paths ----------------------------------------------------------------------------
     def graph(self) -> _Graph:
