@@ -29,6 +29,7 @@ import threading
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Path, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import PlainTextResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field
@@ -313,16 +314,18 @@ _bearer = HTTPBearer(auto_error=False, description="the service's API token (api
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 
 
-def get_service(request: Request) -> SlamService:
+# Cheap dependencies are `async def`: FastAPI runs a sync one in its thread pool (a thread hop
+# each), which at hundreds of requests/s costs more than the query itself.
+async def get_service(request: Request) -> SlamService:
     return request.app.state.service
 
 
-def require_token(request: Request, credentials: Credentials) -> None:
+async def require_token(request: Request, credentials: Credentials) -> None:
     """Endpoints that change the map."""
     request.app.state.access.check(credentials)
 
 
-def read_access(request: Request, credentials: Credentials) -> None:
+async def read_access(request: Request, credentials: Credentials) -> None:
     """Reads: open, unless api.protect_reads."""
     access: Access = request.app.state.access
     if access.protect_reads:
@@ -332,7 +335,7 @@ def read_access(request: Request, credentials: Credentials) -> None:
 ServiceDep = Annotated[SlamService, Depends(get_service)]
 
 
-def get_store(service: ServiceDep) -> MapRepository:
+async def get_store(service: ServiceDep) -> MapRepository:
     store = service.store
     if store is None:
         raise HTTPException(503, "the service is not running")
@@ -375,7 +378,7 @@ class _IndexHolder:
             self._index = self._store = None
 
 
-def semantics_state(service: ServiceDep) -> dict:
+async def semantics_state(service: ServiceDep) -> dict:
     status = getattr(service, "semantics_status", None)
     if status is None:
         return {"enabled": False, "source": None, "model": None,
@@ -386,16 +389,21 @@ def semantics_state(service: ServiceDep) -> dict:
 SemanticsDep = Annotated[dict, Depends(semantics_state)]
 
 
-def get_index(request: Request, store: StoreDep, response: Response, semantics: SemanticsDep) -> ObjectIndex:
-    """The object index; marks the response with the semantics state (X-Semantics)."""
+async def get_index(request: Request, store: StoreDep, response: Response, semantics: SemanticsDep) -> ObjectIndex:
+    """The object index; marks the response with the semantics state (X-Semantics). Its
+    first build reads every object (≈0.5 s at 100k): off the event loop."""
     response.headers["X-Semantics"] = "on" if semantics.get("enabled") else "off"
-    return request.app.state.objects.get(store)
+    index = request.app.state.objects.get(store)
+    if not index.ready:
+        with _QueryErrors(semantics):
+            await run_in_threadpool(index.snapshot)
+    return index
 
 
 IndexDep = Annotated[ObjectIndex, Depends(get_index)]
 
 
-def query_point(x: Coordinate = None, y: Coordinate = None, z: Coordinate = None) -> tuple[float, float, float] | None:
+async def query_point(x: Coordinate = None, y: Coordinate = None, z: Coordinate = None) -> tuple[float, float, float] | None:
     given = [v is not None for v in (x, y, z)]
     if any(given) and not all(given):
         raise HTTPException(400, "a point needs all of x, y and z")
@@ -537,15 +545,16 @@ def semantics(state: SemanticsDep):
 
 
 @read_routes.get("/objects/nearest", response_model=NearestOut, responses=_errors(400, 404))
-def nearest_object(label: LabelQuery, index: IndexDep, point: PointDep, service: ServiceDep, store: StoreDep,
+async def nearest_object(label: LabelQuery, index: IndexDep, point: PointDep, service: ServiceDep, store: StoreDep,
                    semantics: SemanticsDep, robot: RobotQuery = None):
     """The object labelled `label` nearest to a point (x, y, z) or to a robot's current pose
     (`robot`; exactly one of the two). 404 says why there is none (no such label, no objects,
     unknown robot, robot without a pose)."""
     if (robot is None) == (point is None):
         raise HTTPException(400, "give either x, y, z or robot (one of them)")
-    with _QueryErrors(semantics):
-        origin = point if point is not None else robot_location(service.robots(), robot, store).position
+    with _QueryErrors(semantics):  # in the event loop: microseconds on the index (a robot's fallback pose reads the map)
+        origin = point if point is not None else (
+            await run_in_threadpool(robot_location, service.robots(), robot, store)).position
         n = index.nearest(label, origin)
     return {"object": _object_json(n.object), "distance": n.distance, "node_id": n.node_id}
 
@@ -563,7 +572,7 @@ def objects(index: IndexDep, point: PointDep, semantics: SemanticsDep,
 
 
 @read_routes.get("/objects/{object_id}", response_model=ObjectOut, responses=_errors(404))
-def get_object(object_id: DbId, index: IndexDep, semantics: SemanticsDep):
+async def get_object(object_id: DbId, index: IndexDep, semantics: SemanticsDep):
     with _QueryErrors(semantics):
         return _object_json(index.get(object_id))
 
@@ -581,7 +590,7 @@ def object_path(object_id: DbId, robot: Annotated[str, Query(pattern=f"^{ROBOT_P
 
 
 @read_routes.get("/labels", response_model=LabelsOut)
-def labels(index: IndexDep, semantics: SemanticsDep):
+async def labels(index: IndexDep, semantics: SemanticsDep):
     """The object classes in the map with their object counts."""
     with _QueryErrors(semantics):
         counts = index.labels()

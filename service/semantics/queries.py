@@ -254,6 +254,11 @@ class ObjectIndex:
         self._rebuilding = False
         self.rebuilds = 0
 
+    @property
+    def ready(self) -> bool:
+        """Built at least once: queries answer without reading the store."""
+        return self._snap is not None
+
     # -- freshness ----------------------------------------------------------------------
     def _current_version(self):
         try:
