@@ -44,6 +44,7 @@ class PlannerClient:
                 ctype = r.headers.get("content-type", "")
                 self.last_semantics = r.headers.get("x-semantics", self.last_semantics)
         except urllib.error.HTTPError as e:
+            self.last_semantics = e.headers.get("x-semantics", self.last_semantics)
             try:
                 detail = json.loads(e.read()).get("detail", e.reason)
             except (ValueError, AttributeError):

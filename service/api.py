@@ -413,15 +413,9 @@ async def query_point(x: Coordinate = None, y: Coordinate = None, z: Coordinate 
 PointDep = Annotated[tuple[float, float, float] | None, Depends(query_point)]
 
 
-def _not_found(e: NotFound, semantics: dict) -> HTTPException:
-    reason = str(e)
-    if not semantics.get("enabled"):
-        reason += f" (semantics are off: {semantics.get('reason') or 'semantics.enabled is false'})"
-    return HTTPException(404, reason)
-
-
 class _QueryErrors:
-    """Query-layer exceptions as HTTP errors."""
+    """Query-layer exceptions as HTTP errors (400, 404 with the reason, 503), with the
+    X-Semantics header; a 404 says why semantics are off when they are."""
 
     def __init__(self, semantics: dict):
         self.semantics = semantics
@@ -430,12 +424,17 @@ class _QueryErrors:
         return self
 
     def __exit__(self, typ, e, tb):
+        on = bool(self.semantics.get("enabled"))
+        headers = {"X-Semantics": "on" if on else "off"}
         if isinstance(e, NotFound):
-            raise _not_found(e, self.semantics) from None
+            reason = str(e)
+            if not on:
+                reason += f" (semantics are off: {self.semantics.get('reason') or 'semantics.enabled is false'})"
+            raise HTTPException(404, reason, headers=headers) from None
         if isinstance(e, QueryError):
-            raise HTTPException(400, str(e)) from None
+            raise HTTPException(400, str(e), headers=headers) from None
         if isinstance(e, Unavailable):
-            raise HTTPException(503, str(e)) from None
+            raise HTTPException(503, str(e), headers=headers) from None
         return False
 
 
@@ -550,9 +549,9 @@ async def nearest_object(label: LabelQuery, index: IndexDep, point: PointDep, se
     """The object labelled `label` nearest to a point (x, y, z) or to a robot's current pose
     (`robot`; exactly one of the two). 404 says why there is none (no such label, no objects,
     unknown robot, robot without a pose)."""
-    if (robot is None) == (point is None):
-        raise HTTPException(400, "give either x, y, z or robot (one of them)")
     with _QueryErrors(semantics):  # in the event loop: microseconds on the index (a robot's fallback pose reads the map)
+        if (robot is None) == (point is None):
+            raise QueryError("give either x, y, z or robot (one of them)")
         origin = point if point is not None else (
             await run_in_threadpool(robot_location, service.robots(), robot, store)).position
         n = index.nearest(label, origin)

@@ -246,7 +246,7 @@ class ObjectIndex:
         self.check_interval = check_interval
         self.min_rebuild_interval = min_rebuild_interval
         self._snap: _Snapshot | None = None
-        self._graph: tuple[object, _Graph] | None = None  # (version it was built at, graph)
+        self._graph: tuple[object, _Graph, float] | None = None  # (version it was built at, graph, when)
         self._build_lock = threading.Lock()
         self._state_lock = threading.Lock()
         self._last_check = 0.0
@@ -404,12 +404,15 @@ class ObjectIndex:
 
     # -- paths ----------------------------------------------------------------------------
     def graph(self) -> _Graph:
+        """The map's nodes and links; rebuilt when the store changed, at most every
+        `min_rebuild_interval` s (a live map commits every keyframe)."""
         v = self._current_version()
         cached = self._graph
-        if cached is not None and v is not None and cached[0] == v:
+        if cached is not None and (v is None or cached[0] == v
+                                   or time.monotonic() - cached[2] < self.min_rebuild_interval):
             return cached[1]
         g = _Graph.from_store(self.store)
-        self._graph = (v, g)
+        self._graph = (v, g, time.monotonic())
         return g
 
     def path(self, object_id: int, start: RobotLocation) -> GraphPath:
