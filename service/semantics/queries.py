@@ -32,6 +32,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -217,7 +218,7 @@ _EMPTY = {"id": np.zeros(0, np.int64), "class_id": np.zeros(0, np.int64), "label
 def data_version_of(path) -> Callable[[], int]:
     """A cheap change counter of the SQLite file at `path`: `PRAGMA data_version` on a
     private read-only connection (it changes whenever another connection or process commits)."""
-    conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True, check_same_thread=False)
+    conn = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True, check_same_thread=False)
     lock = threading.Lock()
 
     def version() -> int:
