@@ -226,3 +226,22 @@ def test_robot_location():
         robot_location(robots, "r4", store)
     with pytest.raises(NotFound, match="unknown robot"):
         robot_location(robots, "r9", store)
+
+
+def test_nearest_in_spatial_blocks_is_exact():
+    """A label with many objects is searched block by block: the same answers as brute force,
+    clustered or spread out, for points inside and far outside the map, ties to the lowest id."""
+    rng = np.random.default_rng(5)
+    for n, spread in ((3000, 20.0), (20_000, 2.0), (600, 500.0)):
+        a = arrays(n, seed=n, labels=["door"])
+        a["position"] = np.concatenate([rng.normal(0, spread, (n // 2, 3)),
+                                        rng.normal(30, spread, (n - n // 2, 3))])
+        a["position"][7] = a["position"][n - 3]  # two objects at the same place
+        index = ObjectIndex(FakeStore(a))
+        assert "door" in index.snapshot().label_blocks
+        qs = np.concatenate([rng.uniform(-40, 70, (200, 3)), rng.uniform(-1e4, 1e4, (20, 3)),
+                             a["position"][[7, n - 3, 0]]])
+        for q in qs:
+            d = np.linalg.norm(a["position"] - q, axis=1)
+            got = index.nearest("door", q)
+            assert got.object.id == a["id"][np.argmin(d)] and got.distance == pytest.approx(d.min())
