@@ -26,6 +26,7 @@ import hmac
 import math
 import os
 import threading
+import time
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Path, Query, Request, Response
@@ -378,12 +379,22 @@ class _IndexHolder:
             self._index = self._store = None
 
 
-async def semantics_state(service: ServiceDep) -> dict:
+def _semantics_of(service) -> dict:
     status = getattr(service, "semantics_status", None)
     if status is None:
         return {"enabled": False, "source": None, "model": None,
                 "reason": "this service has no semantic pipeline", "classes": []}
     return status()
+
+
+async def semantics_state(request: Request, service: ServiceDep) -> dict:
+    """The service's semantic state for the object endpoints (X-Semantics, 404 reasons):
+    asked at most once a second (it looks at the model file), GET /semantics asks every time."""
+    cached = request.app.state.semantics
+    now = time.monotonic()
+    if cached is None or now - cached[0] > 1.0:
+        cached = request.app.state.semantics = (now, _semantics_of(service))
+    return cached[1]
 
 
 SemanticsDep = Annotated[dict, Depends(semantics_state)]
@@ -446,6 +457,7 @@ def create_app(service: SlamService) -> FastAPI:
     app.state.service = service
     app.state.access = Access.from_config(service.config)
     app.state.objects = _IndexHolder()
+    app.state.semantics = None  # (when, semantics_status()) for the object endpoints
     app.router.add_event_handler("shutdown", app.state.objects.close)
     app.include_router(open_routes)
     app.include_router(read_routes)
@@ -537,10 +549,10 @@ def config(service: ServiceDep):
 
 # -- semantic map -----------------------------------------------------------------------------
 @read_routes.get("/semantics", response_model=SemanticsOut)
-def semantics(state: SemanticsDep):
+def semantics(service: ServiceDep):
     """Whether the service fuses semantic labels into objects now (source, model, classes), or
     why not. The object endpoints answer from the database either way."""
-    return state
+    return _semantics_of(service)
 
 
 @read_routes.get("/objects/nearest", response_model=NearestOut, responses=_errors(400, 404))
@@ -636,7 +648,6 @@ class ApiThread:
                                         name="api-thread")
 
     def start(self, timeout: float = 20.0) -> "ApiThread":
-        import time
         self._thread.start()
         deadline = time.monotonic() + timeout
         while not self.server.started:
