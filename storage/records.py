@@ -21,6 +21,9 @@ Encodings:
 - JSON text for session calibration / config and per-node statistics.
 - sessions: `ended_at` (wall time) and `end_reason` once ended: "stopped" for a normal
   end, "crashed" for one the service found still open when it started again.
+- objects (v4): `histogram` K float32 (posterior over the source's class table),
+  `centroid` 3 float64 in the anchor node's camera frame, `extent` 3 float64 (m, map axes),
+  `keyframes` int64 ids of the observing keyframes (the most recent `MAX_OBJECT_KEYFRAMES`).
 - statistics: the map update's (service.mapping.mapper) last write for a keyframe, after its words,
   links and poses: a node without a statistics row has not been through the map update.
 """
@@ -125,6 +128,29 @@ class KeyframeRecord:
     odom_link: tuple | None = None  # (from_id, T_from_to 4×4, information 6×6 | None)
     statistics: dict | None = None
     word_ids: np.ndarray | None = None  # (N,) int32, visual words of the features
+
+
+@dataclass
+class ObjectRecord:
+    """A 3-D object of the semantic map (table `objects`). `centroid` is in the anchor
+    node's camera frame; `position` (world, = anchor pose @ centroid) is filled by the
+    reads and ignored by writes. `id` None = a new object (`save_objects` inserts it)."""
+
+    id: int | None
+    node_id: int  # anchor keyframe
+    class_id: int  # argmax of `histogram`
+    label: str  # the class's name
+    confidence: float  # histogram[class_id]
+    histogram: np.ndarray  # (K,) float32 posterior over the classes
+    centroid: np.ndarray  # (3,) float64, anchor node's camera frame
+    extent: np.ndarray  # (3,) float64 axis-aligned size in the map frame (m)
+    observations: int  # keyframes that observed it
+    keyframes: np.ndarray  # (≤ 64,) int64 ids of the most recent observing keyframes
+    position: np.ndarray | None = None  # (3,) world position, read side only
+
+
+#: How many observing keyframe ids an object keeps (the most recent).
+MAX_OBJECT_KEYFRAMES = 64
 
 
 # -- array encoding -------------------------------------------------------------------------
@@ -385,3 +411,63 @@ _SESSION_COLUMNS = "id, robot, map_id, started_at, ended_at, calibration, config
 
 #: Link types the map update (service.mapping.mapper.Mapper) writes; each goes *to* the keyframe being updated.
 MAP_UPDATE_LINKS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)
+
+
+# -- objects (v4) ---------------------------------------------------------------------------
+
+
+def _vector(v, n: int | None, what: str, dtype=np.float64) -> np.ndarray:
+    a = np.asarray(v)
+    if a.dtype.kind not in "fiu":
+        raise ValueError(f"{what} must be real numbers, got dtype {a.dtype}")
+    if a.ndim != 1 or (n is not None and a.shape[0] != n):
+        raise ValueError(f"{what} must have shape ({n if n is not None else 'K'},), got {a.shape}")
+    a = a.astype(dtype)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} has non-finite values")
+    return a
+
+
+def _prepare_object(o: ObjectRecord) -> tuple:
+    """Checked, encoded columns of an object: (id | None, node_id, class_id, label, confidence,
+    histogram, centroid, extent, observations, keyframes). ValueError names what is wrong."""
+    if not isinstance(o, ObjectRecord):
+        raise ValueError(f"expected an ObjectRecord, got {type(o).__name__}")
+    oid = None if o.id is None else _as_int(o.id, "object id")
+    node = _as_int(o.node_id, "object node_id")
+    hist = _vector(o.histogram, None, "object histogram", np.float32)
+    if hist.shape[0] < 1 or (hist < 0).any():
+        raise ValueError("object histogram must be non-empty and non-negative")
+    cls = _as_int(o.class_id, "object class_id")
+    if not 0 <= cls < hist.shape[0]:
+        raise ValueError(f"object class_id {cls} is outside the histogram's {hist.shape[0]} classes")
+    if not isinstance(o.label, str) or not o.label.strip():
+        raise ValueError(f"object label must be a non-empty string, got {o.label!r}")
+    conf = _as_float(o.confidence, "object confidence")
+    if not 0.0 <= conf <= 1.0:
+        raise ValueError(f"object confidence must be in [0, 1], got {conf}")
+    centroid = _vector(o.centroid, 3, "object centroid")
+    extent = _vector(o.extent, 3, "object extent")
+    if (extent < 0).any():
+        raise ValueError(f"object extent must be non-negative, got {extent.tolist()}")
+    obs = _as_int(o.observations, "object observations")
+    if obs < 0:
+        raise ValueError(f"object observations must be ≥ 0, got {obs}")
+    kf = np.asarray([] if o.keyframes is None else o.keyframes)
+    if kf.ndim != 1 or (kf.size and kf.dtype.kind not in "iu"):
+        raise ValueError(f"object keyframes must be a 1-D array of node ids, got shape {kf.shape} {kf.dtype}")
+    kf = kf.astype(np.int64)[-MAX_OBJECT_KEYFRAMES:]
+    return (oid, node, cls, o.label, conf, _pack(hist, np.float32), _pack(centroid, np.float64),
+            _pack(extent, np.float64), obs, _pack(kf, np.int64))
+
+
+_OBJECT_COLUMNS = ("o.id, o.node_id, o.class_id, o.label, o.confidence, o.histogram, o.centroid, o.extent, "
+                   "o.observations, o.keyframes, n.pose")
+
+
+def _object(row) -> ObjectRecord:
+    hist = _unpack(row[5], np.float32, (len(row[5]) // 4,))
+    centroid = _unpack(row[6], np.float64, (3,))
+    pose = _unpack(row[10], np.float64, (4, 4))
+    return ObjectRecord(row[0], row[1], row[2], row[3], row[4], hist, centroid, _unpack(row[7], np.float64, (3,)),
+                        row[8], _unpack(row[9], np.int64, (len(row[9]) // 8,)), pose[:3, :3] @ centroid + pose[:3, 3])

@@ -114,8 +114,29 @@ def m003_merged_nodes(db: sqlite_utils.Database) -> None:
     db.execute("ALTER TABLE nodes ADD COLUMN merged_into INTEGER")
 
 
+def m004_objects(db: sqlite_utils.Database) -> None:
+    """v4: `objects`, the 3-D object instances of the semantic map (issue 14). Each is
+    anchored to a keyframe (`node_id`): `centroid` is in that node's camera frame, so the
+    object moves with the node when the graph is corrected (its world position is the
+    node's pose @ centroid, computed on read). `histogram` is the float32 posterior over the
+    K classes of the source's class table, `class_id` / `label` / `confidence` its argmax,
+    the class name and its probability; `extent` the axis-aligned size in the map frame;
+    `keyframes` the int64 ids of the (most recent ≤ 64) keyframes that observed it."""
+    _create(
+        db, "objects",
+        {"id": int, "node_id": int, "class_id": int, "label": str, "confidence": float, "histogram": bytes,
+         "centroid": bytes, "extent": bytes, "observations": int, "keyframes": bytes, "updated": float},
+        pk="id", autoincrement="id",
+        not_null=["node_id", "class_id", "label", "confidence", "histogram", "centroid", "extent",
+                  "observations", "keyframes", "updated"],
+        foreign_keys=[_fk("objects", "node_id", "nodes")],
+    )
+    db["objects"].create_index(["label"], index_name="idx_objects_label")
+    db["objects"].create_index(["node_id"], index_name="idx_objects_node")
+
+
 #: Applied in order: MIGRATIONS[i] upgrades schema version i to i + 1.
-MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason, m003_merged_nodes)
+MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason, m003_merged_nodes, m004_objects)
 
 #: Tables a v1 database has (for "is this a mnemoslam database" checks).
 TABLES = ("admin", "sessions", "nodes", "links", "features", "words", "images", "statistics")

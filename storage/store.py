@@ -12,18 +12,20 @@ connection:
 - `storage.nodes` (`Nodes`): sessions, keyframes, links, poses, labels, statistics.
 - `storage.words` (`Words`): the vocabulary's words and the nodes' word ids.
 - `storage.queries` (`Queries`): reads of nodes, links, trajectories, statistics; export.
+- `storage.objects` (`Objects`): the semantic map's 3-D objects (anchored to keyframes).
 
 `storage.repository.MapRepository` lists the methods the service uses.
 """
 from __future__ import annotations
 
 from .nodes import Nodes
+from .objects import Objects
 from .queries import Queries
 from .records import MAP_UPDATE_LINKS, StoreError, _pack, _unpack  # noqa: F401 (imported from here before the split)
 from .words import Words
 
 
-class MapStore(Nodes, Words, Queries):
+class MapStore(Nodes, Words, Queries, Objects):
     """The long-term memory in one SQLite file. See `storage.records` for the encodings and
     `storage.connection` for the durability and threading guarantees."""
 

@@ -1,6 +1,7 @@
 """The SQLite long-term memory: real database files in tmp_path, no mocks."""
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import json
 import os
@@ -18,7 +19,7 @@ import pytest
 
 from client.frames import Calibration, PinholeCamera
 from client.trajectory import read_tum
-from storage import KeyframeRecord, LinkType, MapRepository, MapStore, StoreError, UnknownIdError
+from storage import KeyframeRecord, LinkType, MapRepository, MapStore, ObjectRecord, StoreError, UnknownIdError
 from storage.cli import db_export, db_info
 from storage.store import _pack, _unpack
 
@@ -565,7 +566,7 @@ def test_schema_version_and_migration(tmp_path, rng):
     def m_next_fake(db):
         applied.append(1)
         db["nodes"].add_column("semantic_class", str)
-        db["objects"].create({"id": int, "node_id": int, "name": str}, pk="id")
+        db["landmarks"].create({"id": int, "node_id": int, "name": str}, pk="id")
         db.execute("UPDATE nodes SET semantic_class = 'floor'")
 
     class StoreV2(MapStore):
@@ -575,7 +576,7 @@ def test_schema_version_and_migration(tmp_path, rng):
         assert s.schema_version == V + 1 and s.get_info("schema_version") == V + 1
         assert s.get_node(nid) is not None and s.get_info("note") == {"a": [1, 2]}
     assert rows(path, "SELECT semantic_class FROM nodes") == [("floor",)]
-    assert "objects" in {r[0] for r in rows(path, "SELECT name FROM sqlite_master")}
+    assert "landmarks" in {r[0] for r in rows(path, "SELECT name FROM sqlite_master")}
     with StoreV2(path):
         pass
     assert applied == [1]  # applied once
@@ -890,3 +891,118 @@ def test_background_checkpointer_copies_the_wal(tmp_path):
         while path.stat().st_size < 0.8e6 and time.monotonic() < deadline:
             time.sleep(0.01)
         assert path.stat().st_size >= 0.8e6  # copied into the database file by the checkpointer
+
+
+# -- semantic objects (schema v4) -----------------------------------------------------------
+
+
+def obj(node_id, centroid=(0.0, 0.0, 1.0), label="door", class_id=15, k=32, oid=None, **kw) -> ObjectRecord:
+    hist = np.full(k, 0.01, np.float32)
+    hist[class_id % k] = 1.0 - 0.01 * (k - 1)
+    fields = dict(id=oid, node_id=node_id, class_id=class_id, label=label, confidence=float(hist[class_id % k]),
+                  histogram=hist, centroid=np.array(centroid, float), extent=np.array([0.9, 2.0, 0.1]),
+                  observations=3, keyframes=np.array([node_id, node_id + 1], np.int64))
+    fields.update(kw)
+    return ObjectRecord(**fields)
+
+
+def test_objects_round_trip_and_follow_their_anchor(store, rng):
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0.0, P=pose(1.0, 0.0, 2.0)))
+    b = store.add_keyframe(record(rng, sid, 1.0, P=pose(0.0, 0.0, 0.0, yaw=np.pi / 2)))
+    ids = store.save_objects([obj(a, (0.5, 0.0, 1.0)), obj(b, (0.0, 1.0, 2.0), label="chair", class_id=20)])
+    assert len(ids) == 2 and store.count_objects() == 2
+    o = store.get_object(ids[0])
+    want = obj(a, (0.5, 0.0, 1.0))
+    assert (o.id, o.node_id, o.class_id, o.label, o.observations) == (ids[0], a, 15, "door", 3)
+    assert o.confidence == pytest.approx(want.confidence)
+    assert o.histogram.dtype == np.float32 and np.array_equal(o.histogram, want.histogram)
+    assert np.array_equal(o.centroid, want.centroid) and np.array_equal(o.extent, want.extent)
+    assert o.keyframes.tolist() == [a, a + 1]
+    np.testing.assert_allclose(o.position, [1.5, 0.0, 3.0])
+    c = store.get_object(ids[1])  # yaw 90° about y: camera z -> world x
+    np.testing.assert_allclose(c.position, [2.0, 1.0, 0.0], atol=1e-12)
+    assert [x.id for x in store.objects()] == ids and [x.label for x in store.objects("chair")] == ["chair"]
+    assert store.get_object(999) is None
+
+    # a graph correction moves the anchor: the object follows without being rewritten
+    store.update_poses({a: pose(-1.0, 0.5, 0.0, yaw=np.pi)})
+    np.testing.assert_allclose(store.get_object(ids[0]).position, [-1.5, 0.5, -1.0], atol=1e-12)
+    arr = store.object_arrays()
+    np.testing.assert_allclose(arr["position"], [[-1.5, 0.5, -1.0], [2.0, 1.0, 0.0]], atol=1e-12)
+    assert arr["id"].tolist() == ids and arr["labels"].tolist() == ["door", "chair"]
+    assert arr["class_id"].tolist() == [15, 20] and arr["node_id"].tolist() == [a, b]
+    assert arr["extent"].shape == (2, 3) and arr["observations"].tolist() == [3, 3]
+    assert store.object_arrays("door")["id"].tolist() == [ids[0]]
+    assert store.object_arrays("sofa")["position"].shape == (0, 3)
+
+    # update in place (re-anchored), then delete
+    o.node_id, o.centroid, o.observations = b, np.zeros(3), 4
+    o.keyframes = np.arange(100, dtype=np.int64)  # keeps the most recent 64
+    assert store.save_objects([o]) == [ids[0]]
+    o2 = store.get_object(ids[0])
+    assert o2.node_id == b and o2.observations == 4 and o2.keyframes.tolist() == list(range(36, 100))
+    assert store.delete_objects([ids[0], 12345]) == 1 and store.count_objects() == 1
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(histogram=np.array([np.nan] * 32, np.float32)), "histogram has non-finite"),
+    (dict(class_id=40), "outside the histogram"),
+    (dict(label=""), "label must be"),
+    (dict(confidence=1.5), "confidence must be in"),
+    (dict(centroid=np.zeros(2)), "centroid must have shape"),
+    (dict(extent=np.array([1.0, -1.0, 0.0])), "extent must be non-negative"),
+    (dict(node_id="x"), "node_id must be an integer"),
+    (dict(keyframes=np.array([1.5])), "keyframes must be"),
+])
+def test_bad_object_is_a_value_error_before_any_write(store, rng, change, match):
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0.0))
+    with pytest.raises(ValueError, match=match):
+        store.save_objects([obj(a), dataclasses.replace(obj(a), **change)])
+    assert store.count_objects() == 0
+    with pytest.raises(UnknownIdError, match="no anchor node 999"):
+        store.save_objects([obj(a), obj(999)])
+    with pytest.raises(UnknownIdError, match="no object 77"):
+        store.save_objects([obj(a), obj(a, oid=77)])
+    assert store.count_objects() == 0
+
+
+def test_objects_survive_their_anchor_being_merged(store, rng):
+    sid = store.begin_session("r1", CAL)
+    a = store.add_keyframe(record(rng, sid, 0.0))
+    b = store.add_keyframe(record(rng, sid, 1.0, P=pose(0.2)))
+    (oid,) = store.save_objects([obj(b)])
+    store.merge_node(b, a, pose(0.2), np.eye(6))
+    assert store.get_object(oid).node_id == b and store.count_objects() == 1
+
+
+def test_object_arrays_at_100k_objects(store, rng):
+    """100k objects as columns, positions from their anchors (speed: bench/bench_objects.py)."""
+    sid = store.begin_session("r1", CAL)
+    nodes = [store.add_keyframe(record(rng, sid, float(i), P=pose(i, 0, 0), n=5)) for i in range(200)]
+    hist = np.full(32, 1 / 32, np.float32)
+    cents = rng.normal(size=(100_000, 3))
+    anchors = rng.integers(0, 200, 100_000)
+    store.save_objects([ObjectRecord(None, nodes[anchors[i]], 0, "other", 1 / 32, hist, cents[i], np.ones(3), 1,
+                                     np.array([nodes[anchors[i]]], np.int64)) for i in range(100_000)])
+    arr = store.object_arrays()
+    assert arr["id"].shape == (100_000,)
+    np.testing.assert_allclose(arr["position"], cents + np.c_[anchors, np.zeros((100_000, 2))])
+
+
+def test_migration_from_v3_adds_objects(tmp_path, rng):
+    path = tmp_path / "map.db"
+
+    class StoreV3(MapStore):
+        MIGRATIONS = MapStore.MIGRATIONS[:3]
+
+    with StoreV3(path) as s:
+        sid = s.begin_session("r1", CAL)
+        a = s.add_keyframe(record(rng, sid, 0.0))
+    assert "objects" not in {r[0] for r in rows(path, "SELECT name FROM sqlite_master")}
+    with MapStore(path) as s:
+        assert s.schema_version == V >= 4 and s.count_objects() == 0
+        s.save_objects([obj(a)])
+        assert s.objects()[0].node_id == a and s.integrity_check() == "ok"
+    assert {"idx_objects_label", "idx_objects_node"} <= {r[0] for r in rows(path, "SELECT name FROM sqlite_master")}
