@@ -633,9 +633,14 @@ def label_node(node_id: DbId, store: StoreDep, body: Annotated[LabelIn, Body()])
     return _node_json(store.get_node(node_id))
 
 
-@write_routes.delete("/objects/{object_id}", response_model=DeletedOut, responses=_errors(404))
+@write_routes.delete("/objects/{object_id}", response_model=DeletedOut, responses=_errors(404, 409))
 def delete_object(object_id: DbId, objects: ObjectsDep):
-    """Drop a wrong object from the map."""
+    """Drop a wrong object from the map. Refused (409) while the service fuses objects
+    (semantics on): its semantic workers hold the objects they track and write them again."""
+    if objects.semantics.get("enabled"):
+        raise HTTPException(409, "objects are being fused live (semantics on): the semantic worker would write this "
+                                 "object again; delete it with semantics off (semantics.enabled: false)",
+                            headers=objects.errors().headers)
     with objects.errors():
         return {"deleted": objects.index.delete(object_id)}
 

@@ -206,6 +206,8 @@ def test_mutations_need_the_token(world):
     assert _status(world.admin.label_node, world.ids[4], "kitchen")[0] == 409  # labels are unique
     assert _status(world.admin.label_node, 10**9, "x")[0] == 404
     assert world.admin.label_node(node, None)["label"] is None
+    status, detail = _status(world.admin.delete_object, world.oids[0])  # semantics on: the workers own the objects
+    assert status == 409 and "semantics.enabled" in detail and world.store.count_objects() == len(OBJECTS)
     r = requests.post(f"{world.url}/nodes/{node}/label", json={"label": ""}, timeout=10,
                       headers={"Authorization": f"Bearer {TOKEN}"})
     assert r.status_code == 422
@@ -228,7 +230,7 @@ def test_env_token_and_protected_reads(tmp_path, monkeypatch):
     monkeypatch.setenv(TOKEN_ENV, "from-env")
     store, sid, ids, oids = make_map(tmp_path / "p.db")
     cfg = load_config(None, {"api": {"token": "from-config", "protect_reads": True}})
-    with ApiThread(create_app(FakeService(store, cfg))) as url:
+    with ApiThread(create_app(FakeService(store, cfg, semantics=False))) as url:
         assert PlannerClient(url).health()["status"] == "ok"  # liveness stays open
         for path in ("/labels", "/objects", f"/objects/{oids[0]}", "/semantics", "/sessions", "/robots", "/stats"):
             assert _status(PlannerClient(url).get, path)[0] == 401, path
