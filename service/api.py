@@ -56,6 +56,7 @@ RobotQuery = Annotated[str | None, Query(pattern=f"^{ROBOT_PATTERN.pattern}$",
 LabelQuery = Annotated[str, Query(min_length=1, max_length=128, description="an object class, e.g. door")]
 Coordinate = Annotated[float | None, Query(allow_inf_nan=False, description="metres, map frame")]
 Limit = Annotated[int, Query(ge=1, le=10000)]
+Radius = Annotated[float | None, Query(ge=0, allow_inf_nan=False, description="m around x, y, z")]
 Offset = Annotated[int, Query(ge=0, le=SQLITE_INT_MAX)]
 
 
@@ -582,7 +583,7 @@ async def nearest_object(label: LabelQuery, objects: ObjectsDep, x: Coordinate =
 @read_routes.get("/objects", response_model=ObjectPage, responses=_errors(400))
 def list_objects(objects: ObjectsDep, label: Annotated[str | None, Query(min_length=1, max_length=128)] = None,
                  x: Coordinate = None, y: Coordinate = None, z: Coordinate = None,
-                 radius: Annotated[float | None, Query(ge=0, allow_inf_nan=False, description="m around x, y, z")] = None,
+                 radius: Radius = None,
                  limit: Limit = 100, offset: Offset = 0):
     """Objects, optionally of one label and within `radius` of x, y, z; ordered by distance
     to the point when one is given, else by id."""

@@ -197,7 +197,8 @@ def test_empty_map_says_so(tmp_path):
 
 def test_mutations_need_the_token(world):
     node = world.ids[3]
-    assert _status(world.api.label_node, node, "kitchen") == (401, "missing API token: send 'Authorization: Bearer <token>'")
+    assert _status(world.api.label_node, node, "kitchen") == (
+        401, "missing API token: send 'Authorization: Bearer <token>'")
     assert _status(PlannerClient(world.url, token="wrong").label_node, node, "kitchen") == (401, "wrong API token")
     r = requests.post(f"{world.url}/nodes/{node}/label", json={"label": "kitchen"}, timeout=10)
     assert r.status_code == 401 and r.headers["www-authenticate"].startswith("Bearer")
