@@ -186,12 +186,13 @@ class SemanticsConfig:
     ignore: list = field(default_factory=lambda: ["other", "wall", "building", "sky", "floor", "ceiling", "road", "grass", "sidewalk", "earth", "mountain", "water", "sea", "field", "rug"])  # classes that never become objects ("stuff": surfaces without an extent)
     stride: int = 4  # label / depth pixels used: every stride-th of each row and column
     min_depth: float = 0.3  # m; labelled pixels with depth outside [min, max] are not used
-    max_depth: float = 5.0
-    min_pixels: int = 800  # a segment (connected pixels of one class) needs this many full-resolution pixels with depth
+    max_depth: float = 10.0  # (objects are often seen from afar: the synthetic scene's doors at 6-7.5 m median)
+    min_pixels: int = 400  # a segment (connected pixels of one class) needs this many full-resolution pixels with depth
     depth_jump: float = 0.05  # neighbouring pixels whose depths differ by more than this × depth split segments
     voxel: float = 0.08  # m; objects keep their surface as voxels of this size (in the anchor's frame): centroid and extent come from them
     max_extent: float = 4.0  # m; a segment larger than this along any axis is not an object
     min_overlap: float = 0.25  # a segment joins the object whose voxels hold this share of its voxels (any class: the histogram decides)
+    merge_overlap: float = 0.5  # two objects sharing this share of the smaller one's voxels are one object (merged)
     label_probability: float = 0.6  # p of the Bayesian update: the observed class gets p, every other (1 - p) / (K - 1) (Kimera, SemanticFusion)
     min_probability: float = 1e-4  # histogram floor after each update, so old evidence can still be overturned
     min_observations: int = 3  # keyframes that must see an object before it is stored (one noisy frame makes no object)
