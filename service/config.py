@@ -190,8 +190,10 @@ class SemanticsConfig:
     min_pixels: int = 400  # a segment (connected pixels of one class) needs this many full-resolution pixels with depth
     depth_jump: float = 0.05  # neighbouring pixels whose depths differ by more than this × depth split segments
     voxel: float = 0.08  # m; objects keep their surface as voxels of this size (in the anchor's frame): centroid and extent come from them
-    max_extent: float = 4.0  # m; a segment larger than this along any axis is not an object
+    max_extent: float = 4.0  # m; a segment (or an object) larger than this along any axis is not an object
     min_overlap: float = 0.25  # a segment joins the object whose voxels hold this share of its voxels (any class: the histogram decides)
+    min_object_share: float = 0.1  # ... and covers at least this share of the object's voxels (a painting does not join a large wall-sized object)
+    stuff_cover: float = 0.5  # an ignored-class segment (wall, floor) covering this share of an object's voxels, or lying inside it by this share, votes for its class
     merge_overlap: float = 0.5  # two objects sharing this share of the smaller one's voxels are one object (merged)
     label_probability: float = 0.6  # p of the Bayesian update: the observed class gets p, every other (1 - p) / (K - 1) (Kimera, SemanticFusion)
     min_probability: float = 1e-4  # histogram floor after each update, so old evidence can still be overturned

@@ -45,11 +45,14 @@ class Segment:
     class_id: int
     points: np.ndarray  # (n, 3) float64, camera frame
     pixels: int  # full-resolution pixels it stands for (n × stride²)
+    stuff: bool = False  # an ignored class: votes in the histograms of objects it covers, makes none
 
 
 def extract_segments(labels: np.ndarray, depth: np.ndarray, camera: PinholeCamera, config: SemanticsConfig,
                      ignore: np.ndarray) -> list[Segment]:
-    """The object segments of a keyframe. `ignore[c]` True = class c never makes objects."""
+    """The segments of a keyframe. `ignore[c]` True = class c never makes objects: its
+    segments come with `stuff` set (they only vote in objects they cover); `ignore[-1]` is
+    for ids outside the class table (dropped)."""
     s = max(1, int(config.stride))
     if labels.shape[:2] != depth.shape[:2]:
         labels = cv2.resize(labels, (depth.shape[1], depth.shape[0]), interpolation=cv2.INTER_NEAREST)
@@ -68,11 +71,14 @@ def extract_segments(labels: np.ndarray, depth: np.ndarray, camera: PinholeCamer
     edge[:, 1:] |= dx
     edge[:-1, :] |= dy
     edge[1:, :] |= dy
-    lab = np.where(lab < len(ignore), lab, 0)
-    keep = ok & ~edge & ~ignore[lab]
+    lab = np.where(lab < len(ignore) - 1, lab, len(ignore) - 1)  # ids outside the table: the last (ignored) entry
+    keep = ok & ~edge
     min_n = max(4, int(np.ceil(config.min_pixels / (s * s))))
     out: list[Segment] = []
     for c in np.unique(lab[keep]):
+        if c == len(ignore) - 1:
+            continue
+        stuff = bool(ignore[c])
         mask = ((lab == c) & keep).astype(np.uint8)
         n, cc, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=4)
         big = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_n) + 1
@@ -89,9 +95,9 @@ def extract_segments(labels: np.ndarray, depth: np.ndarray, camera: PinholeCamer
             p = pts[order[b:e]]
             lo, hi = np.percentile(p, [2, 98], axis=0)
             p = p[np.all((p >= lo - 0.05) & (p <= hi + 0.05), axis=1)]
-            if len(p) < min_n or np.ptp(p, axis=0).max() > config.max_extent:
+            if len(p) < min_n or (not stuff and np.ptp(p, axis=0).max() > config.max_extent):
                 continue
-            out.append(Segment(int(c), p, len(p) * s * s))
+            out.append(Segment(int(c), p, len(p) * s * s, stuff))
     return out
 
 
@@ -131,6 +137,7 @@ class FusedObject:
     dirty: bool = True
     centroid: np.ndarray | None = None  # (3,) anchor frame, set by `summarise`
     radius: float = 0.0
+    size: float = 0.0  # largest side of its voxels' box (anchor axes)
 
     @property
     def class_id(self) -> int:
@@ -190,6 +197,10 @@ class ObjectFusion:
         p, floor, v = self.config.label_probability, self.config.min_probability, self.config.voxel
         for seg in segments:
             world = seg.points @ pose[:3, :3].T + pose[:3, 3]
+            if seg.stuff:
+                if cand:
+                    self._stuff_votes(seg, world, cand, A, centres, radii, seen, touched)
+                continue
             best, best_overlap = None, self.config.min_overlap
             if cand:
                 c = world.mean(axis=0)
@@ -199,7 +210,10 @@ class ObjectFusion:
                     Ta = A[i]
                     local = (world - Ta[:3, 3]) @ Ta[:3, :3]  # into the anchor frame
                     keys = np.unique(_pack(np.floor(local / v)))
-                    overlap = np.isin(keys, o.voxels, assume_unique=True).mean()
+                    hits = np.isin(keys, o.voxels, assume_unique=True)
+                    overlap = hits.mean()
+                    if hits.sum() < self.config.min_object_share * len(o.voxels):
+                        continue  # a small part of a much larger object: (likely) another thing on it
                     if overlap > best_overlap or (overlap == best_overlap and best is not None
                                                   and o.class_id == seg.class_id != best.class_id):
                         best, best_overlap, best_local = o, overlap, local
@@ -223,6 +237,29 @@ class ObjectFusion:
         self._merge_duplicates(touched, anchor_poses)
         return len(segments)
 
+    def _stuff_votes(self, seg, world, cand, A, centres, radii, seen, touched) -> None:
+        """A wall / floor / … segment that covers most of an object's voxels, or lies mostly
+        inside it (`stuff_cover`), is a vote for that class in its histogram: a region a corrupted frame made an object of
+        turns back into wall, and is no longer reported."""
+        v = self.config.voxel
+        c = world.mean(axis=0)
+        r = np.linalg.norm(world - c, axis=1).max()
+        for i in np.flatnonzero(np.linalg.norm(centres - c, axis=1) <= radii + r + v):
+            o = cand[i]
+            keys = np.unique(_pack(np.floor((world - A[i][:3, 3]) @ A[i][:3, :3] / v)))
+            # most of the object is this wall, or most of this floor is the object (a floor-sized "object")
+            if (np.isin(o.voxels, keys, assume_unique=True).mean() < self.config.stuff_cover
+                    and np.isin(keys, o.voxels, assume_unique=True).mean() < self.config.stuff_cover):
+                continue
+            classes = seen.setdefault(id(o), set())
+            if seg.class_id not in classes:
+                classes.add(seg.class_id)
+                o.histogram = bayes_update(o.histogram, seg.class_id, self.config.label_probability,
+                                           self.config.min_probability)
+                o.dirty = True
+                if all(t is not o for t in touched):
+                    touched.append(o)
+
     def _merge_duplicates(self, touched: list[FusedObject], anchor_poses: Mapping[int, np.ndarray]) -> None:
         """Merge an object into another that holds most of its voxels (one thing seen from two
         sides first became two objects): histograms multiply (independent evidence over a
@@ -233,12 +270,17 @@ class ObjectFusion:
                 continue
             To = anchor_poses[o.node_id]
             wo = To[:3, :3] @ o.centroid + To[:3, 3]
-            for other in list(self.objects):
-                if other is o or other.node_id not in anchor_poses:
+            near = [x for x in self.objects if x is not o and x.node_id in anchor_poses]
+            if not near:
+                continue
+            A = np.stack([anchor_poses[x.node_id] for x in near])
+            centres = np.einsum("nij,nj->ni", A[:, :3, :3], np.stack([x.centroid for x in near])) + A[:, :3, 3]
+            radii = np.array([x.radius for x in near])
+            for i in np.flatnonzero(np.linalg.norm(centres - wo, axis=1) <= radii + o.radius):
+                other = near[i]
+                if other not in self.objects:  # merged meanwhile
                     continue
-                Ta = anchor_poses[other.node_id]
-                if np.linalg.norm(Ta[:3, :3] @ other.centroid + Ta[:3, 3] - wo) > o.radius + other.radius:
-                    continue
+                Ta = A[i]
                 pts = ((_unpack(o.voxels) + 0.5) * v) @ To[:3, :3].T + To[:3, 3]
                 local = (pts - Ta[:3, 3]) @ Ta[:3, :3]
                 keys = np.unique(_pack(np.floor(local / v)))
@@ -262,7 +304,6 @@ class ObjectFusion:
                     self.deleted.append(gone.id)
                 if gone is o:
                     break
-                wo = To[:3, :3] @ o.centroid + To[:3, 3]  # o grew
 
     def _add_voxels(self, o: FusedObject, local: np.ndarray, counts: np.ndarray | None = None) -> None:
         """Add points (anchor frame) to an object's voxels: one hit per voxel, or `counts`
@@ -281,11 +322,22 @@ class ObjectFusion:
         if o.observations >= 3 and support.sum() >= 8:  # voxels seen once: mostly boundary noise
             centres = centres[support]
         o.centroid = centres.mean(axis=0)
+        o.size = float(np.ptp(centres, axis=0).max()) if len(centres) else 0.0
         o.radius = float(np.linalg.norm(centres - o.centroid, axis=1).max()) + self.config.voxel
 
     # -- output ------------------------------------------------------------------------------
     def confirmed(self) -> list[FusedObject]:
-        return [o for o in self.objects if o.observations >= self.config.min_observations]
+        """The objects to report: seen in `min_observations` keyframes, labelled as a thing, no
+        larger than `max_extent`."""
+        return [o for o in self.objects if o.observations >= self.config.min_observations and self._thing(o)]
+
+    def retired(self) -> list[FusedObject]:
+        """Stored objects that are no longer things: labelled as an ignored class now, or grown
+        larger than `max_extent` (the store should drop them)."""
+        return [o for o in self.objects if o.id is not None and not self._thing(o)]
+
+    def _thing(self, o: FusedObject) -> bool:
+        return not self.ignore[o.class_id] and o.size <= self.config.max_extent
 
     def record(self, o: FusedObject, anchor_pose: np.ndarray | None) -> ObjectRecord:
         """The stored form of an object (extent along the map axes from the anchor's pose)."""

@@ -16,6 +16,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from client.frames import PinholeCamera
@@ -31,7 +32,7 @@ log = logging.getLogger("mnemoslam.semantics")
 class SemanticKeyframe:
     node_id: int
     pose: np.ndarray  # 4×4 camera-to-map
-    image: np.ndarray | None  # H×W×3 RGB (H×W grey accepted)
+    image: np.ndarray | None  # H×W×3 BGR or H×W grey (client.frames' convention)
     depth: np.ndarray | None  # H×W float32 metres
     labels: np.ndarray | None  # H×W class ids from the camera, or None
     camera: PinholeCamera
@@ -131,13 +132,17 @@ class SemanticWorker:
             return kf.labels
         if kf.image is None:
             return None
-        rgb = kf.image if kf.image.ndim == 3 else np.repeat(kf.image[..., None], 3, axis=2)
+        # frames are BGR (or grey), the project's convention; the models take RGB
+        rgb = cv2.cvtColor(kf.image, cv2.COLOR_BGR2RGB if kf.image.ndim == 3 else cv2.COLOR_GRAY2RGB)
         return self.segmenter.segment(rgb)
 
     def flush(self) -> None:
         """Write the confirmed objects that changed since they were last written."""
         with self._lock:
-            if self.fusion.deleted:  # merged into other objects
+            for o in self.fusion.retired():  # now labelled wall, floor, …: no longer an object
+                self.fusion.deleted.append(o.id)
+                o.id = None
+            if self.fusion.deleted:  # merged into other objects, or retired
                 self.store.delete_objects(self.fusion.deleted)
                 self.fusion.deleted.clear()
             todo = [o for o in self.fusion.confirmed() if o.dirty]
