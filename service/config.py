@@ -183,6 +183,7 @@ class SemanticsConfig:
     classes: list = field(default_factory=list)  # the model's class names by id; empty = ADE20K-32 (service/semantics/classes.py)
     threads: int = 1  # onnxruntime intra-op threads (must not steal the tracking core)
     queue_size: int = 4  # keyframes waiting for the semantic worker; when full the newest is dropped (and counted)
+    nice: int = 10  # the semantic worker thread's nice increment (lower CPU priority than tracking); 0 = same priority
     ignore: list = field(default_factory=lambda: ["other", "wall", "building", "sky", "floor", "ceiling", "road", "grass", "sidewalk", "earth", "mountain", "water", "sea", "field", "rug"])  # classes that never become objects ("stuff": surfaces without an extent)
     stride: int = 4  # label / depth pixels used: every stride-th of each row and column
     min_depth: float = 0.3  # m; labelled pixels with depth outside [min, max] are not used

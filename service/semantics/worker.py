@@ -11,6 +11,7 @@ reproducible."""
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 import time
@@ -94,6 +95,12 @@ class SemanticWorker:
 
     # -- the worker's thread ----------------------------------------------------------------
     def _loop(self) -> None:
+        if self.config.nice:  # below tracking's CPU priority (Linux: nice is per thread)
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
+                               os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + int(self.config.nice))
+            except (AttributeError, OSError) as e:  # pragma: no cover - not Linux
+                log.info("semantic worker keeps its priority: %s", e)
         while True:
             kf = self._queue.get()
             if kf is _STOP:
