@@ -225,3 +225,30 @@ def test_real_model_on_redkitchen_finds_table_and_cabinet(segmenter, data_dir):
     print("redkitchen objects:", found)
     assert {"table", "cabinet"} <= set(found)
     assert not {"car", "sky", "mountain", "sea", "bed"} & set(found)
+
+
+def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
+    import threading
+
+    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+
+    release = threading.Event()
+
+    class Stuck:  # a model that blocks, then fails
+        classes, name = ADE20K32, "stuck"
+
+        def segment(self, rgb):
+            release.wait(10)
+            raise RuntimeError("model exploded")
+
+    config = SemanticsConfig(enabled=True, queue_size=2)
+    cam = PinholeCamera(50.0, 50.0, 15.5, 11.5, 32, 24)
+    kf = SemanticKeyframe(1, np.eye(4), np.zeros((24, 32, 3), np.uint8), np.ones((24, 32), np.float32), None, cam)
+    with MapStore(tmp_path / "map.db") as store:
+        worker = SemanticWorker(store, Stuck(), config, background=True)
+        accepted = [worker.submit(kf) for _ in range(6)]  # 1 in the model, 2 queued, the rest dropped
+        assert accepted.count(False) >= 3 and worker.dropped == accepted.count(False)
+        release.set()
+        worker.close()
+        assert worker.errors == accepted.count(True) and "model exploded" in worker.last_error
+        assert worker.stats()["processed"] == 0 and store.count_objects() == 0
