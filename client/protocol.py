@@ -1,4 +1,4 @@
-"""The mnemoslam wire protocol, version 1: what cameras and the service say to each other over
+"""The mnemoslam wire protocol, version 2: what cameras and the service say to each other over
 Zenoh. This docstring is the protocol's documentation; client and service both import this
 module, so they cannot disagree.
 
@@ -18,16 +18,27 @@ of ``[A-Za-z0-9_.-]`` (no wildcards). The service subscribes to ``<prefix>/*/cam
 (`KeySpace.frames_wildcard`) and reads the robot from the key (`KeySpace.robot_of`); the
 robot id inside the message must agree with the key (the service checks that).
 
+Versions
+========
+Frame messages carry a version (`FRAME_VERSIONS`, readers accept both): version 1 is a frame
+without a label image, version 2 adds an optional per-pixel class-id image (a camera that
+segments on board). Writers send version 1 whenever a frame goes without labels - byte for
+byte what writers sent before version 2 existed - so a camera streams to an older service
+unchanged unless it sends labels (which an older service refuses as ``bad_version``). JSON
+messages stay at ``"version": 1`` (`JSON_VERSION`); the camera info's class table is an
+optional field older readers ignore. `PROTOCOL_VERSION` (2) is the newest frame version.
+
 Frame message (binary, all integers little-endian)
 ==================================================
 ======  ====  ==================  =============================================================
 offset  size  field               meaning
 ======  ====  ==================  =============================================================
 0       4     magic               ``b"MSLF"``
-4       2     version   u16       ``PROTOCOL_VERSION`` = 1; any other value -> ``bad_version``
+4       2     version   u16       1 or 2 (`FRAME_VERSIONS`); any other value -> ``bad_version``
 6       2     header_len u16      bytes from offset 0 to the first payload byte (= 47 + n in
-                                  v1). Readers skip bytes between 47 + n and header_len
-                                  (room for later additions); 47 + n <= header_len <= 1024
+                                  v1, 53 + n in v2). Readers skip bytes between the last
+                                  field of the message's version and header_len (room for
+                                  later additions); 47 + n (v2: 53 + n) <= header_len <= 1024
 8       2     flags     u16       reserved: v1 writers send 0, v1 readers ignore
 10      8     seq       u64       per-robot frame counter, increasing by 1 from 0 on each
                                   (re)start of the camera
@@ -47,12 +58,32 @@ offset  size  field               meaning
 39      n     robot               utf-8 robot id (same rules as in the key)
 39+n    4     color_len u32       byte length of payload 1
 43+n    4     second_len u32      byte length of payload 2 (0 when second_enc is none)
-47+n    ...                       (optional extension bytes up to header_len)
+47+n    1     label_enc u8        (v2 only) encoding of the label image: 0 none, 1 raw, 2 png
+48+n    1     label_bytes u8      (v2 only) bytes per label pixel: 1 (uint8 class ids) or 2
+                                  (uint16, for class tables of more than 256 classes); 0 when
+                                  label_enc is none
+49+n    4     label_len u32       (v2 only) byte length of payload 3 (0 when label_enc is none)
+47+n    ...                       v1: (optional extension bytes up to header_len)
+53+n    ...                       v2: (optional extension bytes up to header_len)
 header_len    color_len bytes     payload 1: the (left) image
 ...           second_len bytes    payload 2: depth or right image
+...           label_len bytes     payload 3 (v2): the label image
 ======  ====  ==================  =============================================================
 
-The message is exactly ``header_len + color_len + second_len`` bytes long.
+The message is exactly ``header_len + color_len + second_len`` (v2: ``+ label_len``) bytes
+long.
+
+Label image (v2): per-pixel class ids of the (left) image, W x H like it (pixel (u, v) of the
+labels is pixel (u, v) of the image); the ids index the camera info's class table (``classes``,
+default `DEFAULT_CLASSES`, ADE20K-32: 0 other, 1 wall, ..., 15 door, ..., 31 armchair). Raw:
+W*H bytes (uint8) or W*H uint16 little-endian; PNG: 8-bit (uint8) or 16-bit (uint16) grey, as
+``cv2.imencode`` writes them, checked like depth (dimensions and bit depth from the IHDR before
+decoding). Lossless either way; label PNGs are small (piecewise constant: ~5 KB at 640 x 480
+for the synthetic scene against 300 KB raw). Writers send uint8 when every id is < 256. The
+decoder returns the image as ``frame.extras["labels"]`` (H x W uint8 / uint16) and, when the
+receiver passes the camera's class table, the names as ``frame.extras["label_names"]`` (a
+tuple). A receiver that knows the table (`Limits.classes`) rejects ids beyond it
+(``bad_labels``).
 
 Payloads: raw images are row-major H x W x C uint8 (BGR for C = 3), exactly W*H*C bytes; raw
 depth is W*H uint16 little-endian, raw right image W*H uint8. PNG colour is 8-bit grey
@@ -86,19 +117,25 @@ too_large         the message (or a JSON message) exceeds the limits
 truncated         shorter than its header or than header + payload lengths
 bad_length        longer than header + payload lengths (trailing bytes)
 bad_magic         does not start with b"MSLF"
-bad_version       version is not PROTOCOL_VERSION (JSON: "version" is not 1)
+bad_version       version is not in FRAME_VERSIONS (JSON: "version" is not 1)
 bad_header        header_len out of range, unknown kind / encoding / channel count,
-                  kind and encodings inconsistent, bad depth_scale
-bad_size          width / height 0 or above the limits, raw payload length != W*H*C,
-                  empty compressed payload
+                  kind and encodings inconsistent, bad depth_scale; label encoding
+                  unknown, label_bytes not 1 or 2 (wrong label dtype), or label
+                  bytes without a label encoding
+bad_size          width / height 0 or above the limits, raw payload length != W*H*C
+                  (raw labels: != W*H*label_bytes), empty compressed payload
 bad_robot         robot id not utf-8 or not matching the robot pattern
 bad_stamp         stamp NaN, infinite or negative
 bad_seq           seq not an integer in 0..2**64-1 (encoding / JSON)
-decode_failed     PNG / JPEG payload is corrupt, of the wrong format or bit depth
+decode_failed     PNG / JPEG payload is corrupt, of the wrong format or bit depth (a
+                  label PNG whose bit depth disagrees with label_bytes)
 size_mismatch     image dimensions in the PNG / JPEG header, or of the decoded image,
                   differ from the message header; or the header's differ from
                   `Limits.size` (the receiver's expected size, e.g. the calibration's)
-bad_frame         (encoding only) the Frame cannot be sent: wrong dtype / shape
+bad_labels        a label id >= the number of classes in the camera's class table
+                  (`Limits.classes`, when the receiver sets it)
+bad_frame         (encoding only) the Frame cannot be sent: wrong dtype / shape (also
+                  of its labels), or labels asked for and frame.extras has none
 bad_json          JSON message not utf-8 JSON object, or a field of the wrong type
 bad_field         JSON field out of range (non-finite or non-positive focal length...)
 bad_kind          unknown camera kind or event kind
@@ -113,6 +150,13 @@ Camera info message (JSON, utf-8, on ``<prefix>/<robot>/camera/info``)
 "depth_scale": 1000.0}`` - pinhole intrinsics of the undistorted (rectified) images. fx, fy
 finite > 0; cx, cy finite; width, height integers 1..65535; baseline finite > 0 for stereo
 and null otherwise; depth_scale finite > 0. Unknown extra fields are ignored.
+
+Optional ``"classes": ["other", "wall", ...]``: the class table of the camera's label images,
+names indexed by class id: 1..65536 (`MAX_CLASSES`) distinct names of 1..64 printable
+characters (``bad_json`` if not a list of strings, ``bad_field`` otherwise). Absent or null:
+the default table `DEFAULT_CLASSES` (ADE20K-32, 32 names). Sent once with the camera info, not
+with every frame; the service takes the table of the robot's first camera info (like the
+calibration) and hands it to the pipeline as ``frame.extras["label_names"]``.
 
 Pose message (JSON, on ``<prefix>/<robot>/pose``)
 =================================================
@@ -159,17 +203,31 @@ import numpy as np
 
 from .frames import Calibration, Frame, PinholeCamera
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # the newest frame message version this module reads and writes
+FRAME_VERSIONS = (1, 2)  # frame message versions read: 1 (no labels) and 2 (optional label image)
+JSON_VERSION = 1  # the "version" of the JSON messages (camera info, pose, event)
 MAGIC = b"MSLF"
 DEFAULT_PREFIX = "mnemoslam"
 
 KINDS = {"rgbd": 0, "stereo": 1, "mono": 2}
 COLOR_ENCODINGS = {"raw": 0, "png": 1, "jpeg": 2}
 SECOND_ENCODINGS = {"none": 0, "raw": 1, "png": 2}
+LABEL_ENCODINGS = {"none": 0, "raw": 1, "png": 2}
 EVENT_KINDS = ("keyframe_added", "loop_closed", "tracking_lost", "map_corrected", "session_started")
 _KIND_NAMES = {v: k for k, v in KINDS.items()}
 _COLOR_NAMES = {v: k for k, v in COLOR_ENCODINGS.items()}
 _SECOND_NAMES = {v: k for k, v in SECOND_ENCODINGS.items()}
+_LABEL_NAMES = {v: k for k, v in LABEL_ENCODINGS.items()}
+
+# The default class table: ADE20K reduced to 32 classes (the default segmentation model's, see
+# ../shared/models/README.md; the synthetic scene labels with these ids). A camera info without
+# "classes" means this table.
+DEFAULT_CLASSES: tuple[str, ...] = (
+    "other", "wall", "building", "sky", "floor", "tree", "ceiling", "road", "bed", "windowpane", "grass",
+    "cabinet", "sidewalk", "person", "earth", "door", "table", "mountain", "plant", "curtain", "chair", "car",
+    "water", "painting", "sofa", "shelf", "house", "sea", "mirror", "rug", "field", "armchair")
+MAX_CLASSES = 65536  # class ids travel as uint8 or uint16
+MAX_CLASS_NAME = 64  # characters
 
 ROBOT_PATTERN = re.compile(r"[A-Za-z0-9_\-]{1,64}")
 _PREFIX_CHUNK = re.compile(r"[A-Za-z0-9_.\-]+")
@@ -179,6 +237,7 @@ _STATUS_PATTERN = re.compile(r"[a-z_]{1,32}")
 # channels, depth_scale, robot_len
 _FIXED = struct.Struct("<4sHHHQdBBBHHBfB")
 _LENGTHS = struct.Struct("<II")
+_LABEL_FIELDS = struct.Struct("<BBI")  # v2: label_enc, label_bytes, label_len (after the lengths)
 FIXED_HEADER_BYTES = _FIXED.size  # 39
 MAX_HEADER_BYTES = 1024
 MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1e-3, 1e9  # raw depth units per metre accepted for rgbd frames
@@ -187,7 +246,7 @@ _U64_MAX = 2**64 - 1
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
-assert FIXED_HEADER_BYTES == 39
+assert FIXED_HEADER_BYTES == 39 and _LABEL_FIELDS.size == 6
 
 
 class ProtocolError(ValueError):
@@ -209,6 +268,7 @@ class Limits:
     max_height: int = 4096
     max_json_bytes: int = 1024 * 1024
     size: tuple[int, int] | None = None  # (width, height) the receiver expects (the camera's calibration)
+    classes: int | None = None  # label ids must be < classes (the camera's class table); None: not checked
 
 
 DEFAULT_LIMITS = Limits()
@@ -304,6 +364,8 @@ class WireFrame:
     color_encoding: str  # "raw" | "png" | "jpeg"
     depth_encoding: str  # "none" | "raw" | "png" (of the depth or the right image)
     size: int
+    label_encoding: str = "none"  # "none" | "raw" | "png": the label image (frame.extras["labels"])
+    version: int = 1  # the message's version (2 when it has a label image)
 
 
 def frame_kind(frame: Frame) -> str:
@@ -356,17 +418,36 @@ def _imencode(ext: str, image: np.ndarray, params: list[int]) -> bytes:
     return buf.tobytes()
 
 
+def label_image(labels: Any, h: int, w: int) -> np.ndarray:
+    """`labels` as the H×W uint8 / uint16 class-id image that travels: uint8 and uint16 as
+    they are; other integer arrays as uint8 when every id is < 256, else uint16.
+    ProtocolError("bad_frame") for the wrong shape, a non-integer dtype or ids outside 0..65535."""
+    if not isinstance(labels, np.ndarray) or labels.shape != (h, w):
+        raise ProtocolError("bad_frame", f"labels must be a {h}×{w} array of class ids, got "
+                                         f"{getattr(labels, 'shape', type(labels).__name__)}")
+    if labels.dtype in (np.uint8, np.uint16):
+        return np.ascontiguousarray(labels)
+    if not np.issubdtype(labels.dtype, np.integer) or labels.dtype == np.bool_:
+        raise ProtocolError("bad_frame", f"labels must be integer class ids, got dtype {labels.dtype}")
+    lo, hi = (int(labels.min()), int(labels.max())) if labels.size else (0, 0)
+    if lo < 0 or hi >= MAX_CLASSES:
+        raise ProtocolError("bad_frame", f"label ids must be in 0..{MAX_CLASSES - 1}, got {lo}..{hi}")
+    return np.ascontiguousarray(labels, dtype=np.uint8 if hi < 256 else np.uint16)
+
+
 def encode_frame(frame: Frame, robot: str, seq: int, *, depth_scale: float = 1000.0, color: str = "jpeg",
                  depth: str = "png", jpeg_quality: int = 90, png_compression: int = 1,
-                 kind: str | None = None) -> bytes:
+                 kind: str | None = None, labels: str = "none") -> bytes:
     """One frame message (see the module documentation).
 
     `color` encodes the (left) image: "jpeg" (lossy, `jpeg_quality`), "png" or "raw".
     `depth` encodes the second image (rgbd depth in `depth_scale` units per metre, or the
     stereo right image, converted to grey): "png" or "raw". `kind` defaults to
     `frame_kind(frame)`; "mono" sends only the image of any frame, "rgbd" needs depth and
-    "stereo" a right image. Raises ProtocolError (reasons bad_robot, bad_seq, bad_stamp,
-    bad_frame, bad_header) for what cannot be sent.
+    "stereo" a right image. `labels` "png" or "raw" also sends `frame.extras["labels"]` (the
+    per-pixel class ids, `label_image`) as a version 2 message; "none" (the default) sends a
+    version 1 message without them, whatever the frame's extras hold. Raises ProtocolError
+    (reasons bad_robot, bad_seq, bad_stamp, bad_frame, bad_header) for what cannot be sent.
     """
     check_robot(robot)
     seq = _check_seq(seq)
@@ -376,6 +457,8 @@ def encode_frame(frame: Frame, robot: str, seq: int, *, depth_scale: float = 100
         raise ProtocolError("bad_kind", f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
     if color not in COLOR_ENCODINGS:
         raise ProtocolError("bad_header", f"colour encoding must be jpeg, png or raw, got {color!r}")
+    if labels not in LABEL_ENCODINGS:
+        raise ProtocolError("bad_header", f"label encoding must be none, png or raw, got {labels!r}")
     second_name = "none" if kind == "mono" else depth
     if second_name not in ("none", "raw", "png") or (kind != "mono" and second_name == "none"):
         raise ProtocolError("bad_header", f"depth / right encoding must be png or raw, got {depth!r}")
@@ -440,9 +523,24 @@ def encode_frame(frame: Frame, robot: str, seq: int, *, depth_scale: float = 100
 
     rb = robot.encode("utf-8")
     header_len = FIXED_HEADER_BYTES + len(rb) + _LENGTHS.size
-    head = _FIXED.pack(MAGIC, PROTOCOL_VERSION, header_len, 0, seq, stamp, KINDS[kind],
+    if labels == "none":  # version 1: byte for byte what writers sent before labels existed
+        head = _FIXED.pack(MAGIC, 1, header_len, 0, seq, stamp, KINDS[kind],
+                           COLOR_ENCODINGS[color], SECOND_ENCODINGS[second_name], w, h, channels, scale, len(rb))
+        return b"".join((head, rb, _LENGTHS.pack(len(p1), len(p2)), p1, p2))
+    if "labels" not in frame.extras:
+        raise ProtocolError("bad_frame", f"{frame.source or 'frame'}: no labels to send (frame.extras['labels'])")
+    lab = label_image(frame.extras["labels"], h, w)
+    if labels == "raw":
+        p3 = lab.astype("<u2").tobytes() if lab.dtype == np.uint16 else lab.tobytes()
+    else:
+        import cv2
+
+        p3 = _imencode(".png", lab, [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)])
+    header_len += _LABEL_FIELDS.size
+    head = _FIXED.pack(MAGIC, 2, header_len, 0, seq, stamp, KINDS[kind],
                        COLOR_ENCODINGS[color], SECOND_ENCODINGS[second_name], w, h, channels, scale, len(rb))
-    return b"".join((head, rb, _LENGTHS.pack(len(p1), len(p2)), p1, p2))
+    return b"".join((head, rb, _LENGTHS.pack(len(p1), len(p2)),
+                     _LABEL_FIELDS.pack(LABEL_ENCODINGS[labels], lab.itemsize, len(p3)), p1, p2, p3))
 
 
 def _png_header(data: memoryview, what: str) -> tuple[int, int, int, int]:
@@ -529,9 +627,12 @@ def _decode_image(data: memoryview, encoding: str, what: str, w: int, h: int, ch
     return _imdecode(data, what, w, h, channels, dtype)
 
 
-def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS) -> WireFrame:
+def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS,
+                 label_names: tuple[str, ...] | None = None) -> WireFrame:
     """A frame message back to a `WireFrame`; every malformed input raises ProtocolError (see
-    the module documentation for the order of the checks and the reason codes)."""
+    the module documentation for the order of the checks and the reason codes). A label image
+    comes as ``frame.extras["labels"]`` (H×W uint8 / uint16), and then `label_names` (the
+    camera info's class table, if it had one) as ``frame.extras["label_names"]``."""
     try:
         data = memoryview(payload).cast("B")
     except (TypeError, ValueError):
@@ -546,13 +647,14 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS) -> WireFrame:
     if n < 6:
         raise ProtocolError("truncated", f"{n} bytes, no version")
     version = data[4] | (data[5] << 8)
-    if version != PROTOCOL_VERSION:
-        raise ProtocolError("bad_version", f"version {version}, this reader speaks {PROTOCOL_VERSION}")
+    if version not in FRAME_VERSIONS:
+        raise ProtocolError("bad_version", f"version {version}, this reader speaks "
+                                           f"{', '.join(map(str, FRAME_VERSIONS))}")
     if n < FIXED_HEADER_BYTES:
         raise ProtocolError("truncated", f"{n} bytes < fixed header {FIXED_HEADER_BYTES}")
     (_, _, header_len, _flags, seq, stamp, kind, cenc, senc, w, h, channels, scale,
      rlen) = _FIXED.unpack_from(data, 0)
-    min_header = FIXED_HEADER_BYTES + rlen + _LENGTHS.size
+    min_header = FIXED_HEADER_BYTES + rlen + _LENGTHS.size + (_LABEL_FIELDS.size if version >= 2 else 0)
     if not min_header <= header_len <= MAX_HEADER_BYTES:
         raise ProtocolError("bad_header", f"header_len {header_len} outside {min_header}..{MAX_HEADER_BYTES}")
     if n < header_len:
@@ -563,11 +665,14 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS) -> WireFrame:
         raise ProtocolError("bad_robot", "robot id is not utf-8") from None
     check_robot(robot)
     clen, slen = _LENGTHS.unpack_from(data, FIXED_HEADER_BYTES + rlen)
-    total = header_len + clen + slen
+    lenc = lbytes = llen = 0
+    if version >= 2:
+        lenc, lbytes, llen = _LABEL_FIELDS.unpack_from(data, FIXED_HEADER_BYTES + rlen + _LENGTHS.size)
+    total = header_len + clen + slen + llen
     if total > n:
-        raise ProtocolError("truncated", f"{n} bytes < header {header_len} + payloads {clen} + {slen}")
+        raise ProtocolError("truncated", f"{n} bytes < header {header_len} + payloads {clen} + {slen} + {llen}")
     if total < n:
-        raise ProtocolError("bad_length", f"{n} bytes > header {header_len} + payloads {clen} + {slen}")
+        raise ProtocolError("bad_length", f"{n} bytes > header {header_len} + payloads {clen} + {slen} + {llen}")
     if kind not in _KIND_NAMES:
         raise ProtocolError("bad_header", f"unknown kind {kind}")
     if cenc not in _COLOR_NAMES:
@@ -576,6 +681,11 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS) -> WireFrame:
         raise ProtocolError("bad_header", f"unknown depth/right encoding {senc}")
     if channels not in (1, 3):
         raise ProtocolError("bad_header", f"channels {channels}, expected 1 or 3")
+    if lenc not in _LABEL_NAMES:
+        raise ProtocolError("bad_header", f"unknown label encoding {lenc}")
+    if (lenc == 0 and (lbytes or llen)) or (lenc != 0 and lbytes not in (1, 2)):
+        raise ProtocolError("bad_header", f"label image of {lbytes} bytes per pixel ({llen} bytes) with label "
+                                          f"encoding {_LABEL_NAMES[lenc]} (expected 1 = uint8 or 2 = uint16)")
     kname = _KIND_NAMES[kind]
     if (kname == "mono") != (senc == 0):
         raise ProtocolError("bad_header", f"{kname} frame with depth/right encoding {_SECOND_NAMES[senc]}")
@@ -600,9 +710,14 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS) -> WireFrame:
         raise ProtocolError("bad_size", "empty compressed depth/right image")
     if senc == 0 and slen != 0:
         raise ProtocolError("bad_header", f"{slen} bytes of second payload without an encoding")
+    if lenc == 1 and llen != w * h * lbytes:
+        raise ProtocolError("bad_size", f"raw label image is {llen} bytes, expected {w}×{h}×{lbytes}")
+    if lenc == 2 and llen == 0:
+        raise ProtocolError("bad_size", "empty compressed label image")
 
     p1 = data[header_len:header_len + clen]
-    p2 = data[header_len + clen:total]
+    p2 = data[header_len + clen:header_len + clen + slen]
+    p3 = data[header_len + clen + slen:total]
     image = _decode_image(p1, _COLOR_NAMES[cenc], "image", w, h, channels, 8)
     depth = right = None
     if kname == "rgbd":
@@ -610,7 +725,16 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS) -> WireFrame:
     elif kname == "stereo":
         right = _decode_image(p2, _SECOND_NAMES[senc], "right image", w, h, 1, 8)
     frame = Frame(index=seq, stamp=stamp, image=image, depth=depth, right=right, source=f"{robot}#{seq}")
-    return WireFrame(robot, seq, frame, kname, _COLOR_NAMES[cenc], _SECOND_NAMES[senc], n)
+    if lenc:
+        labels = _decode_image(p3, _LABEL_NAMES[lenc], "labels", w, h, 1, 8 * lbytes)
+        if limits.classes is not None and labels.size and int(labels.max()) >= limits.classes:
+            raise ProtocolError("bad_labels", f"label id {int(labels.max())} >= {limits.classes}, the number of "
+                                              f"classes in the camera's class table")
+        frame.extras["labels"] = labels
+        if label_names is not None:
+            frame.extras["label_names"] = tuple(label_names)
+    return WireFrame(robot, seq, frame, kname, _COLOR_NAMES[cenc], _SECOND_NAMES[senc], n, _LABEL_NAMES[lenc],
+                     version)
 
 
 # ------------------------------------------------------------------------------------------
@@ -655,8 +779,8 @@ def _load(data: Any, limits: Limits, what: str) -> dict:
         raise ProtocolError("bad_json", f"{what}: {type(e).__name__}: {str(e)[:200]}") from None
     if not isinstance(obj, dict):
         raise ProtocolError("bad_json", f"{what}: expected a JSON object, got {type(obj).__name__}")
-    if obj.get("version") != PROTOCOL_VERSION or isinstance(obj.get("version"), bool):
-        raise ProtocolError("bad_version", f"{what}: version {obj.get('version')!r:.40}, expected {PROTOCOL_VERSION}")
+    if obj.get("version") != JSON_VERSION or isinstance(obj.get("version"), bool):
+        raise ProtocolError("bad_version", f"{what}: version {obj.get('version')!r:.40}, expected {JSON_VERSION}")
     check_robot(obj.get("robot"))
     return obj
 
@@ -692,6 +816,31 @@ class CameraInfo:
     robot: str
     kind: str  # "rgbd" | "stereo" | "mono"
     calibration: Calibration
+    classes: tuple[str, ...] | None = None  # the class table of its label images; None: DEFAULT_CLASSES
+
+    @property
+    def class_count(self) -> int:
+        """How many class ids its label images may use (ids are < this)."""
+        return len(self.classes if self.classes is not None else DEFAULT_CLASSES)
+
+
+def check_classes(classes: Any, what: str = "camera info") -> tuple[str, ...]:
+    """A class table as a tuple of names: 1..MAX_CLASSES distinct non-empty strings of at most
+    MAX_CLASS_NAME printable characters (ProtocolError "bad_json" / "bad_field" otherwise)."""
+    if isinstance(classes, (str, bytes)) or not isinstance(classes, (list, tuple)):
+        raise ProtocolError("bad_json", f"{what}: classes must be a list of names, got {type(classes).__name__}")
+    if not 1 <= len(classes) <= MAX_CLASSES:
+        raise ProtocolError("bad_field", f"{what}: classes must have 1..{MAX_CLASSES} names, got {len(classes)}")
+    for i, c in enumerate(classes):
+        if not isinstance(c, str):
+            raise ProtocolError("bad_json", f"{what}: class {i} must be a string, got {c!r:.40}")
+        if not 1 <= len(c) <= MAX_CLASS_NAME or not c.isprintable():
+            raise ProtocolError("bad_field", f"{what}: class {i} must be 1..{MAX_CLASS_NAME} printable "
+                                             f"characters, got {c!r:.80}")
+    if len(set(classes)) != len(classes):
+        dup = next(c for i, c in enumerate(classes) if c in classes[:i])
+        raise ProtocolError("bad_field", f"{what}: class name {dup!r:.80} appears twice")
+    return tuple(classes)
 
 
 def _calibration_fields(calibration: Calibration, kind: str) -> dict:
@@ -718,21 +867,27 @@ def _check_info(obj: dict, what: str = "camera info") -> CameraInfo:
         raise ProtocolError("bad_field", f"{what}: a {kind} camera must {'' if kind == 'stereo' else 'not '}"
                                          f"have a baseline, got {baseline!r}")
     cal = Calibration(PinholeCamera(fx, fy, cx, cy, width, height), baseline, depth_scale)
-    return CameraInfo(robot, kind, cal)
+    classes = obj.get("classes")
+    return CameraInfo(robot, kind, cal, None if classes is None else check_classes(classes, what))
 
 
-def encode_info(robot: str, calibration: Calibration, kind: str | None = None) -> bytes:
+def encode_info(robot: str, calibration: Calibration, kind: str | None = None,
+                classes: tuple[str, ...] | list[str] | None = None) -> bytes:
     """The camera info message; `kind` defaults to `calibration.kind` ("stereo" with a
-    baseline, else "rgbd"); pass "mono" for a camera without depth."""
+    baseline, else "rgbd"); pass "mono" for a camera without depth. `classes`: the class table
+    (names indexed by class id) of the label images the camera sends; None leaves the field out
+    (the default table, `DEFAULT_CLASSES`)."""
     kind = calibration.kind if kind is None else kind
-    obj = {"version": PROTOCOL_VERSION, "robot": check_robot(robot), "kind": kind,
+    obj = {"version": JSON_VERSION, "robot": check_robot(robot), "kind": kind,
            **_calibration_fields(calibration, kind)}
+    if classes is not None:
+        obj["classes"] = list(check_classes(classes))
     _check_info(json.loads(_dump(obj)))
     return _dump(obj)
 
 
 def decode_info_message(data: Any, limits: Limits = DEFAULT_LIMITS) -> CameraInfo:
-    """The camera info message as `CameraInfo(robot, kind, calibration)`."""
+    """The camera info message as `CameraInfo(robot, kind, calibration, classes)`."""
     return _check_info(_load(data, limits, "camera info"))
 
 
@@ -784,7 +939,7 @@ def encode_pose(robot: str, seq: int, stamp: float, status: str, pose: np.ndarra
                 dropped: int | None = None) -> bytes:
     """The pose message for frame `seq` of `robot` (see the module documentation)."""
     what = "pose"
-    obj = {"version": PROTOCOL_VERSION, "robot": check_robot(robot), "seq": _check_seq(seq),
+    obj = {"version": JSON_VERSION, "robot": check_robot(robot), "seq": _check_seq(seq),
            "stamp": _check_stamp(stamp), "status": _check_status(status, what)}
     m = _check_pose_matrix(pose, what)
     obj["pose"] = None if m is None else m.tolist()
@@ -859,7 +1014,7 @@ def encode_event(robot: str, kind: str, /, **data) -> bytes:
     and `kind` are positional-only, so data keys of those names cannot collide with them."""
     if kind not in EVENT_KINDS:
         raise ProtocolError("bad_kind", f"event kind must be one of {', '.join(EVENT_KINDS)}, got {kind!r:.40}")
-    return _dump({"version": PROTOCOL_VERSION, "robot": check_robot(robot), "kind": kind, "data": data})
+    return _dump({"version": JSON_VERSION, "robot": check_robot(robot), "kind": kind, "data": data})
 
 
 def decode_event(data: Any, limits: Limits = DEFAULT_LIMITS) -> EventMessage:
@@ -875,7 +1030,9 @@ def decode_event(data: Any, limits: Limits = DEFAULT_LIMITS) -> EventMessage:
 
 
 __all__ = [
-    "PROTOCOL_VERSION", "MAGIC", "DEFAULT_PREFIX", "KINDS", "COLOR_ENCODINGS", "SECOND_ENCODINGS", "EVENT_KINDS",
+    "PROTOCOL_VERSION", "FRAME_VERSIONS", "JSON_VERSION", "MAGIC", "DEFAULT_PREFIX", "KINDS", "COLOR_ENCODINGS",
+    "SECOND_ENCODINGS", "LABEL_ENCODINGS", "DEFAULT_CLASSES", "MAX_CLASSES", "MAX_CLASS_NAME", "check_classes",
+    "label_image", "EVENT_KINDS",
     "ROBOT_PATTERN", "FIXED_HEADER_BYTES", "MAX_HEADER_BYTES", "ProtocolError", "Limits", "DEFAULT_LIMITS",
     "KeySpace", "check_robot", "WireFrame", "frame_kind", "quantize_depth", "dequantize_depth", "encode_frame",
     "decode_frame", "CameraInfo", "encode_info", "decode_info", "decode_info_message", "PoseMessage",

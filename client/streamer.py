@@ -27,6 +27,12 @@ matches the key are not stored anywhere: start the service first, or use
 `wait_for_subscriber`. The camera info is `put` once at start AND served by a queryable on the
 info key, so a service that starts later gets it with `session.get(keyspace.info(robot))`.
 
+Labels: a camera that segments on board sends each frame's per-pixel class ids
+(``frame.extras["labels"]``) with the frame (`CameraStreamer(labels="png" | "raw")`,
+`stream_dataset(labels=True)`, ``mnemoslam stream ... --labels``), and its class table once in
+the camera info (default `protocol.DEFAULT_CLASSES`, ADE20K-32, which the synthetic scene
+uses). Without labels nothing changes on the wire (version 1 frame messages, no class table).
+
 CLI (wired in service/cli.py as `mnemoslam stream`): `add_stream_arguments(parser)` defines the
 options and sets `stream_main` as the command's `func`.
 """
@@ -40,8 +46,8 @@ import time
 from dataclasses import dataclass
 
 from .frames import Calibration, DatasetError, Frame
-from .protocol import (DEFAULT_PREFIX, KINDS, KeySpace, ProtocolError, decode_pose, encode_frame, encode_info,
-                       frame_kind)
+from .protocol import (DEFAULT_CLASSES, DEFAULT_PREFIX, KINDS, LABEL_ENCODINGS, KeySpace, ProtocolError,
+                       decode_pose, encode_frame, encode_info, frame_kind)
 from .transport import DEFAULT_ENDPOINT, MODES, ZenohSettings, open_session
 
 log = logging.getLogger(__name__)
@@ -56,11 +62,15 @@ class CameraStreamer:
     documentation). `kind` ("rgbd", "stereo", "mono") defaults to the source's: `calibration.kind`
     ("stereo" with a baseline, else "rgbd"); pass "mono" for a camera without depth.
     `depth_scale` (raw depth units per metre on the wire) defaults to `calibration.depth_scale`.
+    `labels` "png" / "raw" also sends every frame's ``extras["labels"]`` (a frame without them
+    is a ProtocolError "bad_frame") and puts the class table `classes` (default
+    `DEFAULT_CLASSES`) in the camera info; None (default) sends neither.
     """
 
     def __init__(self, session, robot: str, calibration: Calibration, keyspace: KeySpace | None = None, *,
                  color: str = "jpeg", depth: str = "png", depth_scale: float | None = None,
-                 kind: str | None = None, jpeg_quality: int = 90):
+                 kind: str | None = None, jpeg_quality: int = 90, labels: str | None = None,
+                 classes: tuple[str, ...] | list[str] | None = None):
         import zenoh
 
         self.session = session
@@ -75,10 +85,14 @@ class CameraStreamer:
             raise ValueError(f"colour encoding must be jpeg, png or raw, got {color!r}")
         if depth not in ("png", "raw"):
             raise ValueError(f"depth encoding must be png or raw, got {depth!r}")
+        if labels is not None and (labels not in LABEL_ENCODINGS or labels == "none"):
+            raise ValueError(f"label encoding must be png or raw, got {labels!r}")
         self.color, self.depth, self.jpeg_quality = color, depth, int(jpeg_quality)
+        self.labels = labels
         self.depth_scale = float(depth_scale if depth_scale is not None else calibration.depth_scale)
         self.calibration = calibration
-        self.info = encode_info(robot, calibration, self.kind)
+        self.classes = None if labels is None else tuple(classes if classes is not None else DEFAULT_CLASSES)
+        self.info = encode_info(robot, calibration, self.kind, classes=self.classes)
         self.frames_sent = 0
         self.bytes_sent = 0
         self._closed = False
@@ -155,7 +169,8 @@ class CameraStreamer:
         if self.kind != "mono" and have != self.kind:
             raise ProtocolError("bad_frame", f"{frame.source or 'frame'}: a {self.kind} camera got a {have} frame")
         return encode_frame(frame, self.robot, seq, depth_scale=self.depth_scale, color=self.color,
-                            depth=self.depth, jpeg_quality=self.jpeg_quality, kind=self.kind)
+                            depth=self.depth, jpeg_quality=self.jpeg_quality, kind=self.kind,
+                            labels=self.labels or "none")
 
     def send(self, frame: Frame, seq: int) -> int:
         """Encode and publish one frame; returns the message size in bytes. Blocks while the
@@ -254,7 +269,8 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
                    color: str = "auto", depth: str = "auto", prefix: str = DEFAULT_PREFIX, progress: bool = True,
                    max_frames: int | None = None, wait_for_subscriber: float = 0.0,
                    kind: str | None = None, session=None, window: int = 4, adapt: bool = False,
-                   answer_timeout: float = 2.0) -> StreamStats:
+                   answer_timeout: float = 2.0, labels: bool = False,
+                   classes: tuple[str, ...] | list[str] | None = None) -> StreamStats:
     """Stream every frame of `dataset` (any `Dataset`, incl. `CaptureSource`) as `robot`.
 
     Opens a session with `settings` (default `ZenohSettings.client()`), unless an open
@@ -272,6 +288,11 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
     A frame whose files cannot be read (DatasetError) is logged, counted in
     `StreamStats.skipped` and not sent (seq counts the frames sent), as `mnemoslam run` skips
     it; it counts towards `max_frames` (frames taken from the dataset).
+
+    `labels` also sends each frame's ``extras["labels"]`` (encoded like the depth: raw or PNG,
+    both lossless) and the class table `classes` (default: the dataset's ``class_names`` if it
+    has them, else `DEFAULT_CLASSES`) in the camera info. A dataset whose first frame carries no
+    labels is a ValueError before any frame is sent.
     """
     if rate is not None and not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
         raise ValueError(f"rate must be a positive number of frames per second, got {rate!r}")
@@ -289,7 +310,10 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
         session = open_session(settings)
     bar = None
     try:
-        streamer = CameraStreamer(session, robot, dataset.calibration, keyspace, color=color, depth=depth, kind=kind)
+        if labels and classes is None:
+            classes = getattr(dataset, "class_names", None)
+        streamer = CameraStreamer(session, robot, dataset.calibration, keyspace, color=color, depth=depth, kind=kind,
+                                  labels=depth if labels else None, classes=classes)
         try:
             if wait_for_subscriber > 0 and not streamer.wait_for_subscriber(wait_for_subscriber):
                 log.warning("no subscriber on %s after %.1f s; streaming anyway", streamer.frame_key,
@@ -310,6 +334,9 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
                     if bar is not None:
                         bar.update(1)
                     continue
+                if labels and sent == 0 and "labels" not in frame.extras:
+                    raise ValueError(f"--labels: the frames of {getattr(dataset, 'name', 'the dataset')} carry no "
+                                     f"labels (frame.extras['labels']; synthetic datasets have them)")
                 if rate is None:
                     streamer.wait_for_room(sent, window, answer_timeout)
                 else:
@@ -340,7 +367,8 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
             session.close()
     secs = max(seconds, 1e-9)
     return StreamStats(sent, streamer.bytes_sent, seconds, sent / secs, streamer.bytes_sent * 8 / 1e6 / secs, matched,
-                       f"{color}/{depth}", streamer.answered, streamer.service_dropped, rate, skipped)
+                       f"{color}/{depth}" + ("+labels" if labels else ""), streamer.answered,
+                       streamer.service_dropped, rate, skipped)
 
 
 # ------------------------------------------------------------------------------------------
@@ -367,6 +395,11 @@ def add_stream_arguments(parser):
     parser.add_argument("--depth-encoding", choices=["auto", "png", "raw"], default="auto",
                         help="depth (or stereo right image) encoding, both lossless (default auto: raw to a service "
                              "on this host, else png)")
+    parser.add_argument("--labels", action="store_true",
+                        help="also send each frame's per-pixel class ids (synthetic datasets: their exact ADE20K-32 "
+                             "labels) and the class table in the camera info, for a service with "
+                             "semantics.source=camera; labels travel lossless like the depth (--depth-encoding). "
+                             "An error for sources without labels (real datasets, --camera)")
     parser.add_argument("--connect", action="append", metavar="ENDPOINT",
                         help=f"zenoh endpoint of the service, repeatable (default {DEFAULT_ENDPOINT})")
     parser.add_argument("--mode", choices=list(MODES), default="peer", help="zenoh session mode (default peer)")
@@ -394,7 +427,10 @@ def stream_main(args) -> int:
     max_frames = getattr(args, "max_frames", None)
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
+    labels = bool(getattr(args, "labels", False))
     if camera is not None:
+        if labels:
+            raise ValueError("--labels: a camera device / video file has no labels (only synthetic datasets do)")
         from .capture import CaptureSource
 
         dataset = CaptureSource(camera, max_frames=max_frames)
@@ -418,7 +454,8 @@ def stream_main(args) -> int:
                                color=getattr(args, "encoding", "auto"), depth=getattr(args, "depth_encoding", "auto"),
                                prefix=prefix, progress=want_progress(quiet), max_frames=max_frames,
                                wait_for_subscriber=float(getattr(args, "wait", 5.0) or 0.0),
-                               window=max(1, int(getattr(args, "window", 4))), adapt=bool(getattr(args, "adapt", False)))
+                               window=max(1, int(getattr(args, "window", 4))), adapt=bool(getattr(args, "adapt", False)),
+                               labels=labels)
     finally:
         close = getattr(dataset, "release", None)
         if close is not None:

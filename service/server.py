@@ -4,6 +4,11 @@ published back, keyframes persisted to the SQLite long-term memory.
 Transport threads only decode and enqueue; each robot's pipeline runs on its own worker
 thread (numpy/OpenCV release the GIL in their kernels). A message that cannot be decoded is
 counted by reason and dropped; nothing a client sends can stop the service.
+
+Labels: a frame message with a label image reaches the pipeline with
+``frame.extras["labels"]`` (H×W uint8 / uint16 class ids) and, when the robot's camera info had
+a class table, ``frame.extras["label_names"]`` (tuple; absent = the default ADE20K-32 table).
+Ids beyond the robot's table (or the default's 32) are refused as ``bad_labels``.
 """
 from __future__ import annotations
 
@@ -109,7 +114,7 @@ class SlamService:
                 self._request_info(robot)
             return
         try:
-            msg = protocol.decode_frame(sample.payload.to_bytes(), session.limits)
+            msg = protocol.decode_frame(sample.payload.to_bytes(), session.limits, label_names=session.classes)
             if msg.robot != robot:
                 raise protocol.ProtocolError("robot_mismatch", f"header robot {msg.robot!r} on key {key!r}")
         except protocol.ProtocolError as e:
@@ -125,13 +130,13 @@ class SlamService:
     def _on_info_sample(self, sample) -> None:
         key = str(sample.key_expr)
         try:
-            robot, calibration = protocol.decode_info(sample.payload.to_bytes())
-            if robot != self.keys.robot_of(key):
-                raise protocol.ProtocolError("robot_mismatch", f"camera info of {robot!r} on key {key!r}")
+            info = protocol.decode_info_message(sample.payload.to_bytes())
+            if info.robot != self.keys.robot_of(key):
+                raise protocol.ProtocolError("robot_mismatch", f"camera info of {info.robot!r} on key {key!r}")
         except protocol.ProtocolError as e:
             self._count_reject("bad_info", key, e)
             return
-        self._admit(robot, calibration)
+        self._admit(info.robot, info.calibration, info.classes)
 
     def _count_reject(self, reason: str, key: str, err) -> None:
         with self._lock:
@@ -140,14 +145,18 @@ class SlamService:
         if n <= 3 or n % 1000 == 0:  # structured, rate-limited
             log.warning("rejected message reason=%s key=%s count=%d detail=%s", reason, key, n, err)
 
-    def _admit(self, robot: str, calibration: Calibration) -> RobotSession | None:
+    def _admit(self, robot: str, calibration: Calibration,
+               classes: tuple[str, ...] | None = None) -> RobotSession | None:
         """The robot's session, made when its calibration arrives and a slot is free. A camera
-        that restarts with another calibration keeps its session (counted, not applied)."""
+        that restarts with another calibration or class table keeps its session (counted, not
+        applied)."""
         with self._lock:
             s = self.sessions.get(robot)
             if s is not None:
                 if s.calibration != calibration:
                     s.reject("calibration_changed")
+                if s.classes != classes:
+                    s.reject("classes_changed")
                 return s
             if len(self.sessions) >= self.config.service.max_robots:
                 self.rejected["too_many_robots"] += 1
@@ -155,9 +164,10 @@ class SlamService:
             else:
                 cam = calibration.camera
                 limits = protocol.Limits(self.limits.max_message_bytes, self.limits.max_width,
-                                         self.limits.max_height, size=(cam.width, cam.height))
+                                         self.limits.max_height, size=(cam.width, cam.height),
+                                         classes=len(classes if classes is not None else protocol.DEFAULT_CLASSES))
                 s = RobotSession(robot, self.config, calibration, limits,
-                                 lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result)
+                                 lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result, classes=classes)
                 self.sessions[robot] = s
         if s is None:
             if n <= 3 or n % 1000 == 0:
@@ -192,14 +202,14 @@ class SlamService:
                 if reply.ok is None:
                     continue
                 try:
-                    who, calibration = protocol.decode_info(reply.ok.payload.to_bytes())
+                    info = protocol.decode_info_message(reply.ok.payload.to_bytes())
                 except protocol.ProtocolError as e:
                     self._count_reject("bad_info", self.keys.info(robot), e)
                     continue
-                if who == robot:
-                    self._admit(robot, calibration)
+                if info.robot == robot:
+                    self._admit(robot, info.calibration, info.classes)
                     return
-                self._count_reject("bad_info", self.keys.info(robot), f"camera info of {who!r}")
+                self._count_reject("bad_info", self.keys.info(robot), f"camera info of {info.robot!r}")
         except Exception as e:  # the session closed while asking
             log.debug("info query for %s failed: %s", robot, e)
         finally:

@@ -6,7 +6,8 @@ decoded against the calibration's image size and nothing a robot sends is held b
 Frames arrive from Zenoh's callback thread (`submit`); a frame whose stamp does not increase
 is rejected and counted; when the pipeline falls behind, the queue (bounded in frames and in
 decoded bytes) drops its *oldest* frame (a camera wants the freshest pose, not a growing
-backlog) and counts the drop.
+backlog) and counts the drop. The bytes counted are every array the frame holds: image, depth,
+right image and the arrays in `frame.extras` (a label image sent with the frame).
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ log = logging.getLogger("mnemoslam.session")
 @dataclass
 class SessionStats:
     received: int = 0  # frames accepted into the queue
+    labelled: int = 0  # of those, frames that came with a label image (extras["labels"])
     processed: int = 0
     dropped_queue: int = 0  # oldest frame dropped because the queue was full
     rejected: dict = field(default_factory=dict)  # reason -> count, for frames this session refused
@@ -45,14 +47,17 @@ class SessionStats:
 class RobotSession:
     """Owns the pipeline of one robot; `on_result(session, frame, result)` is called from
     the worker thread after every processed frame. `limits` bound its frame messages (their
-    image size is the calibration's)."""
+    image size is the calibration's, their label ids the class table's). `classes`: the class
+    table of the camera info (None: the default, ADE20K-32)."""
 
     def __init__(self, robot: str, config: Config, calibration: Calibration, limits: Limits,
                  make_pipeline: Callable[[Calibration], Pipeline],
-                 on_result: Callable[["RobotSession", Frame, FrameResult], None]):
+                 on_result: Callable[["RobotSession", Frame, FrameResult], None],
+                 classes: tuple[str, ...] | None = None):
         self.robot = robot
         self.config = config
         self.calibration = calibration
+        self.classes = classes
         self.limits = limits  # what its frame messages may be: the calibration's image size
         self.pipeline: Pipeline | None = None  # made on the worker thread with the first frame
         self.stats = SessionStats()
@@ -89,9 +94,15 @@ class RobotSession:
         """Seconds since the last frame arrived (or the session was made)."""
         return now - self.last_active
 
+    @staticmethod
+    def frame_bytes(frame: Frame) -> int:
+        """The memory a queued frame holds: its images and the arrays in its extras (labels)."""
+        arrays = (frame.image, frame.depth, frame.right, *frame.extras.values())
+        return sum(a.nbytes for a in arrays if hasattr(a, "nbytes"))
+
     def submit(self, seq: int, frame: Frame) -> None:
         """Queue a decoded frame; a stamp that does not increase is rejected ("stamp_order")."""
-        size = frame.image.nbytes + sum(a.nbytes for a in (frame.depth, frame.right) if a is not None)
+        size = self.frame_bytes(frame)
         limit = self.config.service.queue_mb * 1024 * 1024
         with self._cond:
             self.last_active = time.monotonic()
@@ -100,6 +111,7 @@ class RobotSession:
                 return
             self._last_stamp = frame.stamp
             self.stats.received += 1
+            self.stats.labelled += "labels" in frame.extras
             while self._queue and (len(self._queue) >= max(1, self.config.service.queue_size)
                                    or self._queued_bytes + size > limit):
                 self._queued_bytes -= self._queue.popleft()[2]
@@ -164,7 +176,8 @@ class RobotSession:
         return {
             "robot": self.robot, "state": self.state, "queue_depth": self.queue_depth,
             "queue_mb": round(self._queued_bytes / 2**20, 1),
-            "frames_received": s.received, "frames_processed": s.processed, "frames_dropped": s.dropped_queue,
+            "frames_received": s.received, "frames_labelled": s.labelled, "frames_processed": s.processed,
+            "frames_dropped": s.dropped_queue,
             "frames_rejected": dict(s.rejected), "tracked": s.tracked, "lost": s.lost, "keyframes": s.keyframes,
             "fps": round(s.fps, 2), "processing_ms": round(s.processing_ms, 2), "last_stamp": s.last_stamp,
             "session_id": self.session_id,

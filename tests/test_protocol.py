@@ -117,7 +117,7 @@ def test_layout_is_as_documented():
     f = _rgbd()
     msg = encode_frame(f, "ab", 5, color="raw", depth="raw")
     fields = FIXED.unpack_from(msg, 0)
-    assert fields[0] == b"MSLF" and fields[1] == PROTOCOL_VERSION == 1
+    assert fields[0] == b"MSLF" and fields[1] == 1 and PROTOCOL_VERSION == 2  # no labels: a version 1 message
     assert fields[2] == 39 + 2 + 8 == FIXED_HEADER_BYTES + 2 + 8
     assert fields[3:6] == (0, 5, 1.25)
     assert fields[6:13] == (0, 0, 1, 64, 48, 3, 1000.0) and fields[13] == 2
@@ -190,9 +190,10 @@ def test_crafted_messages_have_their_reason():
                       (_craft(header_len=200), None), (_craft(clen=13), None)],
         "bad_length": [(_craft(tail=b"\x00"), None), (_craft(clen=11, p1=bytes(12)), None)],
         "bad_magic": [(_craft(magic=b"MSLG"), None), (b"\x89PNG\r\n\x1a\n" + bytes(100), None), (b"GARB", None)],
-        "bad_version": [(_craft(version=0), None), (_craft(version=2), None), (_craft(version=0xFFFF), None),
-                        (b"MSLF\x02\x00", None)],
-        "bad_header": [(_craft(header_len=10), None), (_craft(header_len=2000, p1=bytes(2000)), None),
+        "bad_version": [(_craft(version=0), None), (_craft(version=3), None), (_craft(version=0xFFFF), None),
+                        (b"MSLF\x03\x00", None)],
+        "bad_header": [(_craft(header_len=10), None),
+                       (_craft(version=2), None),  # a version 1 layout is too short for version 2 (_craft(header_len=2000, p1=bytes(2000)), None),
                        (_craft(kind=3), None), (_craft(cenc=3), None), (_craft(senc=3, kind=0), None),
                        (_craft(c=2), None), (_craft(c=0), None), (_craft(c=4), None),
                        (_craft(kind=2, senc=1, p2=bytes(12)), None),  # mono with a second image
@@ -288,6 +289,11 @@ def _valid_messages():
     out.append(encode_frame(Frame(0, 2.0, grey, right=grey), "fuzz", 1, color="jpeg", depth="raw"))
     out.append(encode_frame(Frame(0, 2.0, f.image), "fuzz", 1, color="jpeg"))
     out.append(encode_frame(Frame(0, 2.0, grey), "fuzz", 1, color="png"))
+    labels = (np.arange(24 * 32).reshape(24, 32) // 40).astype(np.uint8)
+    out.append(encode_frame(Frame(0, 2.0, f.image, f.depth, extras={"labels": labels}), "fuzz", 1, color="png",
+                            depth="png", labels="png"))
+    out.append(encode_frame(Frame(0, 2.0, grey, extras={"labels": labels.astype(np.uint16) * 300}), "fuzz", 1,
+                            color="raw", labels="raw"))
     return out
 
 
@@ -353,7 +359,7 @@ def test_fuzz_frames_raise_only_protocol_errors():
             r = _outcome(bytes(b))
             assert r == "bad_stamp"
             count(r)
-        for version in (0, 2, 3, 255, 65535):
+        for version in (0, 3, 255, 65535):
             b = bytearray(m)
             struct.pack_into("<H", b, 4, version)
             r = _outcome(bytes(b))
@@ -539,3 +545,188 @@ def test_keyspace_accepts_zenoh_keyexpr():
 
     ks = KeySpace("p")
     assert ks.robot_of(zenoh.KeyExpr("p/r7/camera/frame")) == "r7"
+
+
+# ------------------------------------------------------------------------------------------
+# label images (version 2) and the class table
+
+from client.protocol import DEFAULT_CLASSES, MAX_CLASSES  # noqa: E402
+
+LABEL_FIELDS = struct.Struct("<BBI")  # label_enc, label_bytes, label_len (v2, after the lengths)
+
+
+def _labels(h=48, w=64, dtype=np.uint8, top=32, seed=0):
+    rng = np.random.default_rng(seed)
+    lab = np.repeat(np.repeat(rng.integers(0, top, (h // 8 + 1, w // 8 + 1)), 8, 0), 8, 1)[:h, :w]
+    return lab.astype(dtype)
+
+
+@pytest.mark.parametrize("encoding", ["raw", "png"])
+@pytest.mark.parametrize("dtype,top", [(np.uint8, 32), (np.uint8, 256), (np.uint16, 65536)])
+@pytest.mark.parametrize("kind", ["rgbd", "stereo", "mono"])
+def test_label_round_trip(encoding, dtype, top, kind):
+    img, depth = _scene()
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    lab = _labels(dtype=dtype, top=top)
+    f = {"rgbd": Frame(7, 1.5, img, depth=depth), "stereo": Frame(7, 1.5, grey, right=grey),
+         "mono": Frame(7, 1.5, img)}[kind]
+    f.extras.update(labels=lab, instances=np.zeros(lab.shape, np.int32))
+    msg = encode_frame(f, "lab", 7, color="png", depth="png", labels=encoding)
+    w = decode_frame(msg)
+    assert (w.version, w.label_encoding, w.kind, w.size) == (2, encoding, kind, len(msg))
+    got = w.frame.extras["labels"]
+    assert got.dtype == dtype and got.shape == lab.shape
+    np.testing.assert_array_equal(got, lab)  # lossless
+    assert set(w.frame.extras) == {"labels"}  # only the labels travel; names only when given
+    names = tuple(f"c{i}" for i in range(300))
+    w = decode_frame(msg, label_names=names)
+    assert w.frame.extras["label_names"] == names and isinstance(w.frame.extras["label_names"], tuple)
+    if kind == "rgbd":
+        np.testing.assert_array_equal(w.frame.depth, _expected_depth(depth))
+
+
+def test_label_layout_is_as_documented():
+    f = _rgbd()
+    lab = _labels()
+    f.extras["labels"] = lab
+    msg = encode_frame(f, "ab", 5, color="raw", depth="raw", labels="raw")
+    fields = FIXED.unpack_from(msg, 0)
+    assert fields[1] == 2 and fields[2] == 39 + 2 + 8 + 6
+    clen, slen = LENGTHS.unpack_from(msg, 41)
+    lenc, lbytes, llen = LABEL_FIELDS.unpack_from(msg, 49)
+    assert (lenc, lbytes, llen) == (1, 1, 64 * 48)
+    assert len(msg) == 55 + clen + slen + llen and msg[55 + clen + slen:] == lab.tobytes()
+    f.extras["labels"] = lab.astype(np.uint16) + 1000
+    msg16 = encode_frame(f, "ab", 5, color="raw", depth="raw", labels="raw")
+    assert LABEL_FIELDS.unpack_from(msg16, 49) == (1, 2, 64 * 48 * 2)
+    assert msg16[55 + clen + slen:] == (lab.astype("<u2") + np.uint16(1000)).tobytes()  # little-endian uint16
+    png = encode_frame(f, "ab", 5, color="raw", depth="raw", labels="png")
+    lenc, lbytes, llen = LABEL_FIELDS.unpack_from(png, 49)
+    assert (lenc, lbytes) == (2, 2)
+    p3 = png[55 + clen + slen:]
+    assert len(p3) == llen and p3[:8] == b"\x89PNG\r\n\x1a\n"
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(p3, np.uint8), cv2.IMREAD_UNCHANGED), lab.astype(np.uint16) + 1000)
+
+
+def test_old_format_without_labels_is_unchanged():
+    """No labels asked: a version 1 message, byte for byte what a frame without extras gives
+    (old services read it); a version 1 message decodes without labels as before."""
+    f = _rgbd()
+    plain = encode_frame(f, "r", 3, color="png", depth="png")
+    f.extras["labels"] = _labels()
+    assert encode_frame(f, "r", 3, color="png", depth="png") == plain
+    assert encode_frame(f, "r", 3, color="png", depth="png", labels="none") == plain
+    w = decode_frame(plain)
+    assert (w.version, w.label_encoding, w.frame.extras) == (1, "none", {})
+    assert decode_frame(plain, label_names=DEFAULT_CLASSES).frame.extras == {}  # names only with labels
+    assert decode_frame(_craft(), Limits(classes=2)).frame.extras == {}
+    # a version 2 message may carry no label image (encoding none, 0 bytes)
+    v2 = _craft(version=2, extra=LABEL_FIELDS.pack(0, 0, 0))
+    assert decode_frame(v2).version == 2 and decode_frame(v2).frame.extras == {}
+    # version 2 readers skip extension bytes after the label fields, as version 1 readers do
+    lab = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    ext = _craft(version=2, extra=LABEL_FIELDS.pack(1, 1, 12) + b"\x00" * 7, tail=lab.tobytes())
+    np.testing.assert_array_equal(decode_frame(ext).frame.extras["labels"], lab)
+
+
+def _craft2(lenc=1, lbytes=1, llen=None, p3=None, **kw):
+    """A 4×3 mono frame with a label payload (version 2)."""
+    if p3 is None:
+        p3 = bytes(12 * lbytes)
+    return _craft(version=2, extra=LABEL_FIELDS.pack(lenc, lbytes, len(p3) if llen is None else llen),
+                  tail=p3, **kw)
+
+
+def test_malformed_label_images_have_their_reason():
+    lab8 = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    assert decode_frame(_craft2(p3=lab8.tobytes())).frame.extras["labels"].tolist() == lab8.tolist()
+    assert decode_frame(_craft2(lenc=2, p3=_png(lab8))).frame.extras["labels"].dtype == np.uint8
+    assert decode_frame(_craft2(lenc=2, lbytes=2, p3=_png(lab8.astype(np.uint16)))).frame.extras["labels"].dtype \
+        == np.uint16
+    huge_png = bytearray(_png(lab8))
+    struct.pack_into(">II", huge_png, 16, 65535, 65535)  # IHDR claims 65535×65535
+    cases = {
+        "bad_header": [_craft2(lenc=3), _craft2(lenc=0, lbytes=1, p3=b""), _craft2(lenc=0, lbytes=0, p3=bytes(12)),
+                       _craft2(lbytes=0), _craft2(lbytes=4, p3=bytes(48)),  # int32 labels: not a wire dtype
+                       _craft2(lbytes=3, p3=bytes(36))],
+        "bad_size": [_craft2(p3=bytes(11)), _craft2(p3=bytes(13)), _craft2(lbytes=2, p3=bytes(12)),  # uint16 needs 24
+                     _craft2(lenc=2, p3=b"")],
+        "truncated": [_craft2(p3=bytes(12))[:-1], _craft2(llen=13, p3=bytes(12))],
+        "bad_length": [_craft2(llen=11, p3=bytes(12))],
+        "decode_failed": [_craft2(lenc=2, p3=b"garbage, not a PNG" * 4),
+                          _craft2(lenc=2, p3=_png(lab8)[:45]),  # IHDR fine, data cut
+                          _craft2(lenc=2, p3=_png(lab8)[:-20] + bytes(20)),  # corrupt data
+                          _craft2(lenc=2, lbytes=2, p3=_png(lab8)),  # 8-bit PNG, header says uint16
+                          _craft2(lenc=2, lbytes=1, p3=_png(lab8.astype(np.uint16))),  # and the reverse
+                          _craft2(lenc=2, p3=_png(np.dstack([lab8] * 3))),  # colour PNG
+                          _craft2(lenc=2, p3=cv2.imencode(".jpg", lab8)[1].tobytes())],
+        "size_mismatch": [_craft2(lenc=2, p3=_png(np.zeros((4, 3), np.uint8))),  # wrong size
+                          _craft2(lenc=2, p3=_png(np.zeros((3, 5), np.uint8))),
+                          _craft2(lenc=2, p3=bytes(huge_png))],  # oversize: refused from the PNG header
+    }
+    for reason, msgs in cases.items():
+        for msg in msgs:
+            assert _reason(msg) == reason, (reason, msg[40:70])
+    # oversize messages: the label payload counts towards the message limit
+    assert _reason(_craft2(p3=bytes(12)), Limits(max_message_bytes=len(_craft2()) - 1)) == "too_large"
+    # ids beyond the camera's class table
+    assert _reason(_craft2(p3=lab8.tobytes()), Limits(classes=11)) == "bad_labels"
+    assert decode_frame(_craft2(p3=lab8.tobytes()), Limits(classes=12)).frame.extras["labels"].max() == 11
+    # a big label PNG allocates nothing before its header is checked against the image size
+    tracemalloc.start()
+    try:
+        _reason(_craft2(lenc=2, p3=bytes(huge_png)))
+        assert tracemalloc.get_traced_memory()[1] < 1 << 20
+    finally:
+        tracemalloc.stop()
+
+
+def test_encode_rejects_labels_that_cannot_be_sent():
+    f = _rgbd()
+    def reason(labels, encoding="png"):
+        g = Frame(f.index, f.stamp, f.image, f.depth)
+        if labels is not None:
+            g.extras["labels"] = labels
+        with pytest.raises(ProtocolError) as e:
+            encode_frame(g, "r", 0, labels=encoding)
+        return e.value.reason
+    assert reason(_labels(), "jpeg") == "bad_header"
+    assert reason(None) == "bad_frame"  # nothing to send
+    assert reason(_labels(24, 32)) == "bad_frame"  # wrong size
+    assert reason(_labels()[..., None]) == "bad_frame"  # H×W×1
+    assert reason(_labels().astype(np.float32)) == "bad_frame"
+    assert reason(_labels().astype(bool)) == "bad_frame"
+    assert reason(_labels().astype(np.int32) - 1) == "bad_frame"  # negative ids
+    assert reason(_labels().astype(np.int64) + 65536) == "bad_frame"  # beyond uint16
+    assert reason([[0] * 64] * 48) == "bad_frame"  # not an array
+    # other integer arrays travel as the smallest wire dtype that holds them
+    for src, want in ((np.int32, np.uint8), (np.int64, np.uint8)):
+        g = Frame(0, 0.0, f.image, f.depth, extras={"labels": _labels().astype(src)})
+        assert decode_frame(encode_frame(g, "r", 0, labels="png")).frame.extras["labels"].dtype == want
+    g = Frame(0, 0.0, f.image, f.depth, extras={"labels": _labels().astype(np.int32) * 300})
+    got = decode_frame(encode_frame(g, "r", 0, labels="raw")).frame.extras["labels"]
+    assert got.dtype == np.uint16 and np.array_equal(got, _labels().astype(np.int32) * 300)
+
+
+def test_info_class_table():
+    assert len(DEFAULT_CLASSES) == 32 and DEFAULT_CLASSES[15] == "door" and DEFAULT_CLASSES[31] == "armchair"
+    info = decode_info_message(encode_info("bot", CAL))
+    assert info.classes is None and info.class_count == 32  # absent: the default table
+    assert "classes" not in json.loads(encode_info("bot", CAL))  # and not sent (old readers see the same)
+    info = decode_info_message(encode_info("bot", CAL, classes=DEFAULT_CLASSES))
+    assert info.classes == DEFAULT_CLASSES and info.calibration == CAL
+    assert json.loads(encode_info("bot", CAL, classes=["a", "b"]))["classes"] == ["a", "b"]
+    big = [f"class {i}" for i in range(MAX_CLASSES)]
+    assert decode_info_message(encode_info("bot", CAL, classes=big)).class_count == MAX_CLASSES
+    base = json.loads(encode_info("bot", CAL))
+    cases = [("door", "bad_json"), ({"0": "door"}, "bad_json"), (3, "bad_json"), ([], "bad_field"),
+             (["a", 1], "bad_json"), (["a", None], "bad_json"), (["a", ""], "bad_field"), (["a", "x" * 65], "bad_field"),
+             (["a", "b\n"], "bad_field"), (["a", "b", "a"], "bad_field"), (big + ["one more"], "bad_field")]
+    for classes, why in cases:
+        with pytest.raises(ProtocolError) as e:
+            decode_info_message(json.dumps(dict(base, classes=classes)).encode())
+        assert e.value.reason == why, classes
+        if isinstance(classes, list):
+            with pytest.raises(ProtocolError):
+                encode_info("bot", CAL, classes=classes)
+    assert decode_info_message(json.dumps(dict(base, classes=None)).encode()).classes is None  # null = absent

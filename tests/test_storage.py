@@ -977,7 +977,8 @@ def test_objects_survive_their_anchor_being_merged(store, rng):
     assert store.get_object(oid).node_id == b and store.count_objects() == 1
 
 
-def test_object_arrays_at_100k_objects_is_fast(store, rng):
+def test_object_arrays_at_100k_objects(store, rng):
+    """100k objects as columns, positions from their anchors (speed: bench/bench_objects.py)."""
     sid = store.begin_session("r1", CAL)
     nodes = [store.add_keyframe(record(rng, sid, float(i), P=pose(i, 0, 0), n=5)) for i in range(200)]
     hist = np.full(32, 1 / 32, np.float32)
@@ -985,13 +986,8 @@ def test_object_arrays_at_100k_objects_is_fast(store, rng):
     anchors = rng.integers(0, 200, 100_000)
     store.save_objects([ObjectRecord(None, nodes[anchors[i]], 0, "other", 1 / 32, hist, cents[i], np.ones(3), 1,
                                      np.array([nodes[anchors[i]]], np.int64)) for i in range(100_000)])
-    times = []
-    for _ in range(3):  # the best of 3: the machine may be busy with other work
-        t = time.perf_counter()
-        arr = store.object_arrays()
-        times.append(time.perf_counter() - t)
-    # contract: ≤ ~0.5 s (≈ 0.1 s idle, 0.46 s at load 11 on 2 cores); slack for a loaded machine
-    assert arr["id"].shape == (100_000,) and min(times) < 1.0, times
+    arr = store.object_arrays()
+    assert arr["id"].shape == (100_000,)
     np.testing.assert_allclose(arr["position"], cents + np.c_[anchors, np.zeros((100_000, 2))])
 
 

@@ -363,3 +363,55 @@ print("done")
 """
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=20)
     assert r.returncode == 0 and "done" in r.stdout, r.stderr[-2000:]
+
+
+def test_stream_synthetic_labels(collector, tmp_path, capsys):
+    """--labels sends the synthetic camera's exact labels (lossless, raw or PNG) and the
+    ADE20K-32 class table in the camera info; without it nothing of them travels."""
+    from client.protocol import DEFAULT_CLASSES
+
+    dataset = open_dataset("synthetic:loop", max_frames=4)
+    args = _parse(["stream", "synthetic:loop", "--robot", "lab-bot", "--connect", endpoint(collector.port),
+                   "--prefix", collector.keyspace.prefix, "--max-frames", "4", "--labels", "--encoding", "jpeg",
+                   "--depth-encoding", "png", "--rate", "100", "-q"])
+    assert args.labels and args.func(args) == 0
+    assert "png+labels" in capsys.readouterr().out
+    got = collector.wait_frames(4)
+    assert len(got) == 4
+    for k, (_, payload) in enumerate(got):
+        w = decode_frame(payload)
+        assert (w.seq, w.version, w.label_encoding) == (k, 2, "png")
+        ref = dataset.frame(k).extras["labels"]
+        assert w.frame.extras["labels"].dtype == np.uint8
+        np.testing.assert_array_equal(w.frame.extras["labels"], ref)
+        assert "instances" not in w.frame.extras
+    info = decode_info_message(collector.infos[-1][1])
+    assert info.classes == DEFAULT_CLASSES and info.classes[15] == "door"
+    # raw labels through stream_dataset; without labels: version 1 frames and no class table
+    stats = stream_dataset(dataset, "raw-bot", collector.client_settings, prefix=collector.keyspace.prefix,
+                           progress=False, max_frames=2, wait_for_subscriber=5.0, color="raw", depth="raw", rate=100.0,
+                           labels=True)
+    assert stats.encoding == "raw/raw+labels"
+    plain = stream_dataset(dataset, "plain-bot", collector.client_settings, prefix=collector.keyspace.prefix,
+                           progress=False, max_frames=2, wait_for_subscriber=5.0, color="raw", depth="raw", rate=100.0)
+    assert plain.encoding == "raw/raw"
+    got = collector.wait_frames(8)
+    by_robot: dict[str, list] = {}
+    for key, payload in got:
+        by_robot.setdefault(collector.keyspace.robot_of(key), []).append(decode_frame(payload))
+    assert [w.label_encoding for w in by_robot["raw-bot"]] == ["raw", "raw"]
+    np.testing.assert_array_equal(by_robot["raw-bot"][1].frame.extras["labels"], dataset.frame(1).extras["labels"])
+    assert all(w.version == 1 and w.frame.extras == {} for w in by_robot["plain-bot"])
+    infos = {collector.keyspace.robot_of(k): decode_info_message(p) for k, p in collector.infos}
+    assert infos["raw-bot"].classes == DEFAULT_CLASSES and infos["plain-bot"].classes is None
+    # sources without labels: a clear error before any frame is sent
+    from tests.test_datasets import make_tum
+
+    with pytest.raises(ValueError, match="carry no labels"):
+        stream_dataset(open_dataset(make_tum(tmp_path)), "tum-bot", collector.client_settings,
+                       prefix=collector.keyspace.prefix, progress=False, labels=True)
+    with pytest.raises(ValueError, match="--labels"):
+        stream_main(_parse(["stream", "--camera", "0", "--labels", "-q"]))
+    assert not [k for k, _ in collector.frames if collector.keyspace.robot_of(k) == "tum-bot"]
+    with pytest.raises(ValueError):
+        CameraStreamer(collector.session, "x", dataset.calibration, collector.keyspace, labels="jpeg")
