@@ -5,6 +5,7 @@ semantics off when the model is missing."""
 from __future__ import annotations
 
 import json
+import time
 
 import cv2
 
@@ -252,3 +253,38 @@ def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
         worker.close()
         assert worker.errors == accepted.count(True) and "model exploded" in worker.last_error
         assert worker.stats()["processed"] == 0 and store.count_objects() == 0
+
+
+def test_service_fuses_streamed_labels_into_stored_objects(tmp_path):
+    """Through the service: frames streamed with labels (`stream ... --labels`) become objects
+    in the map database, fused on the semantic worker's thread; the status says on."""
+    from client.streamer import stream_dataset
+    from client.transport import ZenohSettings
+    from service.server import SlamService
+    from tests.test_streamer import endpoint, free_port
+
+    port = free_port()
+    config = load_config(overrides={
+        "zenoh": {"listen": [endpoint(port)]}, "storage": {"path": str(tmp_path / "map.db")},
+        "loop": {"process": False}, "service": {"queue_size": 1000},
+        "semantics": {"enabled": True, "source": "camera", "min_observations": 2}})
+    svc = SlamService(config).start()
+    try:
+        status = svc.semantics_status()
+        assert status["enabled"] and status["source"] == "camera" and status["reason"] is None
+        stream_dataset(open_dataset("synthetic:loop", max_frames=30), "r1", ZenohSettings(connect=[endpoint(port)]),
+                       rate=None, progress=False, wait_for_subscriber=10.0, labels=True)
+        def processed():
+            robots = svc.robots()
+            return robots[0]["frames_processed"] if robots else 0
+
+        end = time.monotonic() + 120
+        while time.monotonic() < end and processed() < 30:
+            time.sleep(0.1)
+        assert processed() == 30
+        assert svc.semantics_status()["workers"]["r1"]["errors"] == 0
+    finally:
+        svc.stop()  # ends the session: the worker finishes its queue and writes the objects
+    with MapStore(tmp_path / "map.db", create=False) as store:
+        labels = {o.label for o in store.objects()}
+    assert {"door", "chair"} <= labels, labels  # synthetic:loop's first second shows door_2 and the office chairs
