@@ -1,4 +1,11 @@
-"""The planner's HTTP client for the service's REST API (standard library only)."""
+"""The planner's HTTP client for the service's REST API (standard library only).
+
+    api = PlannerClient("http://127.0.0.1:8080", token=os.environ.get("MNEMOSLAM_API_TOKEN"))
+    door = api.nearest_object("door", robot="r1")          # {"object": {...}, "distance", "node_id"}
+    path = api.object_path(door["object"]["id"], robot="r1")  # node ids and positions along the graph
+
+Errors are `ApiError` (status, detail); `last_semantics` is the X-Semantics header ("on" /
+"off") of the last object answer: whether the service is fusing objects now."""
 from __future__ import annotations
 
 import json
@@ -14,24 +21,39 @@ class ApiError(Exception):
 
 
 class PlannerClient:
-    def __init__(self, base_url: str = "http://127.0.0.1:8080", timeout: float = 10.0):
+    def __init__(self, base_url: str = "http://127.0.0.1:8080", timeout: float = 10.0, token: str | None = None):
         self.base_url = base_url.rstrip("/")
         self.timeout = timeout
+        self.token = token or None  # sent as 'Authorization: Bearer <token>' (needed to change the map)
+        self.last_semantics: str | None = None
 
-    def get(self, path: str, **params) -> object:
+    def request(self, method: str, path: str, body=None, **params) -> object:
         query = urllib.parse.urlencode({k: v for k, v in params.items() if v is not None})
         url = f"{self.base_url}{path}" + (f"?{query}" if query else "")
+        headers = {"Accept": "application/json"}
+        if self.token:
+            headers["Authorization"] = f"Bearer {self.token}"
+        data = None
+        if body is not None:
+            data = json.dumps(body).encode()
+            headers["Content-Type"] = "application/json"
+        req = urllib.request.Request(url, data=data, method=method, headers=headers)
         try:
-            with urllib.request.urlopen(url, timeout=self.timeout) as r:
+            with urllib.request.urlopen(req, timeout=self.timeout) as r:
                 body = r.read()
                 ctype = r.headers.get("content-type", "")
+                self.last_semantics = r.headers.get("x-semantics", self.last_semantics)
         except urllib.error.HTTPError as e:
+            self.last_semantics = e.headers.get("x-semantics", self.last_semantics)
             try:
                 detail = json.loads(e.read()).get("detail", e.reason)
             except (ValueError, AttributeError):
                 detail = e.reason
             raise ApiError(e.code, str(detail)) from None
         return json.loads(body) if "json" in ctype else body.decode()
+
+    def get(self, path: str, **params) -> object:
+        return self.request("GET", path, **params)
 
     def health(self) -> dict:
         return self.get("/health")
@@ -57,3 +79,42 @@ class PlannerClient:
 
     def stats(self) -> dict:
         return self.get("/stats")
+
+    # -- semantic map ------------------------------------------------------------------------
+    def semantics(self) -> dict:
+        """{"enabled", "source", "model", "reason" (why off), "classes"}."""
+        return self.get("/semantics")
+
+    def nearest_object(self, label: str, point=None, robot: str | None = None) -> dict:
+        """The `label` object nearest to `point` (x, y, z) or to `robot`'s current pose:
+        {"object": {"id", "label", "confidence", "position", "extent", "observations", ...},
+        "distance", "node_id"}; ApiError 404 (with the reason) when there is none."""
+        x, y, z = point if point is not None else (None, None, None)
+        return self.get("/objects/nearest", label=label, x=x, y=y, z=z, robot=robot)
+
+    def objects(self, label: str | None = None, point=None, radius: float | None = None,
+                limit: int = 100, offset: int = 0) -> dict:
+        """{"total", "limit", "offset", "objects": [...]}: by distance to `point` when given."""
+        x, y, z = point if point is not None else (None, None, None)
+        return self.get("/objects", label=label, x=x, y=y, z=z, radius=radius, limit=limit, offset=offset)
+
+    def object(self, object_id: int) -> dict:
+        return self.get(f"/objects/{int(object_id)}")
+
+    def labels(self) -> dict:
+        """{"total": objects, "labels": [{"label", "count"}, ...]} (most frequent first)."""
+        return self.get("/labels")
+
+    def object_path(self, object_id: int, robot: str) -> dict:
+        """A path along the pose graph from `robot`'s node to the node nearest the object:
+        {"object", "robot", "start_node", "goal_node", "nodes": [{"id", "position"}], "length",
+        "goal_distance"}."""
+        return self.get(f"/objects/{int(object_id)}/path", robot=robot)
+
+    # -- changes (need the token) --------------------------------------------------------------
+    def label_node(self, node_id: int, label: str | None) -> dict:
+        """Name a keyframe (None clears its name); the node."""
+        return self.request("POST", f"/nodes/{int(node_id)}/label", body={"label": label})
+
+    def delete_object(self, object_id: int) -> dict:
+        return self.request("DELETE", f"/objects/{int(object_id)}")

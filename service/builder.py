@@ -4,6 +4,7 @@ update runs is the caller's choice: inline (offline runs stay reproducible), on 
 in the service's mapping child process."""
 from __future__ import annotations
 
+import logging
 from typing import Callable
 
 from client.frames import Calibration
@@ -14,6 +15,10 @@ from .mapping.mapper import Mapper
 from .mapping.process import MappingProcess
 from .memory.long_term import Memory
 from .pipeline import Pipeline
+from .semantics.segmentation import make_segmenter
+from .semantics.worker import SemanticWorker
+
+log = logging.getLogger("mnemoslam.builder")
 
 
 def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config: Config, *,
@@ -22,7 +27,9 @@ def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config
     """A new session of `robot` in the map `store`: its memory (a session in the database), its
     map update when `config.loop.enabled` (in `mapping`'s child process when given, else a
     Mapper on its own thread with `background`, else inline) reporting to `on_event(kind,
-    data)`, and the pipeline over both. End it with `Pipeline.close()`."""
+    data)`, its semantic worker when `config.semantics.enabled` (on its own thread with
+    `background`, else inline; off with the reason in `Pipeline.semantics_off` when e.g. the
+    model is missing), and the pipeline over them. End it with `Pipeline.close()`."""
     memory = Memory(store, robot, calibration, config)
     mapper = None
     if config.loop.enabled:
@@ -31,4 +38,11 @@ def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config
         else:
             mapper = Mapper(calibration.camera, config.loop, store, on_event=on_event, background=background,
                             memory=config.memory)
-    return Pipeline(calibration, config, memory, mapper)
+    semantics, off = None, "semantics.enabled is false"
+    if config.semantics.enabled:
+        segmenter, off = make_segmenter(config.semantics)
+        if segmenter is not None:
+            semantics = SemanticWorker(store, segmenter, config.semantics, background=background)
+        else:
+            log.warning("semantics are off: %s", off)
+    return Pipeline(calibration, config, memory, mapper, semantics, off)

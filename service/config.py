@@ -165,6 +165,42 @@ class ApiConfig:
     enabled: bool = True
     host: str = "127.0.0.1"
     port: int = 8080
+    token: str = ""  # bearer token the endpoints that change the map need (env MNEMOSLAM_API_TOKEN overrides); "" = those endpoints answer 403
+    protect_reads: bool = False  # true: every endpoint but /health needs the token too (then a token must be set)
+
+
+@dataclass
+class SemanticsConfig:
+    enabled: bool = False  # fuse semantic labels of keyframes into 3-D objects with class histograms (issue 14)
+    source: str = "model"  # model (segment keyframes with the ONNX model below) | camera (labels sent with each frame)
+    model: str = "deeplabv3_mnv2_ade20k32.onnx"  # file name under MNEMOSLAM_MODELS (default ../shared/models next to the repository) or a path
+    model_input: str = "MobilenetV2/MobilenetV2/input"  # the model adapter: input tensor name ...
+    model_size: int = 512  # ... square input side (px): the longer image side is resized to it, the rest padded ...
+    model_pad: int = 127  # ... with this grey value (uint8)
+    model_layout: str = "nhwc"  # nhwc | nchw input layout
+    model_dtype: str = "uint8"  # uint8 (raw 0..255) | float32 (scaled by model_scale after subtracting model_mean)
+    model_mean: float = 0.0  # float32 inputs: (pixel - mean) * scale
+    model_scale: float = 1.0
+    model_output: str = "argmax"  # argmax (int label map 1×S×S) | scores (1×K×S×S or 1×S×S×K class scores)
+    classes: list = field(default_factory=list)  # the model's class names by id; empty = ADE20K-32 (service/semantics/classes.py)
+    threads: int = 1  # onnxruntime intra-op threads (must not steal the tracking core)
+    queue_size: int = 4  # keyframes waiting for the semantic worker; when full the newest is dropped (and counted)
+    nice: int = 10  # the semantic worker thread's nice increment (lower CPU priority than tracking); 0 = same priority
+    ignore: list = field(default_factory=lambda: ["other", "wall", "building", "sky", "floor", "ceiling", "road", "grass", "sidewalk", "earth", "mountain", "water", "sea", "field", "rug"])  # classes that never become objects ("stuff": surfaces without an extent)
+    stride: int = 4  # label / depth pixels used: every stride-th of each row and column
+    min_depth: float = 0.3  # m; labelled pixels with depth outside [min, max] are not used
+    max_depth: float = 10.0  # (objects are often seen from afar: the synthetic scene's doors at 6-7.5 m median)
+    min_pixels: int = 400  # a segment (connected pixels of one class) needs this many full-resolution pixels with depth
+    depth_jump: float = 0.05  # neighbouring pixels whose depths differ by more than this × depth split segments
+    voxel: float = 0.08  # m; objects keep their surface as voxels of this size (in the anchor's frame): centroid and extent come from them
+    max_extent: float = 4.0  # m; a segment (or an object) larger than this along any axis is not an object
+    min_overlap: float = 0.25  # a segment joins the object whose voxels hold this share of its voxels (any class: the histogram decides)
+    min_object_share: float = 0.1  # ... and covers at least this share of the object's voxels (a painting does not join a large wall-sized object)
+    stuff_cover: float = 0.5  # an ignored-class segment (wall, floor) covering this share of an object's voxels, or lying inside it by this share, votes for its class
+    merge_overlap: float = 0.5  # two objects sharing this share of the smaller one's voxels are one object (merged)
+    label_probability: float = 0.6  # p of the Bayesian update: the observed class gets p, every other (1 - p) / (K - 1) (Kimera, SemanticFusion)
+    min_probability: float = 1e-4  # histogram floor after each update, so old evidence can still be overturned
+    min_observations: int = 3  # keyframes that must see an object before it is stored (one noisy frame makes no object)
 
 
 @dataclass
@@ -179,6 +215,7 @@ class Config:
     service: ServiceConfig = field(default_factory=ServiceConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
+    semantics: SemanticsConfig = field(default_factory=SemanticsConfig)
     seed: int = 0  # seeds every random choice (RANSAC), for bit-for-bit reproducible runs
 
 
@@ -272,7 +309,12 @@ def merge_overrides(a: dict, b: dict) -> dict:
 
 
 def to_dict(config: Config) -> dict:
-    return dataclasses.asdict(config)
+    """The config as plain data, as shown (REST /config) and stored with each session: the API
+    token is never included (a set token shows as "***")."""
+    d = dataclasses.asdict(config)
+    if d.get("api", {}).get("token"):
+        d["api"]["token"] = "***"
+    return d
 
 
 def default_yaml() -> str:
@@ -297,6 +339,6 @@ def default_yaml() -> str:
         for g in dataclasses.fields(value):
             m = re.search(rf"^\s+{g.name}: .*?(#.*)?$", body, re.MULTILINE)
             comment = f"  {m.group(1)}" if m and m.group(1) else ""
-            out.append(f"  {g.name}: {yaml.safe_dump(getattr(value, g.name), default_flow_style=True).strip().removesuffix('...').strip()}{comment}")
+            out.append(f"  {g.name}: {yaml.safe_dump(getattr(value, g.name), default_flow_style=True, width=10**6).strip().removesuffix('...').strip()}{comment}")
         out.append("")
     return "\n".join(out) + "\n"

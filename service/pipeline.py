@@ -1,6 +1,6 @@
 """The per-frame SLAM pipeline, the same for the offline runner and the service:
-extract → track → decide keyframe → (memory, loop closure, optimization, semantics as
-they land)."""
+extract → track → decide keyframe → remember it (memory, loop closure, optimization) →
+fuse its semantics (handed to the semantic worker, off the tracking thread)."""
 from __future__ import annotations
 
 import logging
@@ -15,6 +15,7 @@ from .config import Config
 from .mapping.mapper import KeyframeUpdate
 from .tracking.features import FeatureExtractor
 from .tracking.keyframes import KeyframePolicy
+from .semantics.worker import SemanticKeyframe
 from .tracking.odometry import Odometry
 
 log = logging.getLogger("mnemoslam.pipeline")
@@ -44,11 +45,14 @@ class FrameResult:
 class Pipeline:
     """One SLAM session for one camera."""
 
-    def __init__(self, calibration: Calibration, config: Config, memory=None, mapper=None):
+    def __init__(self, calibration: Calibration, config: Config, memory=None, mapper=None, semantics=None,
+                 semantics_off: str | None = None):
         self.calibration = calibration
         self.config = config
         self.memory = memory  # service.memory.long_term.Memory, or None for odometry alone
         self.mapper = mapper  # service.mapping.mapper.Mapper (loop closure + graph), or None
+        self.semantics = semantics  # service.semantics.worker.SemanticWorker, or None
+        self.semantics_off = semantics_off  # why semantics are off (None when on)
         self.extractor = FeatureExtractor(calibration, config.features, config.stereo)
         self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed, stereo=config.stereo,
                                  baseline=calibration.baseline)
@@ -71,6 +75,8 @@ class Pipeline:
         poses), then the session is closed in the database with `reason`."""
         if self.mapper is not None:
             self.mapper.close()
+        if self.semantics is not None:  # after the final poses: objects are written against them
+            self.semantics.close()
         if self.memory is not None:
             self.memory.close(reason)
 
@@ -88,6 +94,8 @@ class Pipeline:
         keyframe = self.keyframes.decide(tracked)
         node_id = self._remember(frame, features, tracked) if keyframe else None
         pose = self.mapper.to_map(tracked.pose) if self.mapper is not None and tracked.pose is not None else tracked.pose
+        if node_id is not None:
+            self._fuse_semantics(frame, node_id, pose)
         t3 = time.perf_counter()
         return FrameResult(
             frame.index, frame.stamp, tracked.status, pose, keyframe, node_id, tracked.inliers,
@@ -105,6 +113,13 @@ class Pipeline:
             self.mapper.submit(KeyframeUpdate(node_id, frame.stamp, tracked.pose, features,
                                               *(link if link else (None, None, None))))
         return node_id
+
+    def _fuse_semantics(self, frame: Frame, node_id: int, pose: np.ndarray) -> None:
+        """Hand the keyframe to the semantic worker (it segments and fuses it on its thread)."""
+        if self.semantics is None:
+            return
+        self.semantics.submit(SemanticKeyframe(node_id, pose, frame.image, frame.depth, frame.extras.get("labels"),
+                                               self.calibration.camera, frame.extras.get("label_names")))
 
     def _has_geometry(self, frame: Frame) -> bool:
         if self.calibration.baseline:

@@ -58,6 +58,7 @@ class RunOutput:
     keyframes: Trajectory  # keyframes at their final (optimized) poses
     results: list[FrameResult]
     online: Trajectory | None = None  # every tracked frame as published while running (map at that time)
+    instance_frames: np.ndarray | None = None  # synthetic + semantics: frames in which ≥ 200 px of each instance id were visible
 
     def __post_init__(self):
         if self.online is None:
@@ -68,7 +69,9 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
                 progress: bool = True) -> RunOutput:
     """Run every frame of `dataset` through one pipeline; write `trajectory.tum`,
     `keyframes.tum` (and `groundtruth.tum` when the dataset has it) and the map database
-    `map.db` (the same one the service writes) into `out_dir`."""
+    `map.db` (the same one the service writes) into `out_dir`; with semantics on also
+    `objects.json` (the fused objects at their final positions) and, for synthetic data,
+    `groundtruth_objects.json` (the scene's objects and how many frames saw them)."""
     with contextlib.ExitStack() as stack:
         if out_dir is None:  # the map still lives in a database: a temporary one
             out_dir_db = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="mnemoslam-run-")))
@@ -103,7 +106,39 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
         if mapper is not None:
             with MapStore(db, create=False) as reader:  # every update's statistics (the mapper keeps the last ones)
                 write_updates(out_dir / "updates.csv", ((n, reader.statistics(n)) for n in ids))
+        if pipeline.semantics is not None:
+            with MapStore(db, create=False) as reader:
+                write_objects(out_dir / "objects.json", reader.objects())
+            if hasattr(dataset, "scene"):
+                write_groundtruth_objects(out_dir / "groundtruth_objects.json", dataset.scene, out.instance_frames)
     return out
+
+
+def object_dict(o) -> dict:
+    """An object (storage.ObjectRecord) as objects.json and the REST API show it."""
+    return {"id": o.id, "label": o.label, "confidence": round(float(o.confidence), 4),
+            "position": [round(float(v), 4) for v in o.position], "extent": [round(float(v), 4) for v in o.extent],
+            "observations": int(o.observations), "node_id": int(o.node_id)}
+
+
+def write_objects(path: Path, objects) -> None:
+    """objects.json: the fused objects, positions in the trajectory's frame (final graph poses)."""
+    path.write_text(json.dumps([object_dict(o) for o in objects], indent=1) + "\n")
+
+
+def write_groundtruth_objects(path: Path, scene, instance_frames: np.ndarray | None) -> None:
+    """groundtruth_objects.json of a synthetic run: the scene's objects (id, label, centroid,
+    extent, world frame) and `observed_frames`, in how many frames of the run at least
+    `VISIBLE_PIXELS` of the object were visible (its id in the frames' `extras["instances"]`)."""
+    seen = np.zeros(0, np.int64) if instance_frames is None else instance_frames
+    out = [{"id": o.instance_id, "label": o.class_name, "name": o.name,
+            "centroid": [round(float(v), 4) for v in o.center],
+            "extent": [round(float(b - a), 4) for a, b in zip(o.bbox_min, o.bbox_max)],
+            "observed_frames": int(seen[o.instance_id]) if o.instance_id < len(seen) else 0} for o in scene.objects]
+    path.write_text(json.dumps(out, indent=1) + "\n")
+
+
+VISIBLE_PIXELS = 200  # an object counts as seen in a frame with at least this many of its pixels
 
 
 UPDATE_COLUMNS = ("keyframe", "stamp", "update_ms", "stm", "wm", "ltm", "transferred", "retrieved", "merged", "words")
@@ -156,6 +191,7 @@ def _frames(dataset: Dataset, ahead: int = 2):
 def _run(dataset: Dataset, pipeline: Pipeline, progress: bool) -> RunOutput:
     results: list[FrameResult] = []
     bad = 0
+    seen = None  # per instance id: frames that showed ≥ VISIBLE_PIXELS of it (synthetic, semantics on)
     start = time.perf_counter()
     bar = tqdm(total=len(dataset), desc=dataset.name, unit="frame", disable=not progress, leave=False)
     for i, frame in enumerate(_frames(dataset)):
@@ -165,6 +201,12 @@ def _run(dataset: Dataset, pipeline: Pipeline, progress: bool) -> RunOutput:
             bar.update()
             continue
         results.append(pipeline.process(frame))
+        if pipeline.semantics is not None and frame.extras.get("instances") is not None:
+            counts = np.bincount(frame.extras["instances"].ravel().astype(np.int64))
+            seen = counts[:0] if seen is None else seen
+            if len(counts) > len(seen):
+                seen = np.pad(seen, (0, len(counts) - len(seen)))
+            seen[:len(counts)] += counts >= VISIBLE_PIXELS
         bar.update()
     bar.close()
     seconds = time.perf_counter() - start
@@ -175,7 +217,7 @@ def _run(dataset: Dataset, pipeline: Pipeline, progress: bool) -> RunOutput:
         sum(r.status == "lost" for r in results), sum(r.status == "skipped" for r in results), bad,
         1 + max((r.segment for r in results), default=0), seconds, len(results) / seconds if seconds else 0.0,
     )
-    return RunOutput(summary, _trajectory(tracked), _trajectory(keyframes), results)
+    return RunOutput(summary, _trajectory(tracked), _trajectory(keyframes), results, instance_frames=seen)
 
 
 def _anchored(results: list[FrameResult], keyframe_poses: dict[int, np.ndarray]) -> Trajectory:

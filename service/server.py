@@ -275,3 +275,18 @@ class SlamService:
             "mapping_process": self.mapping.stats() if self.mapping is not None else None,
             "config": to_dict(self.config),
         }
+
+    def semantics_status(self) -> dict:
+        """{"enabled", "source", "model", "reason" (why off, or None), "classes"} of the
+        semantic map, plus "workers": each robot session's semantic worker counts (keyframes
+        processed, dropped, failed; objects)."""
+        from .semantics.segmentation import semantics_status
+
+        out = semantics_status(self.config.semantics)
+        workers = {}
+        for robot, s in list(self.sessions.items()):
+            worker = getattr(getattr(s, "pipeline", None), "semantics", None)
+            if worker is not None:
+                workers[robot] = worker.stats()
+        out["workers"] = workers
+        return out

@@ -42,6 +42,8 @@ class SessionStats:
     previous_status: str | None = None  # status of the frame before the last one
     processing_ms: float = 0.0  # exponential mean of the pipeline time per frame
     fps: float = 0.0  # processed frames per second over the last few seconds
+    position: tuple | None = None  # map-frame camera position of the last tracked frame (REST: where the robot is)
+    node_id: int | None = None  # its latest keyframe in the map
 
 
 class RobotSession:
@@ -164,6 +166,10 @@ class RobotSession:
         s.previous_status = s.last_status
         s.last_stamp, s.last_status = frame.stamp, result.status
         s.processing_ms = ms if s.processed == 1 else 0.9 * s.processing_ms + 0.1 * ms
+        if result.pose is not None:
+            s.position = tuple(float(v) for v in result.pose[:3, 3])
+        if result.node_id is not None:
+            s.node_id = int(result.node_id)
         now = time.monotonic()
         self._rate_window.append(now)
         if len(self._rate_window) > 1:
@@ -181,6 +187,7 @@ class RobotSession:
             "frames_rejected": dict(s.rejected), "tracked": s.tracked, "lost": s.lost, "keyframes": s.keyframes,
             "fps": round(s.fps, 2), "processing_ms": round(s.processing_ms, 2), "last_stamp": s.last_stamp,
             "session_id": self.session_id,
+            "position": None if s.position is None else list(s.position), "node_id": s.node_id,
             # the map update (loop closure, graph) runs behind tracking: keyframes it has done,
             # and those still waiting (0 = the map served over REST includes every keyframe)
             "keyframes_mapped": mapped,

@@ -52,6 +52,8 @@ class MapRepository(Protocol):
 
     def set_statistics(self, node_id: int, statistics: dict) -> None: ...
 
+    def set_label(self, node_id: int, label: str | None) -> None: ...  # service.api
+
     # -- visual words (service.mapping.vocabulary, service.mapping.mapper) --------------------
     def save_node_words(self, node_id: int, word_ids: np.ndarray, new_word_ids: np.ndarray | None = None,
                         new_descriptors: np.ndarray | None = None) -> None: ...

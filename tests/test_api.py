@@ -107,3 +107,23 @@ def test_openapi_fuzz_finds_no_server_error(service):
     # a fuzz that exercised nothing proves nothing: every route of the API was called, many times
     assert len(operations) >= 10 and set(calls) == {op.label for op in operations}, calls
     assert min(calls.values()) >= 10 and sum(calls.values()) >= 10 * EXAMPLES, calls
+
+
+def test_semantic_endpoints_on_the_real_service(service):
+    """The streamed robot reports where it is; with semantics off (the default) and no objects
+    the object endpoints say so; without a configured token nothing can change the map."""
+    r = service.api.robot("p1")
+    assert len(r["position"]) == 3 and isinstance(r["node_id"], int)
+    with pytest.raises(ApiError) as e:
+        service.api.nearest_object("door", robot="p1")
+    assert e.value.status == 404 and "no objects" in e.value.detail and "semantics are off" in e.value.detail
+    assert service.api.last_semantics == "off" and service.api.semantics()["enabled"] is False
+    assert service.api.labels() == {"total": 0, "labels": []}
+    path = service.api.objects(point=(0, 0, 0), radius=1.0)
+    assert path["total"] == 0
+    node = service.api.nodes(service.session_of("p1"), limit=1)["nodes"][0]["id"]
+    for token in (None, "guess"):
+        client = type(service.api)(service.api.base_url, token=token)
+        with pytest.raises(ApiError) as e:
+            client.label_node(node, "kitchen")
+        assert e.value.status == 403 and "MNEMOSLAM_API_TOKEN" in e.value.detail

@@ -1,0 +1,162 @@
+"""The semantic worker: fuses keyframes into objects off the tracking thread.
+
+The pipeline hands each keyframe (`SemanticKeyframe`: node id, map pose, image, depth,
+the camera's labels or None, camera) to `SemanticWorker.submit`, which only enqueues it
+(bounded queue; when full the keyframe is dropped and counted). The worker's thread
+segments it when the source is a model, fuses it (`objects.ObjectFusion`) with the anchors'
+current poses read from the map database, and writes the confirmed objects that changed
+(`MapStore.save_objects`). Errors are logged and counted, never raised into tracking.
+Without `background` (offline runs) `submit` does the work at once, so runs are
+reproducible."""
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from client.frames import PinholeCamera
+
+from ..config import SemanticsConfig
+from .objects import ObjectFusion
+from .segmentation import CameraLabels, Segmenter
+
+log = logging.getLogger("mnemoslam.semantics")
+
+
+@dataclass
+class SemanticKeyframe:
+    node_id: int
+    pose: np.ndarray  # 4×4 camera-to-map
+    image: np.ndarray | None  # H×W×3 BGR or H×W grey (client.frames' convention)
+    depth: np.ndarray | None  # H×W float32 metres
+    labels: np.ndarray | None  # H×W class ids from the camera, or None
+    camera: PinholeCamera
+    label_names: tuple | None = None  # the camera's class table, when not the configured one
+
+
+_STOP = object()
+
+
+class SemanticWorker:
+    """Segments (model source) and fuses keyframes into objects, and stores them."""
+
+    def __init__(self, store, segmenter: Segmenter, config: SemanticsConfig, *, background: bool = True):
+        self.store = store
+        self.segmenter = segmenter
+        self.config = config
+        self.classes = tuple(segmenter.classes)
+        self.fusion = ObjectFusion(self.classes, config)
+        self.fusion.load(store.objects())
+        self.processed = self.dropped = self.errors = self.skipped = 0
+        self.last_error: str | None = None
+        self.seconds = 0.0
+        self._queue: queue.Queue | None = None
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()  # fusion state vs `flush` from another thread
+        if background:
+            self._queue = queue.Queue(maxsize=max(1, int(config.queue_size)))
+            self._thread = threading.Thread(target=self._loop, daemon=True, name="mnemoslam-semantics")
+            self._thread.start()
+
+    @property
+    def source(self) -> str:
+        return "camera" if isinstance(self.segmenter, CameraLabels) else "model"
+
+    def submit(self, kf: SemanticKeyframe) -> bool:
+        """Hand a keyframe over; False when it was dropped (queue full)."""
+        if self._queue is None:
+            self._process(kf)
+            return True
+        try:
+            self._queue.put_nowait(kf)
+            return True
+        except queue.Full:
+            self.dropped += 1
+            return False
+
+    def close(self, timeout: float = 60.0) -> None:
+        """Finish the queued keyframes and write the objects (idempotent)."""
+        if self._thread is not None:
+            self._queue.put(_STOP)
+            self._thread.join(timeout)
+            self._thread = None
+        self.flush()
+
+    def stats(self) -> dict:
+        return {"processed": self.processed, "dropped": self.dropped, "errors": self.errors,
+                "skipped": self.skipped, "objects": len(self.fusion.confirmed()), "last_error": self.last_error,
+                "ms_per_keyframe": 1e3 * self.seconds / self.processed if self.processed else None}
+
+    # -- the worker's thread ----------------------------------------------------------------
+    def _loop(self) -> None:
+        if self.config.nice:  # below tracking's CPU priority (Linux: nice is per thread)
+            try:
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
+                               os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + int(self.config.nice))
+            except (AttributeError, OSError) as e:  # pragma: no cover - not Linux
+                log.info("semantic worker keeps its priority: %s", e)
+        while True:
+            kf = self._queue.get()
+            if kf is _STOP:
+                return
+            self._process(kf)
+
+    def _process(self, kf: SemanticKeyframe) -> None:
+        t = time.perf_counter()
+        try:
+            labels = self._labels(kf)
+            if labels is None or kf.depth is None:
+                self.skipped += 1
+                return
+            with self._lock:
+                anchors = self.fusion.anchors()
+                poses = {n.id: n.pose for n in self.store.get_nodes(anchors)} if anchors else {}
+                self.fusion.fuse(kf.node_id, kf.pose, labels, kf.depth, kf.camera, poses)
+            self.flush()
+            self.processed += 1
+        except Exception as e:  # never into tracking: log, count, go on
+            self.errors += 1
+            self.last_error = f"{type(e).__name__}: {e}"
+            log.exception("semantics: keyframe %d failed", kf.node_id)
+        finally:
+            self.seconds += time.perf_counter() - t
+
+    def _labels(self, kf: SemanticKeyframe) -> np.ndarray | None:
+        if self.source == "camera":
+            if kf.labels is None:
+                return None
+            if kf.label_names and tuple(kf.label_names) != self.classes:  # the camera's table -> ours, by name
+                index = {n: i for i, n in enumerate(self.classes)}
+                lut = np.array([index.get(n, len(self.classes)) for n in kf.label_names] + [len(self.classes)],
+                               np.int64)
+                return lut[np.minimum(kf.labels.astype(np.int64), len(lut) - 1)]
+            return kf.labels
+        if kf.image is None:
+            return None
+        # frames are BGR (or grey), the project's convention; the models take RGB
+        rgb = cv2.cvtColor(kf.image, cv2.COLOR_BGR2RGB if kf.image.ndim == 3 else cv2.COLOR_GRAY2RGB)
+        return self.segmenter.segment(rgb)
+
+    def flush(self) -> None:
+        """Write the confirmed objects that changed since they were last written."""
+        with self._lock:
+            for o in self.fusion.retired():  # now labelled wall, floor, …: no longer an object
+                self.fusion.deleted.append(o.id)
+                o.id = None
+            if self.fusion.deleted:  # merged into other objects, or retired
+                self.store.delete_objects(self.fusion.deleted)
+                self.fusion.deleted.clear()
+            todo = [o for o in self.fusion.confirmed() if o.dirty]
+            if not todo:
+                return
+            anchors = {n.id: n.pose for n in self.store.get_nodes({o.node_id for o in todo})}
+            todo = [o for o in todo if o.node_id in anchors]  # (an anchor deleted meanwhile: not stored)
+            ids = self.store.save_objects([self.fusion.record(o, anchors[o.node_id]) for o in todo])
+            for o, i in zip(todo, ids):
+                o.id, o.dirty = i, False
