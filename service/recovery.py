@@ -110,6 +110,7 @@ def _recover_session(store: MapStore, session: SessionRecord, node_ids: list[int
     t0 = time.perf_counter()
     report.sessions += 1
     try:
+        node_ids = _finish_merged(store, node_ids)
         redone = store.delete_links(node_ids, MAP_UPDATE_LINKS)  # what an interrupted update wrote
         mapper = Mapper.resume(store, sid, config.loop, memory=config.memory)
     except Exception:  # noqa: BLE001 - e.g. a corrupt stored graph: the other sessions go on
@@ -146,3 +147,16 @@ def _recover_session(store: MapStore, session: SessionRecord, node_ids: list[int
     report.loops += len(mapper.loops) - loops0
     log.info("recovery session=%d robot=%s done keyframes=%d failed=%d loops=%d seconds=%.1f", sid, session.robot,
              len(node_ids), failed, len(mapper.loops) - loops0, time.perf_counter() - t0)
+
+
+def _finish_merged(store: MapStore, node_ids: list[int]) -> list[int]:
+    """Backlog keyframes whose rehearsal merge had committed before the interruption (the merge
+    is one transaction: survivor, `merged` link, features gone) cannot be redone, and need not
+    be: only their statistics row, the update's last write, is missing. Write it, so that
+    `Mapper.resume` takes them as merged, and return the keyframes left to map."""
+    merged = {n.id: n.merged_into for n in store.get_nodes(node_ids) if n.merged_into is not None}
+    for nid, survivor in merged.items():
+        store.set_statistics(nid, {"recovered": "merged before the interruption", "merged_into": survivor})
+    if merged:
+        log.info("recovery: %d keyframe(s) had been merged before the interruption: %s", len(merged), sorted(merged))
+    return [n for n in node_ids if n not in merged]
