@@ -110,7 +110,9 @@ def _recover_session(store: MapStore, session: SessionRecord, node_ids: list[int
     t0 = time.perf_counter()
     report.sessions += 1
     try:
-        node_ids = _finish_merged(store, node_ids)
+        todo = _finish_merged(store, node_ids)
+        report.mapped += len(node_ids) - len(todo)  # their update is complete now
+        node_ids = todo
         redone = store.delete_links(node_ids, MAP_UPDATE_LINKS)  # what an interrupted update wrote
         mapper = Mapper.resume(store, sid, config.loop, memory=config.memory)
     except Exception:  # noqa: BLE001 - e.g. a corrupt stored graph: the other sessions go on

@@ -1,28 +1,21 @@
 """Issue 14 through the service: the synthetic scene streamed with its camera labels
 (`stream ... --labels`) into `mnemoslam serve` with semantics on (source camera); then
 `GET /objects/nearest?label=door&robot=r1` answers the true nearest door to the robot's final
-pose, and the other object endpoints agree with it. Runs once the semantic pipeline (CORE)
-and labels on the wire (WIRE) are in the tree."""
-import inspect
-
+pose, and the other object endpoints agree with it."""
 import numpy as np
 import pytest
 
 from client.datasets import open_dataset
 from client.streamer import stream_dataset
 from client.transport import ZenohSettings
-from service.demo import ServiceProcess
-
-pytest.importorskip("service.semantics.worker", reason="the semantic pipeline is not in this tree yet")
-if "labels" not in inspect.signature(stream_dataset).parameters:
-    pytest.skip("stream_dataset has no labels option yet", allow_module_level=True)
+from service.demo import ServiceProcess, true_doors_in_map_frame
 
 TOKEN = "test-token"
 
 
 @pytest.fixture(scope="module")
 def streamed(tmp_path_factory):
-    ds = open_dataset("synthetic:loop")
+    ds = open_dataset("synthetic:loop", rate=10)  # 600 frames: every door is seen from several keyframes
     svc = ServiceProcess(tmp_path_factory.mktemp("sem") / "map.db",
                          {"semantics": {"enabled": True, "source": "camera"}, "api": {"token": TOKEN},
                           "service": {"idle_timeout": 3600.0}}).start()
@@ -34,13 +27,6 @@ def streamed(tmp_path_factory):
         yield svc, ds
     finally:
         svc.stop()
-
-
-def true_doors_in_map_frame(ds) -> np.ndarray:
-    """The scene's door centres in the map's frame (the first camera pose is the map origin)."""
-    first = ds.ground_truth.poses[0]
-    doors = np.array([o.center for o in ds.scene.objects if o.class_name == "door"], float)
-    return (np.linalg.inv(first) @ np.c_[doors, np.ones(len(doors))].T).T[:, :3]
 
 
 def test_nearest_door_to_the_robot_is_the_true_one(streamed):
