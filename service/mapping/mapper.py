@@ -190,7 +190,8 @@ class Mapper:
                  if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
         across = [k for k in loops if not (k[0] in own and k[1] in own)]  # to the previous map's nodes
         m.graph.restore({n.id: n.pose for n in nodes}, odometry, [k for k in loops if k not in across])
-        m._place_previous({a for a, b, _, _ in across if a not in own} | {b for a, b, _, _ in across if b not in own})
+        # the previous map's nodes this session linked to: by loops, or as survivors of merges
+        m._place_previous({n for a, b, _, _ in across + entries for n in (a, b) if n not in own})
         for a, b, t, info in across:
             m.graph.add_loop(a, b, t, info, check=False)  # checked when it was added
         for a, b, t, info in sorted(entries, key=lambda e: e[1]):  # as _rehearse made them (checked then)
