@@ -37,8 +37,10 @@ from service.recovery import recover
 
 CHILD = Path(__file__).with_name("memory_crash_child.py")
 # WM of 2 nodes, STM of 1, only nodes within 0.3 m immune: from the 5th keyframe on, every
-# update transfers ~3 nodes and retrieves ~2 (those it walks back to).
-MEMORY = {"memory": {"max_wm_nodes": 2, "stm_size": 1, "local_radius": 0.3}}
+# update transfers ~3 nodes and retrieves ~2 (those it walks back to); rehearsal merges the
+# keyframes of later passes into them (kills between a merge and its statistics, resumes of
+# sessions merged into an earlier session's nodes).
+MEMORY = {"memory": {"max_wm_nodes": 2, "stm_size": 1, "local_radius": 0.3, "rehearsal": True}}
 KILLS = ["transfer"] * 5 + ["retrieve"] * 5 + ["anywhere"]  # 10 kills inside a memory move, 1 anywhere
 WAIT_S = 30.0  # the longest a child may take to reach its kill point
 

@@ -30,7 +30,9 @@ def _settings(svc):
 
 @pytest.fixture
 def service(tmp_path):
-    svc = ServiceProcess(tmp_path / "map.db", {"service": {"queue_size": 10000}}).start()
+    # idle_timeout: a loaded machine's map update can trail the last frame by more than the
+    # default 60 s; the robot must stay listed until the tests have read its map
+    svc = ServiceProcess(tmp_path / "map.db", {"service": {"queue_size": 10000, "idle_timeout": 3600.0}}).start()
     yield svc
     svc.stop()
 

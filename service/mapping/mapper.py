@@ -189,8 +189,11 @@ class Mapper:
         loops = [(l.from_id, l.to_id, l.transform, l.information) for l in links
                  if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
         across = [k for k in loops if not (k[0] in own and k[1] in own)]  # to the previous map's nodes
-        m.graph.restore({n.id: n.pose for n in nodes}, odometry, [k for k in loops if k not in across])
-        # the previous map's nodes this session linked to: by loops, or as survivors of merges
+        # odometry from a keyframe merged into the previous map's node starts at that node
+        across += [k for k in odometry if k[0] not in own]
+        m.graph.restore({n.id: n.pose for n in nodes}, [k for k in odometry if k[0] in own],
+                        [k for k in loops if k[0] in own and k[1] in own])
+        # the previous map's nodes this session linked to: by loops, odometry or merges
         m._place_previous({n for a, b, _, _ in across + entries for n in (a, b) if n not in own})
         for a, b, t, info in across:
             m.graph.add_loop(a, b, t, info, check=False)  # checked when it was added
@@ -213,7 +216,7 @@ class Mapper:
             m._segment[n.id] = n.id if src is None else m._segment.get(src, src)
             if src is not None:
                 m._neighbours[n.id].append(src)
-                m._neighbours[src].append(n.id)
+                m._neighbours.setdefault(src, []).append(n.id)
         for l in links:
             if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE):  # as _add_link: path links are not loops
                 m.loops.append((l.from_id, l.to_id))
