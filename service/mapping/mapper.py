@@ -400,7 +400,8 @@ class Mapper:
                 r["decision"] = f"rejected: graph {outcome.reason}"
                 return Rehearsal(None, (c, v))
         r["decision"] = "merged"
-        self._merge(u, c, v, entering=p != c and c not in self._neighbours.get(p, ()))
+        r["loop"] = entering = p != c and c not in self._neighbours.get(p, ())  # came back: a loop closure
+        self._merge(u, c, v, entering)
         return Rehearsal(c)
 
     def _link_merge(self, a: int, b: int, transform: np.ndarray, information: np.ndarray, check: str | bool = "link"):
