@@ -288,10 +288,12 @@ def evaluate_loops(gt: Trajectory, node_ids, node_stamps, links, min_age: float 
 def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.0, types=None,
                        **options) -> LoopReport:
     """`evaluate_loops` (with `options`) over the links of a map database of the given
-    `types` (LinkType values; default: every loop link, appearance and proximity by space)."""
+    `types` (LinkType values; default: every loop link, appearance and proximity by space, and
+    rehearsal's `merged` links: a keyframe merged into the node of a place seen before closed
+    that revisit as a loop link would, with the merge link's relative pose)."""
     from storage import LinkType, MapStore
 
-    types = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE) if types is None else types
+    types = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.MERGED) if types is None else types
     with MapStore(db_path, create=False) as store:
         nodes = store.nodes(limit=None)
         links = [x for t in types for x in store.links(type=t)]

@@ -75,13 +75,15 @@ class _Crash:
 
 def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path):
     ds = synthetic("figure8", **FIGURE8)
-    cfg = load_config()
+    # rehearsal off: this test is about loop links an interrupted update wrote (the recovery of
+    # an interrupted merge is test_memory_crash's)
+    cfg = load_config(None, {"memory": {"rehearsal": False}})
     cfg = dataclasses.replace(cfg, storage=dataclasses.replace(cfg.storage, path=str(tmp_path / "map.db")))
     cut = 150  # after the first loops: the mapped part has loop links too
     store = _DiesMidUpdate(cfg.storage.path)
     memory = Memory(store, "r1", ds.calibration, cfg)
-    stored = Mapper(ds.calibration.camera, cfg.loop, store)
-    reference = Mapper(ds.calibration.camera, cfg.loop, None)  # uninterrupted, in memory only
+    stored = Mapper(ds.calibration.camera, cfg.loop, store, memory=cfg.memory)
+    reference = Mapper(ds.calibration.camera, cfg.loop, None, memory=cfg.memory)  # uninterrupted, in memory only
     pipeline = Pipeline(ds.calibration, cfg, memory, _Crash(stored, reference, cut))
     results = [pipeline.process(ds.frame(i)) for i in range(len(ds))]
     ids = [r.node_id for r in results if r.node_id is not None]
@@ -93,7 +95,7 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path):
 
     # Mapper.resume: the mapped part as the interrupted mapper held it, from the database alone
     with MapStore(cfg.storage.path) as other:
-        resumed = Mapper.resume(other, sid, cfg.loop)
+        resumed = Mapper.resume(other, sid, cfg.loop, memory=cfg.memory)
     stored_poses = {n.id: n.pose for n in store.nodes(session_id=sid, limit=None)}
     poses = resumed.keyframe_poses()
     assert set(poses) == set(ids[:cut])

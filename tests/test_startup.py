@@ -13,7 +13,7 @@ from service.mapping.vocabulary import Vocabulary
 from storage import LinkType, MapStore
 
 WM = 5
-LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)
+LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.MERGED)  # merged: rehearsal into an old node
 
 
 def _session(db, ds, cfg):
