@@ -22,9 +22,27 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Iterable, Mapping
+from typing import Iterable, Iterator, Mapping
 
 import numpy as np
+
+
+def graph_levels(neighbours: Mapping[int, Iterable[int]], start: int, depth: int) -> Iterator[list[int]]:
+    """Breadth-first walk of the graph's adjacency from `start`: the nodes first reached at
+    link distance 1, 2, … `depth`, one list per level in the order they were reached; stops
+    early at a level that reaches no new node."""
+    frontier, seen = [start], {start}
+    for _ in range(depth):
+        nxt = []
+        for a in frontier:
+            for b in neighbours.get(a, ()):
+                if b not in seen:
+                    seen.add(b)
+                    nxt.append(b)
+        if not nxt:
+            return
+        yield nxt
+        frontier = nxt
 
 
 @dataclass
@@ -143,20 +161,12 @@ class WorkingMemory:
         for seed in seeds:
             if seed is None:
                 continue
-            frontier, seen = [seed], {seed}
-            for _ in range(self.retrieval_depth):
-                nxt = []
-                for n in frontier:
-                    for m in neighbours.get(n, ()):
-                        if m not in seen:
-                            seen.add(m)
-                            nxt.append(m)
-                for m in sorted(nxt):
+            for level in graph_levels(neighbours, seed, self.retrieval_depth):
+                for m in sorted(level):
                     if m in self.ltm and m not in out:
                         out.append(m)
                         if len(out) >= self.max_retrieved:
                             return out
-                frontier = nxt
         return out
 
     def retrieved(self, nodes: Iterable[int]) -> None:
