@@ -6,7 +6,8 @@ Tracking never waits for it: in the service the mapper runs on its own thread an
 keyframes from a queue (RTAB-Map's map update runs at its detection rate, ORB-SLAM's loop
 closing in parallel to tracking). Offline runs call it synchronously so a run stays
 bit-for-bit reproducible. The mapper owns the map→odometry correction that turns the
-odometry's poses into map poses."""
+odometry's poses into map poses; the memory manager (`service.memory.manager`) owns the
+keyframes' life cycle (STM / WM / LTM, rehearsal's merges)."""
 from __future__ import annotations
 
 import collections
@@ -32,7 +33,7 @@ from ..tracking.odometry import _match
 from .graph import PoseGraph
 from .loop_detection import LoopDetector
 from .proximity import nearby
-from .verification import DenseView, Verification, refine, register_dense, verify
+from .verification import Verification, refine, register_dense, verify
 from .vocabulary import Vocabulary
 
 log = logging.getLogger("mnemoslam.mapping")
@@ -213,7 +214,7 @@ class Mapper:
         (retrieval, transfer), the update published, and the new map→odometry correction."""
         t0 = time.perf_counter()
         u = self.memory.through_merges(u)
-        self._add_view(u)
+        self.memory.add_view(u)
         stats = LoopStatistics(u.node_id)
         r = self._rehearse(u, stats) if self.memory_config.rehearsal and u.odom_from is not None else Rehearsal()
         t1 = time.perf_counter()
@@ -334,11 +335,6 @@ class Mapper:
             theirs = self.vocabulary.descriptors(self.vocabulary.node_words(node)[0])
         shared, _ = _match(descriptors, theirs, self.vocabulary.nndr, self.vocabulary.max_distance)
         return len(shared) / max(len(descriptors), len(theirs), 1)
-
-    def _add_view(self, u: KeyframeUpdate) -> None:
-        f = u.features
-        if self.config.refine_dense and f.depth is not None and f.grey is not None:
-            self.memory.views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
 
     def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics,
                       verified: tuple[int, Verification] | None = None) -> None:

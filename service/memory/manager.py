@@ -1,16 +1,9 @@
-"""The node life cycle of one map update (`Mapper`), RTAB-Map's `Memory`: which keyframes
-are in STM, WM and LTM (the decisions: `WorkingMemory`), what the map update holds of them
-in RAM (features, dense views, stamps, path segments, graph adjacency over all memories),
-which keyframes rehearsal merged into which node, and the moves between the memories.
-
-A new keyframe enters STM (`add`); after each update `manage` retrieves LTM nodes around the
-best loop hypothesis and the new keyframe and transfers WM nodes to LTM when WM is over its
-limits, telling the vocabulary (words unloaded / reloaded), the loop detector (posterior),
-the pose graph (a previous map's node enters it when first retrieved) and the views cache
-what leaves and enters RAM. Nothing is deleted: LTM is the database. On a reopened map
-`load_previous` starts WM with the previous map's newest nodes; `resume` rebuilds an
-interrupted session's memory from the database.
-"""
+"""The node life cycle of one map update (`Mapper`), RTAB-Map's `Memory`: a new keyframe
+enters STM (`add`) or is merged into a node by rehearsal (`merge`); after each update
+`manage` moves nodes between WM and LTM as `WorkingMemory` decides, telling the vocabulary,
+the loop detector, the pose graph and the views cache what leaves and enters RAM (LTM is
+the database: a move writes nothing). `load_previous` starts WM on a reopened map, `resume`
+rebuilds an interrupted session's memory."""
 from __future__ import annotations
 
 import dataclasses
@@ -37,16 +30,15 @@ log = logging.getLogger("mnemoslam.memory")
 
 
 class MemoryManager:
-    """STM / WM / LTM of one map update. `tiers`: who is where (and the nodes' weights);
-    `features` and `views`: the features and dense views of the nodes in RAM; `neighbours`:
-    graph adjacency (odometry and loop links) of every node it knows, LTM included (loop
-    prediction, retrieval); `merged`: keyframe merged by rehearsal -> (survivor,
-    T_survivor_keyframe). The map update reads these and reports what it did (`link`,
-    `loop_closed`, `merge`); only the manager changes them."""
+    """`tiers`: which node is in STM, WM or LTM, and their weights; `features` and `views`:
+    the features and dense views of the nodes in RAM; `neighbours`: graph adjacency of every
+    node it knows, LTM included (loop prediction, retrieval); `merged`: keyframe merged by
+    rehearsal -> (survivor, T_survivor_keyframe). The map update reads these and reports what
+    it did (`add`, `add_view`, `link`, `loop_closed`, `merge`); only the manager changes them."""
 
     def __init__(self, config: MemoryConfig, loop: LoopConfig, store: MapStore | None, camera: PinholeCamera,
                  graph: PoseGraph, vocabulary: Vocabulary, detector: LoopDetector):
-        self.config, self.loop_config, self.store = config, loop, store
+        self.config, self.loop_config, self.store, self.camera = config, loop, store, camera
         self.graph, self.vocabulary, self.detector = graph, vocabulary, detector
         self.tiers = WorkingMemory(config.stm_size, config.max_wm_nodes, config.time_threshold_ms,
                                    config.recent_wm_ratio, config.max_retrieved, config.retrieval_depth)
@@ -75,6 +67,12 @@ class MemoryManager:
         self._segment[u.node_id] = u.node_id if u.odom_from is None else self._segment.get(u.odom_from, u.odom_from)
         if u.odom_from is not None:
             self.link(u.node_id, u.odom_from)
+
+    def add_view(self, u) -> None:
+        """The dense view of a new keyframe with depth (for dense refinement, `loop.refine_dense`)."""
+        f = u.features
+        if self.loop_config.refine_dense and f.depth is not None and f.grey is not None:
+            self.views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
 
     def link(self, a: int, b: int) -> None:
         """Nodes `a` and `b` are linked in the graph (odometry, loop closure, rehearsal)."""
@@ -285,12 +283,10 @@ class MemoryManager:
         self.tiers.loop_closed()  # the old nodes are not "recent": they leave WM first
 
     def resume(self, session_id: int) -> list[tuple[int, int]]:
-        """The memory of a stored session's interrupted map update (`Mapper.resume`), rebuilt
-        from the database: its mapped keyframes (those with a statistics row) in STM and WM as
-        the interrupted mapper had them, the graph with their odometry and loop links at their
-        stored poses (merges fused as rehearsal made them), their features, words, dense
-        views (decoded when first needed), path segments and graph adjacency. Returns the
-        session's loop closures (appearance and proximity links)."""
+        """A stored session's interrupted map update (`Mapper.resume`): its mapped keyframes in
+        STM and WM, in the graph with their links at their stored poses (merges fused as
+        rehearsal made them), their features, words, views (decoded when first needed), path
+        segments and adjacency. Returns its loop closures (appearance and proximity links)."""
         store, sid = self.store, int(session_id)
         unmapped = set(store.unmapped_nodes(session_ids=[sid]).get(sid, ()))
         stored = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
