@@ -120,7 +120,7 @@ def open_new(path: Path, max_wm: int) -> tuple[float, float, dict]:
     seconds = time.perf_counter() - t0
     rss = rss_mb()
     m = pipeline.mapper
-    sizes = m.memory.sizes()
+    sizes = m.memory.tiers.sizes()
     out = {"wm": sizes.wm, "ltm": sizes.ltm, "words": len(m.vocabulary), "graph": len(m.graph)}
     pipeline.close()
     store.close()

@@ -43,10 +43,10 @@ def test_a_new_session_starts_with_the_last_nodes_in_wm_and_the_others_in_ltm(fi
     cfg = _cfg(max_wm_nodes=WM)
     with MapStore(first["db"]) as store:
         m = Mapper(first["ds"].calibration.camera, cfg.loop, store, memory=cfg.memory)
-        assert m.memory.wm == ids[-WM:] and not m.memory.stm
-        assert m.memory.ltm == set(ids[:-WM])
+        assert m.memory.tiers.wm == ids[-WM:] and not m.memory.tiers.stm
+        assert m.memory.tiers.ltm == set(ids[:-WM])
         # only WM's features, words and graph nodes are in RAM, WM at the stored poses
-        assert set(m._features) == set(ids[-WM:]) == set(m.vocabulary.node_ids()) == set(m.graph.poses())
+        assert set(m.memory.features) == set(ids[-WM:]) == set(m.vocabulary.node_ids()) == set(m.graph.poses())
         stored = {n.id: n.pose for n in store.get_nodes(ids)}
         assert all(np.array_equal(m.graph.pose(n), stored[n]) for n in ids[-WM:])
         used = np.unique(np.concatenate([store.load_features(n)[3] for n in ids[-WM:]]))
@@ -59,16 +59,15 @@ def test_a_new_session_starts_with_the_last_nodes_in_wm_and_the_others_in_ltm(fi
         for n in ids[-WM:]:  # the same postings as in the whole vocabulary
             assert all(np.array_equal(a, b) for a, b in zip(m.vocabulary.node_words(n), full.node_words(n)))
         # the old nodes' graph adjacency is there for the prediction and retrieval
-        assert ids[0] in m._neighbours and ids[1] in m._neighbours[ids[0]]
+        assert ids[0] in m.memory.neighbours and ids[1] in m.memory.neighbours[ids[0]]
 
         # an old LTM node comes back: features, words, a graph node at its stored pose
         old = ids[2]
-        assert m._retrieve(old)
-        m.memory.retrieved([old])
-        assert m.memory.in_wm(old) and old in m.vocabulary and old in m._features
+        assert m.memory.retrieve([old]) == [old]
+        assert m.memory.tiers.in_wm(old) and old in m.vocabulary and old in m.memory.features
         assert np.array_equal(m.graph.pose(old), stored[old])
         assert m.vocabulary.node_words(old)[0].tolist() == full.node_words(old)[0].tolist()
-        assert m.memory.weights[old] == store.get_node(old).weight
+        assert m.memory.tiers.weights[old] == store.get_node(old).weight
 
 
 def test_an_unlimited_wm_loads_the_whole_map_as_before(first):
@@ -76,7 +75,7 @@ def test_an_unlimited_wm_loads_the_whole_map_as_before(first):
     cfg = _cfg()
     with MapStore(first["db"]) as store:
         m = Mapper(first["ds"].calibration.camera, cfg.loop, store, memory=cfg.memory)
-        assert m.memory.wm == ids and not m.memory.ltm
+        assert m.memory.tiers.wm == ids and not m.memory.tiers.ltm
         a, b = m.vocabulary.state(), Vocabulary.from_store(store).state()
         assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..memory.working_memory import graph_levels
 from .vocabulary import Vocabulary
 
 PREDICTION_LC = (0.1, 0.36, 0.30, 0.16, 0.062, 0.0151, 0.00255, 0.000324, 2.5e-05)
@@ -184,22 +185,11 @@ class LoopDetector:
         dst, val = [], []
         for j in strong.tolist():  # bounded: max_predicted graph walks of depth len(levels)-1
             start = int(ids[j])
-            seen = {start}
-            frontier = [start]
             col_ids, col_vals = [start], [levels[0]]
-            for lvl in range(1, len(levels)):
-                nxt = []
-                for a in frontier:
-                    for b in neighbours.get(a, ()):
-                        if b not in seen:
-                            seen.add(b)
-                            nxt.append(b)
-                if not nxt:
-                    break
+            for lvl, nxt in enumerate(graph_levels(neighbours, start, len(levels) - 1), 1):
                 keep = [b for b in nxt if b not in stm]
                 col_ids.extend(keep)
                 col_vals.extend([levels[lvl]] * len(keep))
-                frontier = nxt
             ci = np.asarray(col_ids, np.int64)
             cv = np.asarray(col_vals, np.float64)
             p = np.minimum(np.searchsorted(cand, ci), M - 1)
@@ -220,11 +210,8 @@ class LoopDetector:
         best (a place that looks like several unrelated places — repeated textures — is
         not distinctive)."""
         near = {best}
-        frontier = [best]
-        for _ in range(self.distinct_depth):
-            nxt = [b for a in frontier for b in neighbours.get(a, ()) if b not in near]
-            near.update(nxt)
-            frontier = nxt
+        for level in graph_levels(neighbours, best, self.distinct_depth):
+            near.update(level)
         far = ~np.isin(cand, np.fromiter(near, np.int64, len(near)))
         i = int(np.searchsorted(cand, best))
         other = float(raw[far].max()) if far.any() else 0.0

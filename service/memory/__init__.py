@@ -1,2 +1,3 @@
-"""The map's memory: each session's keyframes written to the long-term memory (`long_term`)
-and the STM/WM/LTM bookkeeping of what the map update keeps in RAM (`working_memory`)."""
+"""The map's memory: each session's keyframes written to the long-term memory (`long_term`),
+and the node life cycle of the map update (`manager`): what it keeps in RAM as STM and WM,
+moved to and from LTM as `working_memory` decides, and rehearsal's merges."""

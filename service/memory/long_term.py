@@ -1,7 +1,7 @@
-"""The map's memory. Today: every keyframe goes to the SQLite long-term memory in one
+"""Long-term memory writes: every keyframe goes to the SQLite long-term memory in one
 transaction before it is reported (so RAM never holds the only copy), linked to the
-previous keyframe by its odometry constraint. The RTAB-Map-style working-memory manager
-(STM/WM/LTM transfer and retrieval) grows here in a later issue."""
+previous keyframe by its odometry constraint. What the map update keeps of it in RAM, and
+when, is the memory manager's (`manager`)."""
 from __future__ import annotations
 
 import cv2

@@ -3,9 +3,9 @@ memory (STM: the newest `stm_size`, not loop candidates), working memory (WM: lo
 candidates, their features and words in RAM) and long-term memory (LTM: in the database
 only), and which move between them.
 
-This module decides; it holds no features and does no I/O. The map update (`Mapper`) asks
-it what to transfer and what to retrieve, moves the data (vocabulary, loop detector, its own
-feature cache) and tells it what moved. Moving a node between WM and LTM changes no data.
+This module decides; it holds no features and does no I/O. The memory manager
+(`manager.MemoryManager`) asks it what to transfer and what to retrieve, moves the data
+(vocabulary, loop detector, pose graph, feature and view caches) and tells it what moved. Moving a node between WM and LTM changes no data.
 
 Transfer (WM → LTM, RTAB-Map's `Memory::forget`): when WM holds more than `max_wm_nodes`
 nodes, or the last map update took longer than `time_threshold_ms`, the lowest-weight
@@ -15,16 +15,34 @@ or to the loop-closure node, nor nodes near the current pose.
 
 Retrieval (LTM → WM): LTM nodes within `retrieval_depth` graph links of the best loop
 hypothesis (even one below the acceptance threshold), nearest first (`select_retrievals`),
-then those the map places near the new keyframe (the mapper asks the database's spatial
+then those the map places near the new keyframe (the manager asks the database's spatial
 index), at most `max_retrieved` per update.
 """
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Iterable, Mapping
+from typing import Iterable, Iterator, Mapping
 
 import numpy as np
+
+
+def graph_levels(neighbours: Mapping[int, Iterable[int]], start: int, depth: int) -> Iterator[list[int]]:
+    """Breadth-first walk of the graph's adjacency from `start`: the nodes first reached at
+    link distance 1, 2, … `depth`, one list per level in the order they were reached; stops
+    early at a level that reaches no new node."""
+    frontier, seen = [start], {start}
+    for _ in range(depth):
+        nxt = []
+        for a in frontier:
+            for b in neighbours.get(a, ()):
+                if b not in seen:
+                    seen.add(b)
+                    nxt.append(b)
+        if not nxt:
+            return
+        yield nxt
+        frontier = nxt
 
 
 @dataclass
@@ -143,20 +161,12 @@ class WorkingMemory:
         for seed in seeds:
             if seed is None:
                 continue
-            frontier, seen = [seed], {seed}
-            for _ in range(self.retrieval_depth):
-                nxt = []
-                for n in frontier:
-                    for m in neighbours.get(n, ()):
-                        if m not in seen:
-                            seen.add(m)
-                            nxt.append(m)
-                for m in sorted(nxt):
+            for level in graph_levels(neighbours, seed, self.retrieval_depth):
+                for m in sorted(level):
                     if m in self.ltm and m not in out:
                         out.append(m)
                         if len(out) >= self.max_retrieved:
                             return out
-                frontier = nxt
         return out
 
     def retrieved(self, nodes: Iterable[int]) -> None:
