@@ -67,3 +67,43 @@ def synthetic(trajectory: str, **options) -> SyntheticDataset:
     play (figure-8 at 10 Hz in 40 s: its 401 frames hold ~1.5 GB)."""
     assert "scene" not in options, "the cache is keyed on the default scene of the seed"
     return _RenderedOnce(trajectory=trajectory, **options)
+
+
+# ------------------------------------------------------------------------------------------
+# Runs several test modules read
+
+LOOP_NOISY = dict(rate=10, noise=True)  # the synthetic loop (60 s) at 10 Hz with depth noise: 601 frames
+# the figure-8 walked in 40 s at 10 Hz with depth noise (401 frames): its second lap revisits the
+# first. Several modules play it; its frames are rendered once (`synthetic`).
+FIGURE8 = dict(rate=10, noise=True, duration=40)
+
+
+@pytest.fixture(scope="session")
+def loop_run(tmp_path_factory):
+    """The synthetic loop at 10 Hz with depth noise through the offline runner once per session,
+    default configuration (loop closure on): `(dataset, RunOutput, config, out_dir)`.
+    tests/test_loop_closure.py (loop closure) and tests/test_synthetic_run.py (tracking,
+    outputs) check the same run instead of each playing the loop again. Read-only."""
+    from client.datasets import open_dataset
+    from service.config import load_config
+    from service.runner import run_dataset
+
+    out_dir = tmp_path_factory.mktemp("loop_run")
+    ds = open_dataset("synthetic:loop", **LOOP_NOISY)
+    cfg = load_config()
+    return ds, run_dataset(ds, cfg, out_dir, progress=False), cfg, out_dir
+
+
+@pytest.fixture(scope="session")
+def figure8_run(tmp_path_factory):
+    """FIGURE8 through the offline runner once per session, default configuration (loop
+    closure on, the map update inline in this process): `(dataset, RunOutput, config, out_dir)`.
+    tests/test_loop_closure.py checks its loops, tests/test_mapping_process.py compares the
+    mapping process with it. Read-only."""
+    from service.config import load_config
+    from service.runner import run_dataset
+
+    out_dir = tmp_path_factory.mktemp("figure8_run")
+    ds = synthetic("figure8", **FIGURE8)
+    cfg = load_config()
+    return ds, run_dataset(ds, cfg, out_dir, progress=False), cfg, out_dir

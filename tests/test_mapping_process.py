@@ -12,36 +12,21 @@ import pytest
 
 from client.datasets import open_dataset
 from service.config import load_config
-from service.mapping.mapper import Mapper
 from service.mapping.process import MappingProcess
 from service.memory.long_term import Memory
 from service.pipeline import Pipeline
 from storage import LinkType, MapStore
 
-from conftest import synthetic
-
-# figure-8 walked in 40 s at 10 Hz: the second lap revisits the first (loops from ~frame 280)
-SEQUENCE = dict(rate=10, noise=True, duration=40)
-
-
-class _Tee:
-    """The pipeline's mapper: the mapping process's proxy (whose corrections the pipeline
-    uses), with every update also given to an in-process, synchronous Mapper."""
-
-    def __init__(self, proxy, reference):
-        self.proxy, self.reference = proxy, reference
-
-    def submit(self, update):
-        self.proxy.submit(update)
-        self.reference.submit(update)
-
-    def to_map(self, pose):
-        return self.proxy.to_map(pose)
+from conftest import FIGURE8, synthetic
 
 
 @pytest.fixture(scope="module")
-def mapped(tmp_path_factory):
-    ds = synthetic("figure8", **SEQUENCE)  # rendered once for the session (tests/conftest.py)
+def mapped(tmp_path_factory, figure8_run):
+    """The figure-8 (tests/conftest.py FIGURE8: the second lap revisits the first, loops from
+    ~frame 280) tracked here, its map update in the mapping process, as in the service. The
+    in-process mapper it is compared with is the session's offline run of the same frames
+    (`figure8_run`: the same tracking, so the same keyframes and updates, mapped inline)."""
+    ds = synthetic("figure8", **FIGURE8)  # rendered once for the session (tests/conftest.py)
     cfg = load_config()
     db = tmp_path_factory.mktemp("mp") / "map.db"
     store = MapStore(db)
@@ -49,9 +34,8 @@ def mapped(tmp_path_factory):
     mp = MappingProcess(db, cfg.loop)
     try:
         proxy = mp.mapper("r1", ds.calibration.camera, lambda kind, data: events.append((kind, data)))
-        reference = Mapper(ds.calibration.camera, cfg.loop, None)
         memory = Memory(store, "r1", ds.calibration, cfg)
-        pipeline = Pipeline(ds.calibration, cfg, memory, _Tee(proxy, reference))
+        pipeline = Pipeline(ds.calibration, cfg, memory, proxy)
         results = [pipeline.process(ds.frame(i)) for i in range(len(ds))]
         assert proxy.close(timeout=600)
         correction = proxy.correction
@@ -60,6 +44,13 @@ def mapped(tmp_path_factory):
     finally:
         mp.close()
     assert mp.failures == 0 and not mp.alive
+    _, offline, _, offline_dir = figure8_run
+    keyframes = [r for r in results if r.node_id is not None]
+    np.testing.assert_array_equal(offline.keyframes.stamps, [r.stamp for r in keyframes])  # the same keyframes
+    with MapStore(offline_dir / "map.db", create=False) as s:
+        assert [n.id for n in s.nodes(limit=None)] == [r.node_id for r in keyframes]  # with the same ids
+        loops = [(a.from_id, a.to_id) for a in s.links() if a.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)]
+    reference = dict(loops=loops, poses={r.node_id: p for r, p in zip(keyframes, offline.keyframes.poses)})
     yield dict(ds=ds, db=db, store=store, events=events, reference=reference, results=results,
                correction=correction, stats=stats, pid=mp.pid)
     store.close()
@@ -75,7 +66,7 @@ def test_child_closes_the_same_loops_as_the_inprocess_mapper(mapped):
     # (survivor, previous keyframe), with a `merged` link in the database instead of a loop link
     merges = [(d["from"], d["to"]) for d in closed if d["link"] == "rehearsal"]
     assert {(a.from_id, a.to_id) for a in links} == {(d["from"], d["to"]) for d in closed if d["link"] != "rehearsal"}
-    assert sorted([(a.from_id, a.to_id) for a in links] + merges) == sorted(reference.loops)  # identical to in-process
+    assert sorted([(a.from_id, a.to_id) for a in links] + merges) == sorted(reference["loops"])  # identical to in-process
     assert {d["link"] for d in closed} <= {"appearance", "proximity", "rehearsal"}
     # the child wrote words, statistics and corrected poses into the service's database
     nodes = store.nodes(limit=None)
@@ -87,7 +78,7 @@ def test_corrections_reach_to_map(mapped):
     c = mapped["correction"]
     last = [r for r in mapped["results"] if r.node_id is not None][-1]
     ref = mapped["reference"]
-    expected = ref.keyframe_poses()[last.node_id] @ np.linalg.inv(last.odometry_pose)
+    expected = ref["poses"][last.node_id] @ np.linalg.inv(last.odometry_pose)
     np.testing.assert_allclose(c, expected, atol=1e-9)
     assert np.abs(c - np.eye(4)).max() > 1e-4  # the loops moved the map against odometry
     late = mapped["results"][-1]

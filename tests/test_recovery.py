@@ -33,6 +33,9 @@ LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)
 # keyframes, loops from keyframe ~143 (frame ~190) on. Its frames are rendered once for the
 # session (tests/conftest.py `synthetic`): the other figure-8 tests play the same ones.
 FIGURE8 = dict(rate=10, noise=True, duration=40, max_frames=260)
+# The figure-8 tests are about the loop links an interrupted map update wrote and redoes:
+# rehearsal off (the recovery of interrupted merges is tests/test_memory_crash.py's)
+NO_REHEARSAL = {"memory": {"rehearsal": False}}
 
 
 def _loops(store: MapStore, session_id: int) -> set[tuple[int, int]]:
@@ -52,16 +55,14 @@ class _DiesMidUpdate(MapStore):
 
 
 class _Crash:
-    """The pipeline's mapper: every update goes to an uninterrupted reference mapper; the
-    stored mapper does the first `cut`, dies in the middle of the next one and never sees
-    the rest (the backlog)."""
+    """The pipeline's mapper: the stored mapper does the first `cut` updates, dies in the
+    middle of the next one and never sees the rest (the backlog)."""
 
-    def __init__(self, stored: Mapper, reference: Mapper, cut: int):
-        self.stored, self.reference, self.cut, self.n = stored, reference, cut, 0
+    def __init__(self, stored: Mapper, cut: int):
+        self.stored, self.cut, self.n = stored, cut, 0
 
     def submit(self, u):
         self.n += 1
-        self.reference.submit(u)
         if self.n <= self.cut:
             self.stored.submit(u)
         elif self.n == self.cut + 1:
@@ -70,23 +71,58 @@ class _Crash:
                 self.stored.submit(u)
 
     def to_map(self, pose):
-        return self.reference.to_map(pose)
+        return self.stored.to_map(pose)
 
 
-def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path):
+class _AsStreamed:
+    """A dataset's frames as the service receives them (through the wire codec, raw as
+    `stream_dataset` sends them to a service on this host), for an offline run of the same frames."""
+
+    def __init__(self, dataset):
+        self.dataset, self.name, self.calibration, self.ground_truth = dataset, dataset.name, dataset.calibration, None
+
+    def __len__(self):
+        return len(self.dataset)
+
+    def frame(self, i):
+        return protocol.decode_frame(protocol.encode_frame(self.dataset.frame(i), "x", i, color="raw", depth="raw")).frame
+
+
+def _loops_by_stamp(db: Path) -> tuple[list[float], set[tuple[float, float]]]:
+    with MapStore(db) as s:
+        sid = s.sessions()[0].id
+        stamp = {n.id: n.stamp for n in s.nodes(session_id=sid, limit=None)}
+        return list(stamp.values()), {(stamp[a], stamp[b]) for a, b in _loops(s, sid)}
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The uninterrupted run of FIGURE8's frames as the service receives them (`_AsStreamed`),
+    offline, the map update inline: the reference both figure-8 tests compare recovery with.
+    Its keyframes' stamps, loops (by stamp) and final keyframe poses (by stamp)."""
     ds = synthetic("figure8", **FIGURE8)
-    # rehearsal off: this test is about loop links an interrupted update wrote (the recovery of
-    # an interrupted merge is test_memory_crash's)
-    cfg = load_config(None, {"memory": {"rehearsal": False}})
+    out_dir = tmp_path_factory.mktemp("uninterrupted")
+    out = run_dataset(_AsStreamed(ds), load_config(None, NO_REHEARSAL), out_dir, progress=False)
+    stamps, loops = _loops_by_stamp(out_dir / "map.db")
+    np.testing.assert_array_equal(stamps, out.keyframes.stamps)
+    return dict(stamps=stamps, loops=loops, poses=dict(zip(stamps, out.keyframes.poses)))
+
+
+def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, uninterrupted):
+    ds = synthetic("figure8", **FIGURE8)
+    frames = _AsStreamed(ds)  # the frames of the uninterrupted reference run
+    cfg = load_config(None, NO_REHEARSAL)
     cfg = dataclasses.replace(cfg, storage=dataclasses.replace(cfg.storage, path=str(tmp_path / "map.db")))
     cut = 150  # after the first loops: the mapped part has loop links too
     store = _DiesMidUpdate(cfg.storage.path)
     memory = Memory(store, "r1", ds.calibration, cfg)
     stored = Mapper(ds.calibration.camera, cfg.loop, store, memory=cfg.memory)
-    reference = Mapper(ds.calibration.camera, cfg.loop, None, memory=cfg.memory)  # uninterrupted, in memory only
-    pipeline = Pipeline(ds.calibration, cfg, memory, _Crash(stored, reference, cut))
-    results = [pipeline.process(ds.frame(i)) for i in range(len(ds))]
+    pipeline = Pipeline(ds.calibration, cfg, memory, _Crash(stored, cut))
+    results = [pipeline.process(frames.frame(i)) for i in range(len(ds))]
     ids = [r.node_id for r in results if r.node_id is not None]
+    # the same keyframes as the uninterrupted run (tracking never reads the map update)
+    np.testing.assert_array_equal([r.stamp for r in results if r.node_id is not None], uninterrupted["stamps"])
+    node_at = dict(zip(uninterrupted["stamps"], ids))
     sid = memory.session_id
     backlog = store.unmapped_nodes()[sid]
     assert backlog == ids[cut:]  # the interrupted keyframe and every later one
@@ -120,13 +156,13 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path):
         assert s.unmapped_nodes() == {}
         assert all(s.statistics(i) is not None for i in ids)
         assert s.integrity_check() == "ok"
-        loops, ref = _loops(s, sid), set(reference.loops)
+        loops, ref = _loops(s, sid), {(node_at[a], node_at[b]) for a, b in uninterrupted["loops"]}
         recovered = {(a, b) for a, b in loops if b in set(ids[cut:])}
         ref_backlog = {(a, b) for a, b in ref if b in set(ids[cut:])}
         final = s.trajectory(sid)
-    rp = reference.keyframe_poses()
     ate = evaluate(ds.ground_truth, final).ate_rmse
-    ate_ref = evaluate(ds.ground_truth, Trajectory(final.stamps, np.stack([rp[i] for i in ids]))).ate_rmse
+    ref_poses = np.stack([uninterrupted["poses"][t] for t in uninterrupted["stamps"]])
+    ate_ref = evaluate(ds.ground_truth, Trajectory(final.stamps, ref_poses)).ate_rmse
     print(f"\nbacklog {len(ids) - cut} of {len(ids)} keyframes recovered in {seconds:.1f} s; loops in the backlog: "
           f"recovered {len(recovered)}, uninterrupted {len(ref_backlog)}, common {len(recovered & ref_backlog)}; "
           f"keyframe ATE {ate * 100:.3f} cm (uninterrupted {ate_ref * 100:.3f} cm)")
@@ -182,20 +218,6 @@ def test_a_keyframe_that_cannot_be_mapped_is_counted_and_the_others_go_on(tmp_pa
     assert (r.keyframes, r.mapped, r.failed) == (1, 0, 1)
 
 
-class _AsStreamed:
-    """A dataset's frames as the service receives them (through the wire codec, raw as
-    `stream_dataset` sends them to a service on this host), for an offline run of the same frames."""
-
-    def __init__(self, dataset):
-        self.dataset, self.name, self.calibration, self.ground_truth = dataset, dataset.name, dataset.calibration, None
-
-    def __len__(self):
-        return len(self.dataset)
-
-    def frame(self, i):
-        return protocol.decode_frame(protocol.encode_frame(self.dataset.frame(i), "x", i, color="raw", depth="raw")).frame
-
-
 def _gone(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as f:
@@ -204,26 +226,19 @@ def _gone(pid: int) -> bool:
         return True
 
 
-def _loops_by_stamp(db: Path) -> tuple[list[float], set[tuple[float, float]]]:
-    with MapStore(db) as s:
-        sid = s.sessions()[0].id
-        stamp = {n.id: n.stamp for n in s.nodes(session_id=sid, limit=None)}
-        return list(stamp.values()), {(stamp[a], stamp[b]) for a, b in _loops(s, sid)}
-
-
-def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path):
+def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path, uninterrupted):
     """kill -9 of `mnemoslam serve` while the map update is behind tracking; the next start
     ends the session "crashed" and maps its backlog (loops included) before it serves."""
     db = tmp_path / "map.db"
     ds = synthetic("figure8", **FIGURE8)
-    svc = ServiceProcess(db, {"service": {"queue_size": 10000}}).start()
+    svc = ServiceProcess(db, {"service": {"queue_size": 10000}, **NO_REHEARSAL}).start()
     settings = ZenohSettings(connect=[svc.endpoint])
     t = threading.Thread(target=stream_dataset, args=(ds, "k9", settings),
                          kwargs=dict(rate=None, progress=False, wait_for_subscriber=10.0), daemon=True)
     t.start()
     child = svc.api.stats()["service"]["mapping_process"]["pid"]
     # every frame tracked (and its keyframe stored), the map update behind
-    robot = svc.wait_processed("k9", len(ds), timeout=300)  # 1,351 frames: slow on a loaded machine
+    robot = svc.wait_processed("k9", len(ds), timeout=300)  # slow on a loaded machine
     svc.proc.send_signal(signal.SIGKILL)
     svc.proc.wait()
     svc.stop()
@@ -238,7 +253,7 @@ def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path):
     assert len(keyframes) == robot["keyframes"] and len(unmapped) >= backlog_at_kill - 1
 
     t0 = time.monotonic()
-    svc2 = ServiceProcess(db).start(timeout=300)  # recovery runs before it serves
+    svc2 = ServiceProcess(db, NO_REHEARSAL).start(timeout=300)  # recovery runs before it serves
     try:
         startup = time.monotonic() - t0
         session = [x for x in svc2.api.sessions() if x["id"] == sid][0]
@@ -265,8 +280,7 @@ def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path):
 
     # the uninterrupted run of the same frames (offline, map update inline): the same keyframes,
     # and loops to the keyframes that were in the backlog where it has them
-    run_dataset(_AsStreamed(ds), load_config(), tmp_path / "offline", progress=False)
-    ref_stamps, ref_loops = _loops_by_stamp(tmp_path / "offline" / "map.db")
+    ref_stamps, ref_loops = uninterrupted["stamps"], uninterrupted["loops"]
     stamps, our_loops = _loops_by_stamp(db)
     np.testing.assert_allclose(stamps, ref_stamps, atol=1e-6)
     with MapStore(db) as s:

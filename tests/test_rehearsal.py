@@ -5,7 +5,6 @@ import csv
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
 from client.datasets.passes import Passes
 from service.config import load_config
 from service.evaluation import evaluate
@@ -13,13 +12,17 @@ from service.mapping.mapper import Mapper
 from service.runner import run_dataset
 from storage import LinkType, MapStore
 
+from conftest import synthetic
+
 PASSES = 3
 
 
 @pytest.fixture(scope="module")
 def walked(tmp_path_factory):
     """walk_a there, back and there again with rehearsal on (and the same without)."""
-    base = open_dataset("synthetic:walk_a", rate=10, noise=True, duration=12, width=320, height=240)
+    # each frame rendered once for the session (tests/conftest.py): the three passes and
+    # tests/test_startup.py play the same ones
+    base = synthetic("walk_a", rate=10, noise=True, duration=12, width=320, height=240)
     ds = Passes(base, PASSES)
     out_dir = tmp_path_factory.mktemp("rehearsal")
     cfg = load_config(None, {"memory": {"rehearsal": True}})

@@ -43,33 +43,44 @@ def test_7scenes_redkitchen_no_frame_lost_and_revisits_closed(data_dir, tmp_path
     assert ev.ate_rmse < 0.045, ev.ate_rmse
 
 
-def test_tum_cabinet_keyframes_all_tracked(data_dir):
-    ds, out, ev = _run(require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes"))
+@pytest.fixture(scope="module")
+def cabinet(data_dir, tmp_path_factory):
+    """The TUM cabinet keyframes through the offline runner, default configuration (loop
+    closure on), once for the two tests that check that run: `(path, dataset, RunOutput, out_dir)`."""
+    path = require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes")
+    out_dir = tmp_path_factory.mktemp("cabinet")
+    ds = open_dataset(path)
+    return path, ds, run_dataset(ds, load_config(), out_dir, progress=False), out_dir
+
+
+def test_tum_cabinet_keyframes_all_tracked(cabinet):
+    _, ds, out, _ = cabinet
+    ev = evaluate(ds.ground_truth, out.trajectory)
     assert out.summary.tracked == 58 and out.summary.lost == 0
     assert ev.ate_rmse < 0.05  # measured 2.35 cm (dense photometric + geometric registration)
 
 
-def test_tum_cabinet_loop_back_to_the_start_is_closed(data_dir, tmp_path):
+def test_tum_cabinet_loop_back_to_the_start_is_closed(cabinet, tmp_path):
     """Textureless: bag-of-words finds nothing, proximity detection (dense registration from
     the graph's pose) links the last keyframes to the first ones."""
     from storage import LinkType, MapStore
 
-    path = require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes")
-    ate, runs = {}, {}
-    for enabled in (False, True):
-        ds = open_dataset(path)
-        cfg = load_config(overrides={"loop": {"enabled": enabled}})
-        runs[enabled] = out = run_dataset(ds, cfg, tmp_path / str(enabled), progress=False)
-        ate[enabled] = evaluate(ds.ground_truth, out.keyframes).ate_rmse
+    path, ds, out, out_dir = cabinet  # loop closure on (the default configuration)
+    cfg = load_config()
+    assert cfg.loop.enabled
+    runs, dirs = {True: out}, {True: out_dir, False: tmp_path / "False"}
+    off = load_config(overrides={"loop": {"enabled": False}})
+    runs[False] = run_dataset(open_dataset(path), off, dirs[False], progress=False)
+    ate = {enabled: evaluate(ds.ground_truth, runs[enabled].keyframes).ate_rmse for enabled in (False, True)}
     # tracking never reads the map update: the odometry of a run with loop closure is the
     # odometry-only run, bit for bit (tests/test_loop_closure.py uses it as the baseline)
     odometry = np.stack([r.odometry_pose for r in runs[True].results if r.tracked])
     assert np.array_equal(odometry, runs[False].trajectory.poses)
-    with MapStore(tmp_path / "True" / "map.db", create=False) as store:
+    with MapStore(dirs[True] / "map.db", create=False) as store:
         n = store.count_nodes()
         links = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)
     assert any(x.from_id <= 5 and x.to_id >= n - 10 for x in links), [(x.from_id, x.to_id) for x in links]
-    report = evaluate_map_loops(ds.ground_truth, tmp_path / "True" / "map.db", cfg.loop.min_age)
+    report = evaluate_map_loops(ds.ground_truth, dirs[True] / "map.db", cfg.loop.min_age)
     assert report.false_links == 0, report.format()  # measured: link errors 1-4 cm, <= 3.3°
     assert ate[True] < ate[False], ate  # measured keyframe ATE 2.40 -> 1.98 cm
 

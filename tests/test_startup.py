@@ -4,13 +4,14 @@ loadLastNodes), loads only their words, and can close loops to yesterday's map."
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
 from service.builder import build_pipeline
 from service.config import load_config
 from service.evaluation import evaluate
 from service.mapping.mapper import Mapper
 from service.mapping.vocabulary import Vocabulary
 from storage import LinkType, MapStore
+
+from conftest import synthetic
 
 WM = 5
 LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.MERGED)  # merged: rehearsal into an old node
@@ -27,7 +28,8 @@ def _session(db, ds, cfg):
 @pytest.fixture(scope="module")
 def first(tmp_path_factory):
     """One walk of walk_a (unlimited WM), the map closed: yesterday's map."""
-    ds = open_dataset("synthetic:walk_a", rate=10, noise=True, duration=12, width=320, height=240)
+    # rendered once for the session (tests/conftest.py): tests/test_rehearsal.py plays the same frames
+    ds = synthetic("walk_a", rate=10, noise=True, duration=12, width=320, height=240)
     db = tmp_path_factory.mktemp("startup") / "map.db"
     sid, ids = _session(db, ds, load_config())
     return {"ds": ds, "db": db, "sid": sid, "ids": ids}
