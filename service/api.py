@@ -43,7 +43,7 @@ from .config import Config
 from .semantics.queries import NotFound, ObjectIndex, ObjectView, QueryError, Unavailable, robot_location
 from .server import SlamService
 
-LINK_TYPES = {0: "odometry", 1: "loop", 2: "proximity", 3: "local_time", 4: "user", 5: "virtual"}
+LINK_TYPES = {0: "odometry", 1: "loop", 2: "proximity", 3: "local_time", 4: "user", 5: "virtual", 10: "merged"}
 TOKEN_ENV = "MNEMOSLAM_API_TOKEN"
 
 # The largest SQLite INTEGER (signed 64-bit): a bigger id or offset cannot be bound to a query.

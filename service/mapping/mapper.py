@@ -306,7 +306,7 @@ class Mapper:
         r["loop"] = entering = self.memory.merge(u.node_id, c, p, v.transform, v.information)  # came back to c's part of the map
         if entering:
             self.loops.append((c, p))
-            self.on_event("loop_closed", {"from": c, "to": p, "inliers": v.inliers, "link": "rehearsal"})
+            self.on_event("loop_closed", {"from": c, "to": u.node_id, "inliers": v.inliers, "link": "rehearsal"})
         return Rehearsal(c)
 
     def _rehearsal_candidate(self, u: KeyframeUpdate) -> int | None:
