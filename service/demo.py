@@ -82,18 +82,10 @@ class ServiceProcess:
         return self.proc.returncode
 
     def wait_processed(self, robot: str, frames: int, timeout: float = 300.0) -> dict:
-        """Until every frame sent by `robot` was processed, dropped or rejected. Frames that
-        arrived before the robot was admitted (its camera info still on its way) are rejected
-        as `no_calibration` by the service, not counted by the robot: they count as seen too
-        (exact with one robot streaming; with several, a lower bound on what is left)."""
+        """Until every frame sent by `robot` was processed, dropped or rejected."""
         def done(r: dict) -> bool:
             seen = r.get("frames_processed", 0) + r.get("frames_dropped", 0) + sum(r.get("frames_rejected", {}).values())
-            if r.get("queue_depth", 1) != 0:
-                return False
-            if seen >= frames:
-                return True
-            early = self.api.stats()["service"]["rejected"].get("no_calibration", 0)
-            return seen + early >= frames
+            return seen >= frames and r.get("queue_depth", 1) == 0
         return self._wait(robot, done, timeout)
 
     def wait_mapped(self, robot: str, timeout: float = 300.0) -> dict:
