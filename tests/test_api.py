@@ -22,7 +22,9 @@ EXAMPLES = 40  # per operation, generation mode and id choice (plus every bounda
 
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
-    svc = ServiceProcess(tmp_path_factory.mktemp("api") / "map.db").start()
+    # idle_timeout: p1 must stay listed while the fuzz (longer than the default 60 s) runs before
+    # the tests that read it
+    svc = ServiceProcess(tmp_path_factory.mktemp("api") / "map.db", {"service": {"idle_timeout": 3600.0}}).start()
     try:
         stream_dataset(open_dataset("synthetic:loop", max_frames=FRAMES), "p1", ZenohSettings(connect=[svc.endpoint]),
                        rate=None, progress=False, wait_for_subscriber=10.0)
