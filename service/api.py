@@ -655,7 +655,8 @@ class ApiThread:
 
         import uvicorn
 
-        self.sock = socket.socket()
+        # TCP explicitly, for TCP_NODELAY on its connections (service/cli.py `_listen_socket`)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
         self.sock.bind((host, 0))
         self.port = self.sock.getsockname()[1]
         self.url = f"http://{host}:{self.port}"

@@ -82,7 +82,10 @@ def _listen_socket(host: str, port: int):
     listening (port 0: a free port) and a taken port is a one-line error."""
     import socket
 
-    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+    # IPPROTO_TCP explicitly: asyncio sets TCP_NODELAY only on connections accepted from a socket
+    # whose proto says TCP (proto 0 does not); without it every response on a kept-alive
+    # connection waits ~40 ms (uvicorn writes headers and body apart: Nagle + delayed ACK)
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((host, port))

@@ -249,3 +249,23 @@ def test_serve_rest_off(tmp_path):
         assert line.startswith("mnemoslam serve: REST off; Zenoh peer listen tcp/127.0.0.1:")
     finally:
         assert _stop(proc) == 0
+
+
+def test_rest_sockets_are_tcp_so_responses_are_not_held_back():
+    """asyncio sets TCP_NODELAY only on connections accepted from a socket whose proto is TCP;
+    with proto 0 every response on a kept-alive connection waited ~40 ms (uvicorn writes the
+    headers and the body apart: Nagle's algorithm holds the body until the client's delayed ACK)."""
+    import socket
+
+    from fastapi import FastAPI
+
+    from service.api import ApiThread
+    from service.cli import _listen_socket
+
+    sock = _listen_socket("127.0.0.1", 0)
+    api = ApiThread(FastAPI())
+    try:
+        assert sock.proto == api.sock.proto == socket.IPPROTO_TCP
+    finally:
+        sock.close()
+        api.sock.close()
