@@ -21,7 +21,7 @@ from service.evaluation import evaluate
 from service.pipeline import Pipeline
 from service.runner import run_dataset
 
-from conftest import synthetic
+from conftest import FIGURE8, synthetic
 
 FRAMES = 90
 
@@ -89,8 +89,9 @@ def test_loop_closed_and_map_corrected_events_are_published(service):
     sub = z.declare_subscriber(protocol.KeySpace().events("ev"), lambda s: events.append(
         protocol.decode_event(s.payload.to_bytes())))
     try:
-        # second lap revisits the first; its frames rendered once for the session (tests/conftest.py)
-        ds = synthetic("figure8", rate=10, noise=True, duration=40)
+        # the figure-8's first 260 frames (~200 keyframes): the second lap revisits the first from
+        # frame ~190 on (~90 loops); its frames rendered once for the session (tests/conftest.py)
+        ds = synthetic("figure8", **FIGURE8, max_frames=260)
         stats = stream_dataset(ds, "ev", _settings(service), rate=None, progress=False, wait_for_subscriber=10.0)
         service.wait_processed("ev", stats.frames)
         service.wait_mapped("ev", timeout=180)
