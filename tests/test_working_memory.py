@@ -53,7 +53,9 @@ def test_retrieval_breadth_first_around_the_seeds_bounded():
 def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(tmp_path):
     """figure-8 walked twice with at most 20 nodes in WM: the first lap's nodes go to LTM, come
     back around the loop hypotheses and the new keyframes, and the second lap closes loops to
-    them; the map's accuracy holds."""
+    them; the map's accuracy holds. Its first 260 frames (~200 keyframes, the second lap
+    revisiting the first from frame ~190 on; measured: 70 loop links to retrieved nodes, ATE
+    0.18 cm; all 401 frames: 240, 0.21 cm)."""
     import csv
 
     from service.config import load_config
@@ -61,9 +63,9 @@ def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(t
     from service.runner import run_dataset
     from storage import MapStore
 
-    from conftest import synthetic
+    from conftest import FIGURE8, synthetic
 
-    ds = synthetic("figure8", rate=10, noise=True, duration=40)  # rendered once for the session (conftest)
+    ds = synthetic("figure8", **FIGURE8, max_frames=260)  # rendered once for the session (conftest)
     cfg = load_config(None, {"memory": {"max_wm_nodes": 20}})
     out = run_dataset(ds, cfg, tmp_path, progress=False)
     rows = list(csv.DictReader(open(tmp_path / "updates.csv")))
