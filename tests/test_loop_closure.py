@@ -91,9 +91,10 @@ def test_repeated_texture_walk_makes_no_false_link(tmp_path):
 
 
 def test_proximity_and_refinement_can_be_switched_off(tmp_path):
-    # a figure-8 walked in 40 s at 10 Hz: the second lap revisits the first (its frames rendered
+    # the first 260 frames of the figure-8 walked in 40 s at 10 Hz: the second lap revisits the
+    # first from frame ~190 on (measured: 48 appearance links, none refined; its frames rendered
     # once for the session: the other figure-8 tests play the same ones, tests/conftest.py)
-    ds, out, cfg = _run(tmp_path, "figure8", dataset=FIGURE8, rendered_once=True,
+    ds, out, cfg = _run(tmp_path, "figure8", dataset=dict(FIGURE8, max_frames=260), rendered_once=True,
                         proximity_by_space=False, proximity_by_time=False, refine_dense=False)
     with MapStore(tmp_path / "map.db", create=False) as store:
         assert not store.links(type=LinkType.LOCAL_SPACE) and not store.links(type=LinkType.LOCAL_TIME)
