@@ -147,6 +147,7 @@ class ServiceConfig:
     queue_size: int = 30  # frames waiting per robot (1 s at 30 Hz); when full the oldest is dropped (and counted) ...
     queue_mb: float = 128.0  # ... also when their decoded images would exceed this many MB
     info_timeout: float = 2.0  # s to wait for a camera's info reply; a robot is asked again at most this often
+    hold_frames: int = 2  # newest frames of a robot without a slot kept (undecoded) until its info arrives; 0: none
     max_message_mb: float = 32.0  # frame messages larger than this are rejected before decoding
     max_image_side: int = 4096  # px; larger claimed sizes are rejected before decoding
     max_robots: int = 32  # robot slots; a robot gets one when its camera info arrives, frames of others are rejected

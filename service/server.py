@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 
 from client import protocol
 from client.frames import Calibration, Frame
@@ -46,7 +46,11 @@ class SlamService:
         self.sessions: dict[str, RobotSession] = {}
         self.rejected: Counter = Counter()  # reason -> messages refused before reaching a session
         self.started_at = time.time()
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # (re-entered: a held frame's decode error is counted under it)
+        # robot -> (first held, newest raw frame messages): frames of a robot without a slot, kept
+        # undecoded while its camera info is asked for (a stream's first frame can beat its info)
+        self._held: dict[str, tuple[float, deque]] = {}
+        self._held_bytes = 0
         self._subscribers = []
         self._info_requests: dict[str, float] = {}  # robot -> when its camera info was last asked for
         self._info_slots = threading.BoundedSemaphore(4)  # info queries in flight
@@ -109,13 +113,18 @@ class SlamService:
         robot = self.keys.robot_of(key)
         session = self.sessions.get(robot) if robot is not None else None
         if session is None:  # no slot: the robot's camera info has not arrived (ask for it)
-            self._count_reject("no_calibration" if robot is not None else "bad_key", key, None)
-            if robot is not None:
+            if robot is None:
+                self._count_reject("bad_key", key, None)
+                return
+            if self._hold(robot, key, sample.payload.to_bytes()) is None:  # (else admitted meanwhile: queued)
                 self._request_info(robot)
             return
+        self._submit(session, key, sample.payload.to_bytes())
+
+    def _submit(self, session: RobotSession, key: str, payload: bytes) -> None:
         try:
-            msg = protocol.decode_frame(sample.payload.to_bytes(), session.limits, label_names=session.classes)
-            if msg.robot != robot:
+            msg = protocol.decode_frame(payload, session.limits, label_names=session.classes)
+            if msg.robot != session.robot:
                 raise protocol.ProtocolError("robot_mismatch", f"header robot {msg.robot!r} on key {key!r}")
         except protocol.ProtocolError as e:
             session.reject(e.reason)
@@ -126,6 +135,48 @@ class SlamService:
             self._count_reject("internal", key, e)
             return
         session.submit(msg.seq, msg.frame)
+
+    def _hold(self, robot: str, key: str, payload: bytes) -> RobotSession | None:
+        """Keep a frame of a robot without a slot, undecoded, until its camera info arrives
+        (its newest `service.hold_frames`, for at most 4 robots at a time, `service.queue_mb` in
+        all, `service.info_timeout` + 1 s at most). Frames that cannot be held are counted
+        `no_calibration`. Returns the robot's session when it was admitted meanwhile (the
+        frame is then queued)."""
+        cfg = self.config.service
+        dropped = 0
+        with self._lock:
+            session = self.sessions.get(robot)
+            if session is not None:  # admitted between the caller's look and this lock
+                self._submit(session, key, payload)
+                return session
+            held = self._held.get(robot)
+            if cfg.hold_frames <= 0 or (held is None and len(self._held) >= 4) \
+                    or self._held_bytes + len(payload) > cfg.queue_mb * 1024 * 1024:
+                dropped = 1
+            else:
+                if held is None:
+                    held = self._held[robot] = (time.monotonic(), deque())
+                held[1].append((key, payload))
+                self._held_bytes += len(payload)
+                while len(held[1]) > cfg.hold_frames:
+                    self._held_bytes -= len(held[1].popleft()[1])
+                    dropped += 1
+        for _ in range(dropped):
+            self._count_reject("no_calibration", key, None)
+        return None
+
+    def _release_held(self, robot: str, session: RobotSession | None) -> None:
+        """Queue a robot's held frames on its new session (None: count them dropped). The
+        caller holds the lock, so no newer frame of the robot overtakes them."""
+        held = self._held.pop(robot, None)
+        if held is None:
+            return
+        for key, payload in held[1]:
+            self._held_bytes -= len(payload)
+            if session is None:
+                self._count_reject("no_calibration", key, None)
+            else:
+                self._submit(session, key, payload)
 
     def _on_info_sample(self, sample) -> None:
         key = str(sample.key_expr)
@@ -168,7 +219,10 @@ class SlamService:
                                          classes=len(classes if classes is not None else protocol.DEFAULT_CLASSES))
                 s = RobotSession(robot, self.config, calibration, limits,
                                  lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result, classes=classes)
+                self._release_held(robot, s)  # before the slot is visible: frames stay in order
                 self.sessions[robot] = s
+            if s is None:
+                self._release_held(robot, None)
         if s is None:
             if n <= 3 or n % 1000 == 0:
                 log.warning("robot=%s refused: all %d robot slots taken count=%d", robot,
@@ -218,8 +272,12 @@ class SlamService:
     def _expire_idle(self) -> None:
         """Free the slots of robots that sent nothing for idle_timeout seconds: their session
         ends (the pipeline finishes its map update and closes its database session)."""
-        while not self._stopped.wait(min(1.0, self.config.service.idle_timeout / 4)):
+        while not self._stopped.wait(min(1.0, self.config.service.idle_timeout / 4, self.config.service.info_timeout)):
             now = time.monotonic()
+            with self._lock:  # held frames of robots whose camera never answered
+                for robot in [r for r, (t, _) in self._held.items()
+                              if now - t > self.config.service.info_timeout + 1.0]:
+                    self._release_held(robot, None)
             for robot, s in list(self.sessions.items()):
                 if s.idle(now) > self.config.service.idle_timeout:
                     with self._lock:

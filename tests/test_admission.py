@@ -126,6 +126,44 @@ def test_calibration_only_from_the_robots_own_key_and_kept_before_its_first_fram
     pub.undeclare()
 
 
+def test_frames_that_beat_the_camera_info_are_held_until_it_arrives(svc, z, dataset):
+    """A stream's first frames can reach the service before its camera info: the newest
+    `service.hold_frames` (2) are kept undecoded and mapped once the info arrives, in order;
+    older ones are counted `no_calibration`."""
+    _wait_no_robots(svc)
+    before = _rejected(svc).get("no_calibration", 0)
+    pub = _publisher(z, "racer")
+    for i in range(5):  # no camera info anywhere yet, no queryable to answer the service's ask
+        pub.put(protocol.encode_frame(dataset.frame(i), "racer", i, color="jpeg", depth="png"))
+    assert _until(lambda: _rejected(svc).get("no_calibration", 0) - before == 3)
+    z.put(KEYS.info("racer"), protocol.encode_info("racer", dataset.calibration))  # within info_timeout + 1 s
+    r = svc.wait_processed("racer", 2)
+    assert r["frames_processed"] == 2 and not r["frames_rejected"] and r["frames_dropped"] == 0
+    for i in range(5, 8):  # the stream goes on after the held frames
+        pub.put(protocol.encode_frame(dataset.frame(i), "racer", i, color="jpeg", depth="png"))
+    r = svc.wait_processed("racer", 5)
+    assert r["frames_processed"] == 5 and not r["frames_rejected"]
+    first = _until(lambda: svc.api.trajectory(svc.session_of("racer"))["poses"])
+    assert first[0]["stamp"] == pytest.approx(dataset.frame(3).stamp)  # the map starts at the oldest held frame
+    assert _rejected(svc).get("no_calibration", 0) - before == 3
+    pub.undeclare()
+
+
+def test_held_frames_of_a_camera_that_never_answers_are_counted_and_freed(svc, z, dataset):
+    _wait_no_robots(svc)
+    before = _rejected(svc).get("no_calibration", 0)
+    pub = _publisher(z, "mute")
+    for i in range(2):  # held (hold_frames 2) ...
+        pub.put(protocol.encode_frame(dataset.frame(i), "mute", i, color="jpeg", depth="png"))
+    # ... and counted once info_timeout (0.5 s) + 1 s passed without its camera info
+    assert _until(lambda: _rejected(svc).get("no_calibration", 0) - before == 2, timeout=10)
+    z.put(KEYS.info("mute"), protocol.encode_info("mute", dataset.calibration))
+    assert _until(lambda: any(x["robot"] == "mute" for x in svc.api.robots()))
+    time.sleep(0.5)
+    assert svc.api.robot("mute")["frames_processed"] == 0  # nothing held was left to replay
+    pub.undeclare()
+
+
 def test_non_increasing_stamps_are_rejected_and_counted(svc, z, dataset):
     _wait_no_robots(svc)
     z.put(KEYS.info("clock"), protocol.encode_info("clock", dataset.calibration))
