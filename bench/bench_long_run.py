@@ -1,5 +1,5 @@
 """A long synthetic patrol (issue 11): tens of thousands of keyframes with memory management on
-(rehearsal + bounded working memory) and off (the defaults: unbounded WM, no rehearsal).
+(rehearsal + bounded working memory) and off (unbounded WM, no rehearsal).
 
     python bench/bench_long_run.py [--keyframes 20000] [--off-keyframes 2000] [--only on|off]
                                    [--path loop] [--rate 3] [--width 320 --height 240]
@@ -13,8 +13,8 @@ few numbers (RSS must not grow because of the bench) and the run can stop at exa
 `--keyframes` keyframes. Per keyframe: the map update's time (its statistics, the columns of
 `updates.csv`); every `--rss-every` frames: RSS (/proc/self/statm).
 
-"on" runs with `memory.rehearsal=true memory.max_wm_nodes=100` plus `--set`; "off" with the
-defaults plus `--off-set`. The off run stops at `--off-keyframes` (default 2000): it only has
+"on" runs with `memory.rehearsal=true memory.max_wm_nodes=100` plus `--set`; "off" with
+`memory.rehearsal=false memory.max_wm_nodes=0` plus `--off-set`. The off run stops at `--off-keyframes` (default 2000): it only has
 to show that without memory management the update is measurably slower at the end, so its
 last window is compared with the on run's update times at the same keyframe indices (and with
 the on run's own end). Each run is its own child process (its RSS is its own), writing
@@ -53,6 +53,7 @@ from service.runner import UPDATE_COLUMNS, UPDATE_STEPS, _frames, update_row  # 
 from storage import MapStore  # noqa: E402
 
 ON_DEFAULTS = ("memory.rehearsal=true", "memory.max_wm_nodes=100")
+OFF_DEFAULTS = ("memory.rehearsal=false", "memory.max_wm_nodes=0", "memory.time_threshold_ms=0")
 EARLY, LAST, FULL_WINDOWS = (1000, 2000), 1000, 3000  # keyframes 1,000-2,000 vs the last 1,000
 PAGE = os.sysconf("SC_PAGE_SIZE")
 
@@ -90,7 +91,7 @@ def make_dataset(args, target: int, cfg) -> tuple[Passes, int]:
 
 def run_one(name: str, args) -> dict:
     """One run in this process: write out/NAME/updates.csv and result.json, return the result."""
-    sets = list(ON_DEFAULTS) + (args.set or []) if name == "on" else (args.off_set or [])
+    sets = list(ON_DEFAULTS) + (args.set or []) if name == "on" else list(OFF_DEFAULTS) + (args.off_set or [])
     cfg = load_config(None, merge_overrides({}, parse_sets(sets)))
     target = args.keyframes if name == "on" else args.off_keyframes
     ds, per_pass = make_dataset(args, target, cfg)

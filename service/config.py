@@ -182,7 +182,14 @@ class SemanticsConfig:
     model_dtype: str = "uint8"  # uint8 (raw 0..255) | float32 (scaled by model_scale after subtracting model_mean)
     model_mean: float = 0.0  # float32 inputs: (pixel - mean) * scale
     model_scale: float = 1.0
-    model_output: str = "argmax"  # argmax (int label map 1×S×S) | scores (1×K×S×S or 1×S×S×K class scores)
+    model_output: str = "argmax"  # argmax (int label map 1×S×S) | scores (1×K×S×S or 1×S×S×K class scores) | boxes (a detection model: box, score and class outputs) | yolo (one 1×(4+K)×N or 1×N×(4+K) output: cx, cy, w, h, K class scores)
+    box_outputs: list = field(default_factory=lambda: ["boxes", "scores", "classes"])  # boxes: the detection model's output names (N×4 boxes, N scores, N class ids; a leading batch axis is fine)
+    box_format: str = "xyxy"  # boxes (yolo: always cxcywh): xyxy | yxyx (TF Object Detection API) | cxcywh
+    box_normalized: bool = False  # boxes: coordinates in 0..1 of the model input (else its pixels)
+    class_offset: int = 0  # detection class ids + this = ids into `classes` (e.g. -1 for models counting from 1)
+    min_score: float = 0.5  # detections scoring lower are ignored
+    nms_iou: float = 0.5  # yolo: boxes overlapping a better one by this IoU are suppressed
+    box_depth_band: float = 0.15  # a box labels only its pixels whose depth is within this share of the box centre's median depth (the object, not the wall behind it); 0 = the whole box
     classes: list = field(default_factory=list)  # the model's class names by id; empty = ADE20K-32 (service/semantics/classes.py)
     threads: int = 1  # onnxruntime intra-op threads (must not steal the tracking core)
     queue_size: int = 4  # keyframes waiting for the semantic worker; when full the newest is dropped (and counted)

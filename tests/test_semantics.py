@@ -238,7 +238,7 @@ def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
     class Stuck:  # a model that blocks, then fails
         classes, name = ADE20K32, "stuck"
 
-        def segment(self, rgb):
+        def segment(self, rgb, depth=None):
             release.wait(10)
             raise RuntimeError("model exploded")
 

@@ -141,7 +141,7 @@ class SemanticWorker:
             return None
         # frames are BGR (or grey), the project's convention; the models take RGB
         rgb = cv2.cvtColor(kf.image, cv2.COLOR_BGR2RGB if kf.image.ndim == 3 else cv2.COLOR_GRAY2RGB)
-        return self.segmenter.segment(rgb)
+        return self.segmenter.segment(rgb, kf.depth)
 
     def flush(self) -> None:
         """Write the confirmed objects that changed since they were last written."""
