@@ -203,7 +203,9 @@ class MemoryManager:
         pose = self.pose(node)
         r = c.proximity_radius
         box = (tuple(pose[:3, 3] - r), tuple(pose[:3, 3] + r))
-        nodes = [n for n in self.store.nodes(bbox=box, limit=None) if n.id in self.tiers.ltm]
+        # the map's nodes only: keyframes merged by rehearsal keep their rows (and their place in
+        # the R*Tree), and a patrolled place holds ever more of them
+        nodes = [n for n in self.store.nodes(bbox=box, limit=None, merged=False) if n.id in self.tiers.ltm]
         if not nodes:
             return []
         return nearby(np.stack([n.pose for n in nodes]), np.array([n.id for n in nodes], np.int64), pose, r,
