@@ -104,11 +104,18 @@ def test_metrics_are_a_read_behind_the_token_with_protect_reads(monkeypatch):
         assert requests.get(f"{url}/health", timeout=10).status_code == 200
         assert requests.get(f"{url}/metrics", timeout=10).status_code == 401
         assert requests.get(f"{url}/metrics", timeout=10, headers={"Authorization": "Bearer wrong"}).status_code == 401
+        # labels stay bounded whatever clients send: made-up methods and paths are not label values
+        assert requests.request("BREW", f"{url}/metrics", timeout=10).status_code == 405
+        assert requests.get(f"{url}/no/such/path/1234", timeout=10).status_code == 404
         resp = requests.get(f"{url}/metrics", timeout=10, headers={"Authorization": "Bearer scrape-me"})
         assert resp.status_code == 200 and resp.headers["content-type"] == TEXT_0_0_4
         samples = _samples(resp.text)
         assert _value(samples, "mnemoslam_robots") == 0 and _value(samples, "mnemoslam_robot_slots") == 32
         assert _value(samples, "mnemoslam_http_request_duration_seconds_count", method="GET", route="/metrics",
                       status="401") == 2
+        http = [s for s in samples if s.name == "mnemoslam_http_request_duration_seconds_count"]
+        assert {(s.labels["method"], s.labels["route"], s.labels["status"]) for s in http} == {
+            ("GET", "/health", "200"), ("GET", "/metrics", "401"), ("other", "/metrics", "405"),
+            ("GET", "unmatched", "404")}
         assert "/metrics" not in requests.get(f"{url}/openapi.json", timeout=10,
                                               headers={"Authorization": "Bearer scrape-me"}).json()["paths"]
