@@ -1,7 +1,8 @@
 """The REST API (FastAPI): health, robots, sessions, a map's nodes, trajectory and graph,
 statistics, and the semantic map (objects: nearest of a label, by label / around a point, one,
 labels with counts, a path along the pose graph to one). OpenAPI docs at /docs; every
-response has a Pydantic model there.
+response has a Pydantic model there. Prometheus metrics at /metrics (service/metrics.py; not
+in the OpenAPI).
 
 Reads go to the service's live state, to the SQLite long-term memory and, for objects, to the
 query layer (`service.semantics.queries`); route handlers only translate its answers to HTTP.
@@ -40,6 +41,7 @@ from client.trajectory import format_tum
 from storage import MapRepository, SessionRecord, StoreError, UnknownIdError
 
 from .config import Config
+from .metrics import Metrics, RequestTimer
 from .semantics.queries import NotFound, ObjectIndex, ObjectView, QueryError, Unavailable, robot_location
 from .server import SlamService
 
@@ -467,6 +469,8 @@ def create_app(service: SlamService) -> FastAPI:
     app.state.access = Access.from_config(service.config)
     app.state.objects = _IndexHolder()
     app.state.semantics = None  # (when, semantics_status()) for the object endpoints
+    app.state.metrics = Metrics(service)
+    app.add_middleware(RequestTimer, observe=app.state.metrics.observe_request)
     app.router.add_event_handler("shutdown", app.state.objects.close)
     app.include_router(open_routes)
     app.include_router(read_routes)
@@ -548,6 +552,16 @@ def stats(service: ServiceDep, store: StoreDep):
     st = service.status()
     st.pop("config", None)
     return {"service": st, "robots": service.robots(), "database": store.stats()}
+
+
+@read_routes.get("/metrics", include_in_schema=False)
+def metrics(request: Request):
+    """Prometheus metrics (text format 0.0.4, or OpenMetrics when asked for): the service's
+    counters, each robot's, the map updates', REST latency (service/metrics.py). A read:
+    behind the token with api.protect_reads (a scraper sends it as a bearer token). Not in the
+    OpenAPI: it is no JSON API."""
+    body, content_type = request.app.state.metrics.render(request.headers.get("accept"))
+    return Response(body, media_type=content_type)
 
 
 @read_routes.get("/config", response_model=Config)

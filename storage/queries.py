@@ -122,6 +122,38 @@ class Queries(Connection):
             row = c.execute("SELECT data FROM statistics WHERE node_id = ?", (_as_int(node_id, "node_id"),)).fetchone()
         return None if row is None else json.loads(row[0])
 
+    def map_updates(self, session_id: int, after_node: int = 0) -> list[tuple]:
+        """The map updates of a session's keyframes (their statistics rows), of nodes after
+        `after_node`, in node order: (node id, update ms = the sum of its steps' `timings_ms`,
+        STM, WM, LTM sizes and vocabulary words after it; None where the row lacks it). Only
+        these fields are read (SQLite's JSON functions), not the whole statistics."""
+        sql = ("SELECT s.node_id, (SELECT SUM(value) FROM json_each(s.data, '$.timings_ms')), "
+               "json_extract(s.data, '$.memory.stm'), json_extract(s.data, '$.memory.wm'), "
+               "json_extract(s.data, '$.memory.ltm'), json_extract(s.data, '$.memory.words') "
+               "FROM statistics s JOIN nodes n ON n.id = s.node_id "
+               "WHERE n.session_id = ? AND s.node_id > ? ORDER BY s.node_id")
+        with self._read() as c:
+            return [tuple(r) for r in c.execute(sql, (_as_int(session_id, "session_id"),
+                                                      _as_int(after_node, "after_node")))]
+
+    def count_links(self, types: Iterable[int], session_id: int | None = None) -> dict[int, int]:
+        """{link type: links} of the given types, of those ending at a node of `session_id`
+        when given (a loop closure's link ends at the new keyframe)."""
+        kinds = sorted({_as_int(t, "type") for t in types})
+        if not kinds:
+            return {}
+        marks = ", ".join("?" * len(kinds))
+        if session_id is None:
+            sql, args = f"SELECT type, COUNT(*) FROM links WHERE type IN ({marks}) GROUP BY type", kinds
+        else:
+            sql = (f"SELECT l.type, COUNT(*) FROM nodes n JOIN links l ON l.to_id = n.id "
+                   f"WHERE n.session_id = ? AND l.type IN ({marks}) GROUP BY l.type")
+            args = [_as_int(session_id, "session_id"), *kinds]
+        with self._read() as c:
+            out = {t: 0 for t in kinds}
+            out.update({t: n for t, n in c.execute(sql, args)})
+        return out
+
     def _node_filter(self, session_id, robot, bbox, merged=None) -> tuple[str, list]:
         where, params = [], []
         if merged is not None:

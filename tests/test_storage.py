@@ -504,6 +504,33 @@ def test_sessions_record_how_they_ended(store, rng):
     assert store.count_nodes(session_id=s2) == len(a)
 
 
+def test_map_updates_and_link_counts_for_metrics(store, rng):
+    """What /metrics reads: a session's map updates after a node (time = the sum of its steps,
+    memory sizes; missing fields are None) and its loop links by type."""
+    s1, s2 = store.begin_session("alpha", CAL), store.begin_session("beta", CAL)
+    a = [store.add_keyframe(record(rng, s1, i)) for i in range(3)]
+    b = [store.add_keyframe(record(rng, s2, i)) for i in range(2)]
+    store.set_statistics(a[0], {"timings_ms": {"graph": 1.5, "memory": 2.0},
+                                "memory": {"stm": 1, "wm": 0, "ltm": 0, "words": 40}})
+    store.set_statistics(a[1], {"decision": "none"})  # no timings, no memory
+    store.set_statistics(b[0], {"timings_ms": {"rehearsal": 4.0}, "memory": {"stm": 1, "wm": 2, "ltm": 3, "words": 9}})
+    assert store.map_updates(s1) == [(a[0], 3.5, 1, 0, 0, 40), (a[1], None, None, None, None, None)]
+    assert store.map_updates(s1, after_node=a[0]) == [(a[1], None, None, None, None, None)]
+    assert store.map_updates(s1, after_node=a[1]) == []
+    assert store.map_updates(s2) == [(b[0], 4.0, 1, 2, 3, 9)]
+    T = pose(0.1)
+    store.add_link(a[0], a[2], LinkType.GLOBAL_CLOSURE, T)
+    store.add_link(a[1], a[2], LinkType.LOCAL_SPACE, T)
+    store.add_link(a[0], a[1], LinkType.LOCAL_SPACE, T)
+    store.add_link(a[0], b[1], LinkType.GLOBAL_CLOSURE, T)  # ends in s2
+    store.add_link(a[1], a[2], LinkType.LOCAL_TIME, T)
+    loops = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)
+    assert store.count_links(loops, session_id=s1) == {1: 1, 2: 2}
+    assert store.count_links(loops, session_id=s2) == {1: 1, 2: 0}
+    assert store.count_links(loops) == {1: 2, 2: 2}
+    assert store.count_links([]) == {}
+
+
 def test_unmapped_nodes_are_those_without_statistics(store, rng):
     s1, s2, s3 = (store.begin_session(r, CAL) for r in ("alpha", "beta", "gamma"))
     a = [store.add_keyframe(record(rng, s1, i)) for i in range(4)]
