@@ -289,6 +289,44 @@ def test_small_bag_decodes_every_encoding(tmp_path):
         np.testing.assert_array_equal(f.depth, frames[2].depth)
 
 
+def test_rosbag2_without_message_definitions_uses_the_standard_types(tmp_path):
+    """rosbag2 recorded before Iron stores no message definitions: the standard ones decode it."""
+    import sqlite3
+
+    path = _small_bag(tmp_path / "humble", "sqlite3", pose=None)
+    with sqlite3.connect(next(path.glob("*.db3"))) as db:
+        db.execute("DELETE FROM message_definitions")
+    ds = open_dataset(path)
+    assert len(ds) == 4 and np.array_equal(ds.frame(3).image, list(_frames())[3].image)
+
+
+def test_pairs_by_header_stamp_and_reads_frames_in_any_order(tmp_path):
+    """Depth 10 ms after colour by header stamp but received before it, two colour messages
+    received at the same instant, a colour image without depth (left out): the frames are the
+    pairs by header stamp, whatever order they are read in."""
+    frames = list(_frames(6))
+    w = BagWriter(tmp_path / "order.bag", "ros1", pose=None, color="bgr8")
+    for i, f in enumerate(frames):
+        stamp = round(f.stamp * 1e9)
+        log = stamp + 50_000_000 if i != 3 else round(frames[2].stamp * 1e9) + 50_000_000  # 2 and 3 together
+        w.write(w.c_color, log, w.image(stamp, f.image, "bgr8"))
+        if i != 4:  # frame 4 has no depth
+            w.write(w.c_depth, stamp, w.image(stamp + 10_000_000, np.rint(f.depth * 1000).astype(np.uint16), "16UC1"))
+        w.write(w.c_infos[0], log, w.info(stamp, _calibration()))
+    w.close()
+    ds = open_dataset(tmp_path / "order.bag")
+    expect = [0, 1, 2, 3, 5]
+    assert len(ds) == 5
+    np.testing.assert_allclose(ds.stamps, [frames[j].stamp for j in expect], atol=1e-9)
+    for i in [4, 0, 1, 1, 3, 2, 0, 4, 3]:
+        f = ds.frame(i)
+        assert f.index == i and np.array_equal(f.image, frames[expect[i]].image)
+        np.testing.assert_array_equal(f.depth, frames[expect[i]].depth)
+    ds.close()
+    with pytest.raises(DatasetError, match="closed"):
+        ds.frame(0)
+
+
 def test_two_colour_topics_need_topics(tmp_path):
     w = BagWriter(tmp_path / "two", "mcap", pose=None)
     other = w.writer.add_connection("/camera2/image_raw", "sensor_msgs/msg/Image", typestore=w.ts)

@@ -58,10 +58,10 @@ def detect_format(path: Path) -> str:
     )
 
 
-def _is_bag(spec: str | Path) -> bool:
+def _is_bag(path: Path) -> bool:
     from .rosbag import bag_path
 
-    return not str(spec).startswith("synthetic") and bag_path(Path(str(spec)).expanduser()) is not None
+    return bag_path(path) is not None
 
 
 def open_dataset(spec: str | Path, format: str | None = None, **options) -> Dataset:
@@ -73,9 +73,9 @@ def open_dataset(spec: str | Path, format: str | None = None, **options) -> Data
     """
     text = str(spec)
     topics = options.pop("topics", None)
-    if topics and not (format == "rosbag" or (format is None and _is_bag(text))):
-        raise DatasetError(f"{text}: --topics applies to ROS bags only")
     if format == "synthetic" or text.startswith("synthetic"):
+        if topics:
+            raise DatasetError(f"{text}: --topics applies to ROS bags only")
         from ..synthetic import SyntheticDataset
 
         trajectory = text.split(":", 1)[1] if ":" in text else "loop"
@@ -87,6 +87,8 @@ def open_dataset(spec: str | Path, format: str | None = None, **options) -> Data
         from .rosbag import RosbagDataset
 
         return RosbagDataset(path, topics=topics, **options)
+    if topics:
+        raise DatasetError(f"{path}: --topics applies to ROS bags only")
     if not path.is_dir():
         raise DatasetError(f"{path}: not a dataset folder (nor a ROS bag: .bag, .db3, .mcap or a rosbag2 folder "
                            "with metadata.yaml)")

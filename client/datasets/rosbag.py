@@ -68,6 +68,8 @@ ROLES = ("color", "depth", "info", "pose")
 _ALIASES = {"colour": "color", "rgb": "color", "image": "color", "camera_info": "info", "gt": "pose",
             "groundtruth": "pose", "odometry": "pose"}
 _PNG = b"\x89PNG\r\n\x1a\n"
+JUMP_NS = 2_000_000_000  # a frame this far (receive time) beyond the cursor: restart the cursor there
+EARLY = 16  # messages read ahead of their frame kept at most (a few in order: depth before colour, ...)
 
 
 # ------------------------------------------------------------------------------------------
@@ -287,6 +289,7 @@ class RosbagDataset(Dataset):
                  max_frames: int | None = None, max_dt: float = MAX_DT):
         try:
             from rosbags.highlevel import AnyReader
+            from rosbags.typesys import Stores, get_typestore
         except ImportError as e:  # pragma: no cover - a declared dependency
             raise DatasetError(f"reading ROS bags needs the rosbags package ({e})") from None
         given = Path(path)
@@ -299,7 +302,8 @@ class RosbagDataset(Dataset):
         chosen = parse_topics(topics)
         self._lock = threading.Lock()
         try:
-            reader = AnyReader([where])
+            # bags without message definitions (rosbag2 before Iron) decode with the standard types
+            reader = AnyReader([where], default_typestore=get_typestore(Stores.LATEST))
             reader.open()
         except Exception as e:  # rosbags raises its own errors, and struct / OS errors on damaged files
             raise DatasetError(f"{given}: cannot read the ROS bag ({type(e).__name__}: {e})") from None
@@ -334,7 +338,9 @@ class RosbagDataset(Dataset):
         self._color, self._depth = color, depth
         self._ci, self._di = ia, ib
         self.stamps = color.stamps[ia] / 1e9
-        first = self._read_color(0)
+        self._wanted = {self._key(color, int(k)) for k in ia} | {self._key(depth, int(k)) for k in ib}
+        self._cursor, self._pos, self._last, self._early = None, -1, {}, {}
+        first, _ = self._read(0, depth=False)
         h, w = first.shape[:2]
         self._shape = (h, w)
         self.calibration, self._maps = self._calibration(topics[roles["info"]], roles["info"], w, h)
@@ -484,48 +490,86 @@ class RosbagDataset(Dataset):
 
     # -- frames -----------------------------------------------------------------------------
 
-    def _message(self, stream: _Stream, k: int):
-        """Message k of a stream, deserialized, read through the bag's time index."""
-        t, rank = int(stream.logtimes[k]), int(stream.ranks[k])
-        with self._lock:
-            if self._reader is None:
-                raise DatasetError(f"{self.path}: the bag is closed")
-            gen = self._reader.messages(connections=stream.connections, start=t, stop=t + 1)
-            try:
-                for j, (conn, _, raw) in enumerate(gen):
-                    if j == rank:
-                        return self._reader.deserialize(raw, conn.msgtype)
-            finally:
-                gen.close()
-        raise DatasetError(f"{self.path}: {stream.topic} message at {t} ns is missing")
+    def _key(self, stream: _Stream, k: int) -> tuple[str, int, int]:
+        return stream.topic, int(stream.logtimes[k]), int(stream.ranks[k])
+
+    def _fetch(self, keys: list[tuple[str, int, int]]) -> dict:
+        """The serialized messages of `keys` ((topic, receive time, rank)) as {key: (connection,
+        bytes)}. Frames are read in order by the players, so one cursor walks the colour and
+        depth messages in receive order and keeps the few read early (a depth message before
+        its colour message, ...); a key behind the cursor or far ahead of it restarts the
+        cursor there through the bag's time index."""
+        out = {k: self._early.pop(k) for k in keys if k in self._early}
+        missing = [k for k in keys if k not in out]
+        if not missing:
+            return out
+        lo = min(k[1] for k in missing)
+        passed = any(t < self._pos or (t == self._pos and self._last.get(topic, (None, -1))[0] == t
+                                       and self._last[topic][1] >= r) for topic, t, r in missing)
+        if self._cursor is None or passed or lo > self._pos + JUMP_NS:
+            self._restart(lo)
+        want = set(missing)
+        for conn, t, raw in self._cursor:
+            prev, rank = self._last.get(conn.topic, (None, -1))
+            rank = rank + 1 if prev == t else 0
+            self._last[conn.topic], self._pos = (t, rank), t
+            key = (conn.topic, t, rank)
+            if key in want:
+                out[key] = (conn, raw)
+                want.discard(key)
+                if not want:
+                    return out
+            elif key in self._wanted:
+                self._early[key] = (conn, raw)
+                while len(self._early) > EARLY:
+                    self._early.pop(next(iter(self._early)))
+        self._cursor = None
+        topic, t, _ = min(want, key=lambda k: k[1])
+        raise DatasetError(f"{self.path}: {topic} message received at {t} ns is missing")
+
+    def _restart(self, start: int) -> None:
+        if self._cursor is not None:
+            self._cursor.close()
+        conns = self._color.connections + self._depth.connections
+        self._cursor = self._reader.messages(connections=conns, start=start)
+        self._pos, self._last = start - 1, {}
 
     def _where(self, stream: _Stream, k: int) -> str:
         return f"{self.path}:{stream.topic}@{stream.stamps[k] / 1e9:.6f}"
 
-    def _read_color(self, i: int) -> np.ndarray:
-        k = int(self._ci[i])
-        try:
-            return decode_color(self._message(self._color, k))
-        except DatasetError as e:
-            raise DatasetError(f"{self._where(self._color, k)}: {e}") from None
-        except Exception as e:
-            raise DatasetError(f"{self._where(self._color, k)}: unreadable ({type(e).__name__}: {e})") from None
-
-    def _read_depth(self, i: int) -> np.ndarray:
-        k = int(self._di[i])
-        try:
-            return decode_depth(self._message(self._depth, k))
-        except DatasetError as e:
-            raise DatasetError(f"{self._where(self._depth, k)}: {e}") from None
-        except Exception as e:
-            raise DatasetError(f"{self._where(self._depth, k)}: unreadable ({type(e).__name__}: {e})") from None
+    def _read(self, i: int, depth: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Frame i's colour image and (with `depth`) depth, decoded."""
+        parts = [(self._color, int(self._ci[i]), decode_color)]
+        if depth:
+            parts.append((self._depth, int(self._di[i]), decode_depth))
+        keys = [self._key(stream, k) for stream, k, _ in parts]
+        with self._lock:
+            if self._reader is None:
+                raise DatasetError(f"{self.path}: the bag is closed")
+            try:
+                raw = self._fetch(keys)
+            except DatasetError:
+                raise
+            except Exception as e:  # a damaged bag: the reader's own errors
+                self._cursor = None
+                raise DatasetError(f"{self._where(*parts[0][:2])}: unreadable ({type(e).__name__}: {e})") from None
+            msgs = [self._reader.deserialize(raw[key][1], raw[key][0].msgtype) if key in raw else None for key in keys]
+        out = []
+        for (stream, k, decode), msg in zip(parts, msgs):
+            try:
+                out.append(decode(msg))
+            except DatasetError as e:
+                raise DatasetError(f"{self._where(stream, k)}: {e}") from None
+            except Exception as e:
+                raise DatasetError(f"{self._where(stream, k)}: unreadable ({type(e).__name__}: {e})") from None
+        return out[0], (out[1] if depth else None)
 
     def __len__(self) -> int:
         return len(self.stamps)
 
     def frame(self, i: int) -> Frame:
         i = check_index(i, len(self))
-        image, depth = self._read_color(i), self._read_depth(i)
+        image, depth = self._read(i)
         source = f"{self._where(self._color, int(self._ci[i]))}, {self._depth.topic}@{self._depth.stamps[self._di[i]] / 1e9:.6f}"
         for what, a in (("colour", image), ("depth", depth)):
             if a.shape[:2] != self._shape:
@@ -541,6 +585,9 @@ class RosbagDataset(Dataset):
         garbage collected."""
         with self._lock:
             self._reader = None
+            if getattr(self, "_cursor", None) is not None:
+                self._cursor.close()
+                self._cursor = None
         self._closer()
 
     release = close  # the name `mnemoslam stream` calls when it is done with a source
