@@ -6,7 +6,7 @@ Topics, by message type (and, for `sensor_msgs/Image`, by the encoding of its fi
 
 - colour: `sensor_msgs/Image` rgb8, bgr8, rgba8, bgra8, mono8 (grey frames), 8UC3 (as
   bgr8), 8UC1 (as mono8); or `sensor_msgs/CompressedImage` (JPEG / PNG, any format string
-  without "compressedDepth");
+  without "compressedDepth"; 16-bit PNG keeps its high bytes);
 - depth: `sensor_msgs/Image` 16UC1 / mono16 (millimetres) or 32FC1 (metres; NaN = no
   measurement), or `CompressedImage` of image_transport's compressed_depth_image_transport
   (format like "16UC1; compressedDepth png": a small config header then a 16-bit PNG; for
@@ -30,8 +30,10 @@ Frames are the colour messages that have a depth message within `MAX_DT` (20 ms)
 stamp, matched one to one as the TUM player does, stamped with the colour header stamp (a
 topic whose header stamps are all unset, 0, uses the bag's receive times). Opening the bag reads
 every colour and depth message once to index their header stamps (`(topic, receive time,
-rank)` per message, a few numbers each); `frame(i)` then reads just its two messages through
-the bag's own time index, so the bag is never held in RAM.
+rank)` per message, a few numbers each); frames are then read message by message: one cursor
+walks the colour and depth messages in receive order as the players read frames in order, and
+restarts through the bag's own time index when a frame is asked out of order. The bag is
+never held in RAM.
 """
 from __future__ import annotations
 
@@ -162,8 +164,10 @@ def decode_color(msg) -> np.ndarray:
         img = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8).reshape(-1), cv2.IMREAD_UNCHANGED)
         if img is None or img.size == 0:
             raise DatasetError(f"CompressedImage ({msg.format!r}): not a decodable JPEG / PNG image")
-        if img.dtype != np.uint8:
-            raise DatasetError(f"CompressedImage ({msg.format!r}): {img.dtype} pixels, expected 8-bit colour")
+        if img.dtype == np.uint16:  # bgr16 / mono16 PNG: the high bytes
+            img = (img >> 8).astype(np.uint8)
+        elif img.dtype != np.uint8:
+            raise DatasetError(f"CompressedImage ({msg.format!r}): {img.dtype} pixels, expected 8- or 16-bit colour")
         if img.ndim == 3 and img.shape[2] == 4:
             return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
         return img
