@@ -22,7 +22,10 @@ from service.runner import run_dataset
 
 from conftest import require
 
-FRAMES = 100  # 7-Scenes redkitchen, 30 Hz: its first 3.3 s
+# 7-Scenes redkitchen, 30 Hz: its first 3.3 s. Measured 2026-11-25: ATE 0.978 cm over 100 frames
+# from the folder and from each bag (the same trajectory files); streamed from the ROS 1 bag
+# into the service, keyframe ATE 1.024 cm, as the folder's offline keyframes
+FRAMES = 100
 COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC = "/camera/rgb/image_raw", "/camera/depth_registered/image_raw", "/camera/rgb/camera_info"
 
 
@@ -35,14 +38,15 @@ class BagWriter:
     (Image) or compressedDepth (16UC1 PNG); `pose`: PoseStamped, Odometry or None."""
 
     def __init__(self, path: Path, storage: str, color="rgb8", depth="16UC1", pose="PoseStamped",
-                 color_topic=COLOR_TOPIC, depth_topic=DEPTH_TOPIC, info_topics=(INFO_TOPIC,), pose_topic="/groundtruth"):
+                 color_topic=COLOR_TOPIC, depth_topic=DEPTH_TOPIC, info_topics=(INFO_TOPIC,), pose_topic="/groundtruth",
+                 distortion=(0.0, 0.0, 0.0, 0.0, 0.0)):
         from rosbags.rosbag1 import Writer as Writer1
         from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
         from rosbags.typesys import Stores, get_typestore
 
         self.ros1 = storage == "ros1"
         self.ts = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
-        self.color, self.depth, self.pose = color, depth, pose
+        self.color, self.depth, self.pose, self.distortion = color, depth, pose, distortion
         if self.ros1:
             self.writer = Writer1(path)
         else:
@@ -80,8 +84,9 @@ class BagWriter:
         return self.T["sensor_msgs/msg/CompressedImage"](header=self.header(stamp_ns), format=fmt,
                                                          data=np.frombuffer(data, np.uint8))
 
-    def info(self, stamp_ns, calibration, distortion=(0.0, 0.0, 0.0, 0.0, 0.0)):
+    def info(self, stamp_ns, calibration, distortion=None):
         c = calibration.camera
+        distortion = self.distortion if distortion is None else distortion
         K = np.array([c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1], np.float64)
         P = np.array([c.fx, 0, c.cx, 0, 0, c.fy, c.cy, 0, 0, 0, 1, 0], np.float64)
         R = np.eye(3).reshape(-1)
@@ -325,6 +330,19 @@ def test_pairs_by_header_stamp_and_reads_frames_in_any_order(tmp_path):
     ds.close()
     with pytest.raises(DatasetError, match="closed"):
         ds.frame(0)
+
+
+def test_distorted_images_are_undistorted_and_rect_topics_use_p(tmp_path):
+    frames = list(_frames(2))
+    D = (0.1, -0.05, 0.001, 0.002, 0.0)
+    ds = open_dataset(_small_bag(tmp_path / "raw", "mcap", frames, pose=None, distortion=D))
+    K = _calibration().camera.K
+    assert ds.calibration.camera == _calibration().camera
+    assert np.array_equal(ds.frame(1).image, cv2.undistort(frames[1].image, K, np.array(D)))
+    assert ds.frame(1).depth.shape == (24, 32)
+    rect = open_dataset(_small_bag(tmp_path / "rect", "mcap", frames, pose=None, distortion=D,
+                                   color_topic="/camera/rgb/image_rect_color"))
+    assert np.array_equal(rect.frame(1).image, frames[1].image)  # already rectified: P, no remap
 
 
 def test_two_colour_topics_need_topics(tmp_path):
