@@ -18,6 +18,11 @@ def positive_int(text: str) -> int:
     return value
 
 
+TOPICS_HELP = ("ROS bags: the topics to play, e.g. color=/camera/rgb/image_raw,depth=/camera/depth/image_raw,"
+               "info=/camera/rgb/camera_info[,pose=/groundtruth] (roles color, depth, info, pose; repeatable). "
+               "Needed only for a role the bag has several topics of; the others are found by message type")
+
+
 def want_progress(quiet: bool = False, stream=None) -> bool:
     """Progress bars only on an interactive terminal: not with -q/--quiet, and not when
     `stream` (default stderr, where tqdm draws) is a pipe or a file, where every update would
@@ -31,4 +36,4 @@ def want_progress(quiet: bool = False, stream=None) -> bool:
         return False
 
 
-__all__ = ["positive_int", "want_progress"]
+__all__ = ["TOPICS_HELP", "positive_int", "want_progress"]

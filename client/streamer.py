@@ -377,13 +377,15 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
 def add_stream_arguments(parser):
     """Define the `mnemoslam stream` options on `parser` (an argparse (sub)parser) and set
     `func=stream_main`. Returns the parser."""
-    from .cliargs import positive_int
+    from .cliargs import TOPICS_HELP, positive_int
     from .datasets import FORMATS
 
     src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("dataset", nargs="?", help="dataset folder (TUM, EuRoC, KITTI, 7-Scenes) or synthetic[:loop|...]")
+    src.add_argument("dataset", nargs="?", help="dataset folder (TUM, EuRoC, KITTI, 7-Scenes), ROS bag (rosbag2 "
+                                                "folder, .db3, .mcap, ROS 1 .bag) or synthetic[:loop|...]")
     src.add_argument("--camera", metavar="DEVICE_OR_VIDEO", help="stream a camera device (index, e.g. 0) or a video file instead")
     parser.add_argument("--format", choices=list(FORMATS), help="override dataset layout detection")
+    parser.add_argument("--topics", action="append", metavar="ROLE=TOPIC,...", help=TOPICS_HELP)
     parser.add_argument("--robot", default="robot1", help="robot id, [A-Za-z0-9_-]{1,64} (default robot1)")
     parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the service takes them: "
                                                    "at most --window frames in flight, none dropped)")
@@ -429,6 +431,8 @@ def stream_main(args) -> int:
         raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
     labels = bool(getattr(args, "labels", False))
     if camera is not None:
+        if getattr(args, "topics", None):
+            raise ValueError("--topics applies to ROS bags only, not to --camera")
         if labels:
             raise ValueError("--labels: a camera device / video file has no labels (only synthetic datasets do)")
         from .capture import CaptureSource
@@ -438,6 +442,8 @@ def stream_main(args) -> int:
         from .datasets import open_dataset
 
         options = {"max_frames": max_frames} if max_frames else {}
+        if getattr(args, "topics", None):
+            options["topics"] = args.topics
         dataset = open_dataset(dataset_spec, getattr(args, "format", None), **options)
     connect = getattr(args, "connect", None) or [DEFAULT_ENDPOINT]
     settings = ZenohSettings(mode=getattr(args, "mode", "peer") or "peer", connect=list(connect))

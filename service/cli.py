@@ -24,6 +24,8 @@ def _cmd_run(args) -> int:
 
     config = load_config(args.config, _overrides(args, {"loop": {"enabled": False}} if args.odometry_only else {}))
     options = {"max_frames": args.max_frames} if args.max_frames else {}
+    if args.topics:
+        options["topics"] = args.topics
     dataset = open_dataset(args.dataset, args.format, **options)
     if args.passes > 1:
         from client.datasets.passes import Passes
@@ -176,16 +178,19 @@ def _add_set(parser, whose: str = "") -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from client.cliargs import positive_int
+    from client.cliargs import TOPICS_HELP, positive_int
+    from client.datasets import FORMATS
 
     p = argparse.ArgumentParser(prog="mnemoslam", description="Long-term, memory-managed visual SLAM.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run a dataset offline through the SLAM pipeline")
-    r.add_argument("dataset", help="dataset folder (TUM, EuRoC, KITTI, 7-Scenes) or synthetic[:loop|figure8|...]")
+    r.add_argument("dataset", help="dataset folder (TUM, EuRoC, KITTI, 7-Scenes), ROS bag (rosbag2 folder, .db3, "
+                                   ".mcap, ROS 1 .bag) or synthetic[:loop|figure8|...]")
     r.add_argument("--out", required=True, help="output folder (trajectory.tum, keyframes.tum, summary.json)")
-    r.add_argument("--format", choices=["tum", "euroc", "kitti", "7scenes", "synthetic"], help="override layout detection")
+    r.add_argument("--format", choices=list(FORMATS), help="override layout detection")
+    r.add_argument("--topics", action="append", metavar="ROLE=TOPIC,...", help=TOPICS_HELP)
     r.add_argument("--config", help="YAML config file (default: built-in defaults)")
     r.add_argument("--passes", type=positive_int, default=1, metavar="N",
                    help="play the sequence forward, backward, forward... N passes in all, stamps continuing at its "

@@ -36,11 +36,13 @@ class Dataset:
             yield self.frame(i)
 
 
-FORMATS = ("tum", "euroc", "kitti", "7scenes", "synthetic")
+FORMATS = ("tum", "euroc", "kitti", "7scenes", "rosbag", "synthetic")
 
 
 def detect_format(path: Path) -> str:
     """Name the layout of a dataset folder, or raise DatasetError saying what was expected."""
+    if (path / "metadata.yaml").is_file():
+        return "rosbag"
     if (path / "rgb.txt").is_file() and (path / "depth.txt").is_file():
         return "tum"
     if (path / "mav0").is_dir() or (path.name == "mav0" and (path / "cam0").is_dir()):
@@ -51,18 +53,29 @@ def detect_format(path: Path) -> str:
         return "7scenes"
     raise DatasetError(
         f"{path}: unknown dataset layout (expected TUM rgb.txt+depth.txt, EuRoC mav0/, "
-        "KITTI image_0/+calib.txt, or 7-Scenes seq-XX/frame-*.color.*); use --format"
+        "KITTI image_0/+calib.txt, 7-Scenes seq-XX/frame-*.color.*, or a ROS bag: rosbag2 metadata.yaml); "
+        "use --format"
     )
 
 
-def open_dataset(spec: str | Path, format: str | None = None, **options) -> Dataset:
-    """Open a dataset folder, or the synthetic scene with `synthetic[:TRAJECTORY]`.
+def _is_bag(path: Path) -> bool:
+    from .rosbag import bag_path
 
-    `options` go to the player (e.g. `max_frames`, and for the synthetic scene `noise`,
-    `seed`, `frames`, ...).
+    return bag_path(path) is not None
+
+
+def open_dataset(spec: str | Path, format: str | None = None, **options) -> Dataset:
+    """Open a dataset folder, a ROS bag (a rosbag2 folder with metadata.yaml, a `.db3` /
+    `.mcap` file, a ROS 1 `.bag` file), or the synthetic scene with `synthetic[:TRAJECTORY]`.
+
+    `options` go to the player (e.g. `max_frames`; for bags `topics`, see
+    `client.datasets.rosbag`; for the synthetic scene `noise`, `seed`, `frames`, ...).
     """
     text = str(spec)
+    topics = options.pop("topics", None)
     if format == "synthetic" or text.startswith("synthetic"):
+        if topics:
+            raise DatasetError(f"{text}: --topics applies to ROS bags only")
         from ..synthetic import SyntheticDataset
 
         trajectory = text.split(":", 1)[1] if ":" in text else "loop"
@@ -70,8 +83,15 @@ def open_dataset(spec: str | Path, format: str | None = None, **options) -> Data
     path = Path(text).expanduser()
     if not path.exists():
         raise DatasetError(f"{path}: no such file or directory")
+    if format == "rosbag" or (format is None and _is_bag(path)):
+        from .rosbag import RosbagDataset
+
+        return RosbagDataset(path, topics=topics, **options)
+    if topics:
+        raise DatasetError(f"{path}: --topics applies to ROS bags only")
     if not path.is_dir():
-        raise DatasetError(f"{path}: not a dataset folder")
+        raise DatasetError(f"{path}: not a dataset folder (nor a ROS bag: .bag, .db3, .mcap or a rosbag2 folder "
+                           "with metadata.yaml)")
     fmt = format or detect_format(path)
     if fmt == "tum":
         from .tum import TumDataset as cls
