@@ -17,9 +17,10 @@ Configuration (`ros` in the config; off by default)::
 A key is the Zenoh key of the topic: zenoh-bridge-ros2dds bridges the ROS 2 topic
 ``/r1/camera/color/image_raw`` to ``r1/camera/color/image_raw`` (after the bridge's namespace,
 if it has one). Keys may hold Zenoh wildcards; rmw_zenoh's data keys are
-``<domain>/<topic>/<type>/<type hash>``, so ``0/<topic as rmw_zenoh writes it>/**`` subscribes
-to them (the pose goes out as a plain put, which the bridge turns into a ROS message; rmw_zenoh
-subscribers need its liveliness tokens and attachments, which we do not send).
+``<domain>/<topic>/<type>/<type hash>``, so ``0/r1/camera/color/image_raw/*/*`` subscribes to
+the topic in domain 0 (not tested against a ROS system here). The pose goes out as a plain
+put, which the bridge turns into a ROS message for ROS subscribers of the topic; rmw_zenoh
+subscribers need its liveliness tokens and attachments, which we do not send.
 
 RGB-D only: the depth must be registered to the colour image (same size and intrinsics, e.g.
 a RealSense's aligned_depth_to_color); stereo pairs and colour-only cameras are not supported
