@@ -5,7 +5,6 @@ are mapped exactly as the same frames sent natively; poses go out as CDR PoseSta
 The end-to-end test runs the real service (its own process), a real Zenoh session on loopback
 publishing the ROS messages, and a native camera client streaming the same frames."""
 import dataclasses
-import threading
 import time
 
 import cv2
