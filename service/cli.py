@@ -106,8 +106,11 @@ def serve_banner(config, rest_port: int | None) -> str:
     else:
         host = config.api.host
         rest = f"REST http://{f'[{host}]' if ':' in host else host}:{rest_port}"
+    ros = ""
+    if config.ros.enabled:
+        ros = f"ROS 2 robots {', '.join(str(r.get('robot')) for r in config.ros.robots if isinstance(r, dict)) or 'none'}; "
     return (f"mnemoslam serve: {rest}; Zenoh {z.mode} listen {', '.join(z.listen) or 'none'}, "
-            f"connect {', '.join(z.connect) or 'none'}, prefix {z.prefix}; "
+            f"connect {', '.join(z.connect) or 'none'}, prefix {z.prefix}; {ros}"
             f"database {Path(config.storage.path).resolve()}")
 
 

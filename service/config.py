@@ -212,6 +212,15 @@ class SemanticsConfig:
 
 
 @dataclass
+class RosConfig:
+    enabled: bool = False  # accept ROS 2 camera topics bridged to Zenoh (zenoh-bridge-ros2dds / rmw_zenoh: CDR Image, CompressedImage, CameraInfo) for the robots below (service/ros.py)
+    robots: list = field(default_factory=list)  # one mapping per robot: {robot: r1, color: KEY, depth: KEY, info: KEY, pose: KEY, intrinsics: k}; KEY = the topic's Zenoh key (the bridge's: the topic without its leading '/'); depth registered to colour; pose (PoseStamped out) and intrinsics (k, or p for image_rect topics) optional
+    frame_id: str = "map"  # header.frame_id of the PoseStamped poses published on a robot's pose key
+    sync_tolerance: float = 0.015  # s; a colour and a depth image pair when their header stamps differ by at most this (the nearest)
+    sync_queue: int = 8  # unpaired images kept per stream waiting for their partner; older ones are dropped (counted unpaired)
+
+
+@dataclass
 class Config:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
@@ -224,6 +233,7 @@ class Config:
     storage: StorageConfig = field(default_factory=StorageConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
     semantics: SemanticsConfig = field(default_factory=SemanticsConfig)
+    ros: RosConfig = field(default_factory=RosConfig)
     seed: int = 0  # seeds every random choice (RANSAC), for bit-for-bit reproducible runs
 
 

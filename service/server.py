@@ -56,6 +56,11 @@ class SlamService:
         self._info_slots = threading.BoundedSemaphore(4)  # info queries in flight
         self._stopped = threading.Event()
         self._janitor: threading.Thread | None = None
+        self.ros = None  # service.ros.RosIngest: the ROS 2 robots of config.ros (bridged topics, CDR)
+        if config.ros.enabled:
+            from .ros import RosIngest
+
+            self.ros = RosIngest(self, config.ros)  # (ConfigError for a bad ros.robots entry)
 
     # -- life cycle --------------------------------------------------------------------
     def start(self) -> "SlamService":
@@ -70,6 +75,8 @@ class SlamService:
             self.zenoh.declare_subscriber(self.keys.frames_wildcard(), self._on_frame_sample),
             self.zenoh.declare_subscriber(self.keys.info_wildcard(), self._on_info_sample),
         ]
+        if self.ros is not None:
+            self.ros.start(self.zenoh)
         self._janitor = threading.Thread(target=self._expire_idle, name="robot-slots", daemon=True)
         self._janitor.start()
         log.info("service started: listen=%s prefix=%s db=%s", z.listen, z.prefix, self.config.storage.path)
@@ -84,6 +91,8 @@ class SlamService:
             except Exception:  # already closed
                 pass
         self._subscribers = []
+        if self.ros is not None:
+            self.ros.stop()
         self._stopped.set()
         if self._janitor is not None:
             self._janitor.join()
@@ -111,21 +120,33 @@ class SlamService:
         it; anything else is counted and dropped before it costs memory."""
         key = str(sample.key_expr)
         robot = self.keys.robot_of(key)
-        session = self.sessions.get(robot) if robot is not None else None
+        if robot is None:
+            self._count_reject("bad_key", key, None)
+            return
+        self.ingest(robot, key, sample.payload.to_bytes())
+
+    def ingest(self, robot: str, key: str, payload, decode=None, ask_info: bool = True) -> None:
+        """A raw frame of `robot` received on `key`: decoded and queued on the robot's session,
+        or held while it has no slot (`_hold`; with `ask_info` its camera info is asked for).
+        `decode(payload, session) -> (seq, Frame)` (raising ProtocolError) decodes other
+        formats than the native frame message (the ROS 2 ingest: `service.ros`); `len(payload)`
+        is its size in bytes."""
+        session = self.sessions.get(robot)
         if session is None:  # no slot: the robot's camera info has not arrived (ask for it)
-            if robot is None:
-                self._count_reject("bad_key", key, None)
-                return
-            if self._hold(robot, key, sample.payload.to_bytes()) is None:  # (else admitted meanwhile: queued)
+            if self._hold(robot, key, payload, decode) is None and ask_info:  # (else admitted meanwhile: queued)
                 self._request_info(robot)
             return
-        self._submit(session, key, sample.payload.to_bytes())
+        self._submit(session, key, payload, decode)
 
-    def _submit(self, session: RobotSession, key: str, payload: bytes) -> None:
+    def _submit(self, session: RobotSession, key: str, payload, decode=None) -> None:
         try:
-            msg = protocol.decode_frame(payload, session.limits, label_names=session.classes)
-            if msg.robot != session.robot:
-                raise protocol.ProtocolError("robot_mismatch", f"header robot {msg.robot!r} on key {key!r}")
+            if decode is not None:
+                seq, frame = decode(payload, session)
+            else:
+                msg = protocol.decode_frame(payload, session.limits, label_names=session.classes)
+                if msg.robot != session.robot:
+                    raise protocol.ProtocolError("robot_mismatch", f"header robot {msg.robot!r} on key {key!r}")
+                seq, frame = msg.seq, msg.frame
         except protocol.ProtocolError as e:
             session.reject(e.reason)
             self._count_reject(e.reason, key, e)
@@ -134,9 +155,9 @@ class SlamService:
             session.reject("internal")
             self._count_reject("internal", key, e)
             return
-        session.submit(msg.seq, msg.frame)
+        session.submit(seq, frame)
 
-    def _hold(self, robot: str, key: str, payload: bytes) -> RobotSession | None:
+    def _hold(self, robot: str, key: str, payload, decode=None) -> RobotSession | None:
         """Keep a frame of a robot without a slot, undecoded, until its camera info arrives
         (its newest `service.hold_frames`, for at most 4 robots at a time, `service.queue_mb` in
         all, `service.info_timeout` + 1 s at most). Frames that cannot be held are counted
@@ -147,7 +168,7 @@ class SlamService:
         with self._lock:
             session = self.sessions.get(robot)
             if session is not None:  # admitted between the caller's look and this lock
-                self._submit(session, key, payload)
+                self._submit(session, key, payload, decode)
                 return session
             held = self._held.get(robot)
             if cfg.hold_frames <= 0 or (held is None and len(self._held) >= 4) \
@@ -156,7 +177,7 @@ class SlamService:
             else:
                 if held is None:
                     held = self._held[robot] = (time.monotonic(), deque())
-                held[1].append((key, payload))
+                held[1].append((key, payload, decode))
                 self._held_bytes += len(payload)
                 while len(held[1]) > cfg.hold_frames:
                     self._held_bytes -= len(held[1].popleft()[1])
@@ -171,12 +192,12 @@ class SlamService:
         held = self._held.pop(robot, None)
         if held is None:
             return
-        for key, payload in held[1]:
+        for key, payload, decode in held[1]:
             self._held_bytes -= len(payload)
             if session is None:
                 self._count_reject("no_calibration", key, None)
             else:
-                self._submit(session, key, payload)
+                self._submit(session, key, payload, decode)
 
     def _on_info_sample(self, sample) -> None:
         key = str(sample.key_expr)
@@ -309,6 +330,8 @@ class SlamService:
                 robot, "keyframe_added", node_id=result.node_id, seq=frame.index, stamp=frame.stamp))
         if result.status == "lost" and session.stats.previous_status != "lost":
             self._publish(self.keys.events(robot), protocol.encode_event(robot, "tracking_lost", seq=frame.index, stamp=frame.stamp))
+        if self.ros is not None:  # a ROS robot's pose key: CDR PoseStamped
+            self.ros.on_result(robot, frame, result.pose)
 
     def _publish(self, key: str, payload: bytes) -> None:
         z = self.zenoh
