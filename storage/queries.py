@@ -166,9 +166,10 @@ class Queries(Connection):
             params.append(str(robot))
         if bbox is not None:
             lo, hi = _bbox(bbox)
-            if self._rtree:
-                where.append("n.id IN (SELECT id FROM nodes_rtree WHERE max_x >= ? AND min_x <= ? "
-                             "AND max_y >= ? AND min_y <= ? AND max_z >= ? AND min_z <= ?)")
+            if self._rtree and merged is not True:  # (the R*Tree holds the map's nodes, not merged keyframes)
+                rtree = ("n.id IN (SELECT id FROM nodes_rtree WHERE max_x >= ? AND min_x <= ? "
+                         "AND max_y >= ? AND min_y <= ? AND max_z >= ? AND min_z <= ?)")
+                where.append(rtree if merged is False else f"({rtree} OR n.merged_into IS NOT NULL)")
                 params += [lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]]
             where.append("n.x BETWEEN ? AND ? AND n.y BETWEEN ? AND ? AND n.z BETWEEN ? AND ?")
             params += [lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]]

@@ -135,8 +135,21 @@ def m004_objects(db: sqlite_utils.Database) -> None:
     db["objects"].create_index(["node_id"], index_name="idx_objects_node")
 
 
+def m005_rtree_map_nodes(db: sqlite_utils.Database) -> None:
+    """v5: the R*Tree holds the map's nodes only. A keyframe merged by rehearsal leaves it (a
+    trigger on `merged_into`), so a spatial query of the map (retrieval near the keyframe, at
+    every map update) does not slow down as a patrol merges ever more keyframes at one place;
+    queries that include merged keyframes check their exact x, y, z without the R*Tree."""
+    if db.execute("SELECT 1 FROM sqlite_master WHERE name = 'nodes_rtree'").fetchone() is None:
+        return  # an SQLite without R*Tree: the (x, y, z) index serves every query
+    db.execute("DELETE FROM nodes_rtree WHERE id IN (SELECT id FROM nodes WHERE merged_into IS NOT NULL)")
+    db.execute("""CREATE TRIGGER nodes_rtree_merged AFTER UPDATE OF merged_into ON nodes
+        WHEN new.merged_into IS NOT NULL BEGIN DELETE FROM nodes_rtree WHERE id = new.id; END""")
+
+
 #: Applied in order: MIGRATIONS[i] upgrades schema version i to i + 1.
-MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason, m003_merged_nodes, m004_objects)
+MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason, m003_merged_nodes, m004_objects,
+                                      m005_rtree_map_nodes)
 
 #: Tables a v1 database has (for "is this a mnemoslam database" checks).
 TABLES = ("admin", "sessions", "nodes", "links", "features", "words", "images", "statistics")

@@ -394,6 +394,21 @@ def test_bbox_and_paging(store, rng):
         store.nodes(bbox=((0, 0), (1, 1)))
     with pytest.raises(ValueError):
         store.nodes(offset=-1)
+    # keyframes merged by rehearsal leave the R*Tree (the map's spatial index) and are still
+    # found, by their exact position, by the queries that ask for them
+    merged = [ids[3 * 10 + 2], ids[4 * 10 + 3]]
+    for m in merged:
+        store.merge_node(m, ids[0], pose(0.1), np.eye(6))
+    if rows(store.path, "SELECT 1 FROM sqlite_master WHERE name = 'nodes_rtree'"):
+        in_rtree = {r[0] for r in rows(store.path, "SELECT id FROM nodes_rtree")}
+        assert not in_rtree & set(merged) and len(in_rtree) == 98
+    assert [n.id for n in store.nodes(bbox=box, limit=None)] == inside
+    assert [n.id for n in store.nodes(bbox=box, limit=None, merged=False)] == [i for i in inside if i not in merged]
+    assert [n.id for n in store.nodes(bbox=box, limit=None, merged=True)] == merged
+    assert store.count_nodes(bbox=box, merged=True) == 2 and store.count_nodes(bbox=box, merged=False) == 7
+    store.update_poses({merged[0]: pose(50, 50, 0)})  # a merged keyframe's pose moves: still no R*Tree entry
+    assert [n.id for n in store.nodes(bbox=((49, 49, -1), (51, 51, 1)), limit=None)] == [merged[0]]
+    assert store.nodes(bbox=((49, 49, -1), (51, 51, 1)), merged=False) == []
 
 
 def test_links_by_type(store, rng):
@@ -1033,3 +1048,25 @@ def test_migration_from_v3_adds_objects(tmp_path, rng):
         s.save_objects([obj(a)])
         assert s.objects()[0].node_id == a and s.integrity_check() == "ok"
     assert {"idx_objects_label", "idx_objects_node"} <= {r[0] for r in rows(path, "SELECT name FROM sqlite_master")}
+
+
+def test_v5_takes_merged_keyframes_out_of_the_rtree(tmp_path, rng):
+    """A v4 map (merged keyframes still in the R*Tree) opened by v5: they leave it, and the
+    trigger keeps later merges out."""
+    path = tmp_path / "map.db"
+    with MapStore(path) as s:
+        sid = s.begin_session("r1", CAL)
+        ids = [s.add_keyframe(record(rng, sid, i, pose(i, 0, 0), n=4)) for i in range(4)]
+        s.merge_node(ids[1], ids[0], pose(0.1), np.eye(6))
+    if not rows(path, "SELECT 1 FROM sqlite_master WHERE name = 'nodes_rtree'"):
+        pytest.skip("this SQLite has no R*Tree")
+    c = sqlite3.connect(path, isolation_level=None)  # back to v4: the merged keyframe in the R*Tree, no trigger
+    c.execute("DROP TRIGGER nodes_rtree_merged")
+    c.execute("INSERT INTO nodes_rtree VALUES (?, 1, 1, 0, 0, 0, 0)", (ids[1],))
+    c.execute("PRAGMA user_version = 4")
+    c.close()
+    with MapStore(path) as s:
+        assert s.schema_version == V
+        s.merge_node(ids[2], ids[0], pose(0.1), np.eye(6))
+        assert [n.id for n in s.nodes(bbox=((-1, -1, -1), (5, 1, 1)), merged=False)] == [ids[0], ids[3]]
+    assert sorted(r[0] for r in rows(path, "SELECT id FROM nodes_rtree")) == [ids[0], ids[3]]
