@@ -1,0 +1,167 @@
+"""Issue 13 (3): the live web viewer. Its page (GET /viewer) in headless Chromium, driven by
+Playwright, while the synthetic loop streams with its camera labels into the real service
+(`mnemoslam serve` with semantics on): the page's trajectory grows, a door is listed among the
+objects, the canvases draw it (screenshot), and the service still stops cleanly with the
+page's event stream open. Then the viewer's access rule: with api.protect_reads the token
+comes as `?token=` (a browser's EventSource sends no header), and only for the viewer."""
+import json
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+import requests
+
+from client.datasets import open_dataset
+from client.streamer import stream_dataset
+from client.transport import ZenohSettings
+from conftest import require_chromium
+from service.api import TOKEN_ENV, ApiThread, create_app
+from service.config import load_config
+from service.demo import ServiceProcess, free_port
+from service.server import SlamService
+
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+SESSION_BGR = (255, 163, 77)  # the first session's trajectory colour (#4da3ff) in the screenshot
+
+
+class _Until:
+    """A dataset's frames in order until `stop` is set: the stream then ends at once (the test
+    need not wait for the whole loop)."""
+
+    def __init__(self, dataset, stop: threading.Event):
+        self.dataset, self.stop = dataset, stop
+        self.calibration, self.name = dataset.calibration, dataset.name
+        self.class_names = getattr(dataset, "class_names", None)
+
+    def __len__(self):
+        return len(self.dataset)
+
+    def __iter__(self):
+        for i in range(len(self.dataset)):
+            if self.stop.is_set():
+                return
+            yield self.dataset.frame(i)
+
+
+def _count(page) -> int:
+    return int(page.get_attribute("#traj-count", "data-count"))
+
+
+def test_viewer_shows_the_stream_live_in_chromium(tmp_path):
+    chromium = require_chromium()
+    from playwright.sync_api import sync_playwright
+
+    svc = ServiceProcess(tmp_path / "map.db", {"semantics": {"enabled": True, "source": "camera"},
+                                               "service": {"idle_timeout": 3600.0}}).start()
+    stop, failed = threading.Event(), []
+
+    def stream():
+        try:
+            stream_dataset(_Until(open_dataset("synthetic:loop", rate=10), stop), "r1",
+                           ZenohSettings(connect=[svc.endpoint]), rate=None, progress=False, wait_for_subscriber=10.0,
+                           labels=True)
+        except Exception as e:  # reported by the test
+            failed.append(e)
+
+    streamer = threading.Thread(target=stream, name="stream", daemon=True)
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(chromium), args=CHROMIUM_ARGS, headless=True)
+            try:
+                page = browser.new_page(viewport={"width": 1280, "height": 860})
+                page.goto(f"http://127.0.0.1:{svc.http_port}/viewer")
+                page.wait_for_function("document.getElementById('status').textContent === 'live'", timeout=20_000)
+                assert _count(page) == 0  # nothing streamed yet
+                streamer.start()
+                # the trajectory grows while the robot streams: first a few keyframes, then more
+                page.wait_for_function("+document.getElementById('traj-count').dataset.count >= 3", timeout=60_000)
+                first = _count(page)
+                page.wait_for_function(f"+document.getElementById('traj-count').dataset.count > {first}",
+                                       timeout=60_000)
+                assert not failed, failed
+                # a door fused from the camera's labels is listed among the objects
+                door = page.wait_for_selector('#objects li[data-label="door"]', timeout=90_000)
+                assert "door" in door.inner_text()
+                # the robot's live row and its session's memory sizes (from the map update's statistics)
+                page.wait_for_function("document.querySelector('#robots tbody').innerText.includes('r1')")
+                page.wait_for_function("[...document.querySelectorAll('#sessions tbody td')]"
+                                       ".some((td, i) => i % 6 === 4 && /^[0-9]+$/.test(td.textContent))",
+                                       timeout=30_000)
+                page.wait_for_timeout(700)  # one more update drawn
+                shot = tmp_path / "viewer.png"
+                page.screenshot(path=str(shot))
+                boxes = {name: page.locator(f"#{name}").bounding_box() for name in ("top", "orbit")}
+                updates = int(page.get_attribute("#updates", "data-updates"))
+                assert updates >= 3
+                # the service stops (exit 0) with the page's event stream still open
+                stop.set()
+                streamer.join(60)
+                assert not streamer.is_alive()
+                t = time.monotonic()
+                assert svc.stop(timeout=30) == 0
+                assert time.monotonic() - t < 20
+                page.wait_for_function("document.getElementById('status').textContent !== 'live'", timeout=20_000)
+            finally:
+                browser.close()
+    finally:
+        stop.set()
+        streamer.join(60) if streamer.is_alive() else None
+        svc.stop()
+    assert not failed, failed
+
+    image = cv2.imread(str(shot))
+    assert image is not None and image.shape[0] >= 800 and image.shape[1] >= 1200, "not a full-page PNG"
+    for name, box in boxes.items():
+        x, y, w, h = (int(round(box[k])) for k in ("x", "y", "width", "height"))
+        area = image[y:y + h, x:x + w]
+        assert area.size and area.reshape(-1, 3).std(axis=0).max() > 8, f"the {name} canvas is blank"
+        # the trajectory is drawn in its session's colour
+        drawn = np.all(np.abs(area.astype(int) - SESSION_BGR) <= 12, axis=2).sum()
+        assert drawn > 30, f"no trajectory on the {name} canvas ({drawn} pixels of its colour)"
+
+
+def _first_event(url: str, **params) -> dict:
+    with requests.get(url, params=params, stream=True, timeout=10) as r:
+        assert r.status_code == 200, r.text
+        assert r.headers["content-type"].startswith("text/event-stream")
+        for line in r.iter_lines(decode_unicode=True):
+            if line.startswith("data: "):
+                return json.loads(line[len("data: "):])
+    raise AssertionError("the stream ended without an update")
+
+
+def test_viewer_takes_the_token_as_a_query_parameter_with_protect_reads(tmp_path, monkeypatch):
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    config = load_config(None, {"api": {"token": "view-me", "protect_reads": True},
+                                "storage": {"path": str(tmp_path / "map.db")},
+                                "zenoh": {"listen": [f"tcp/127.0.0.1:{free_port()}"]}})
+    service = SlamService(config).start()
+    server = ApiThread(create_app(service)).start()
+    try:
+        url = server.url
+        for path in ("/viewer", "/viewer/events"):
+            assert requests.get(url + path, timeout=10).status_code == 401
+            r = requests.get(url + path, params={"token": "wrong"}, timeout=10)
+            assert r.status_code == 401 and "/viewer?token=" in r.json()["detail"]
+        page = requests.get(url + "/viewer", params={"token": "view-me"}, timeout=10)
+        assert page.status_code == 200 and "<canvas" in page.text
+        assert requests.get(url + "/viewer", headers={"Authorization": "Bearer view-me"}, timeout=10).status_code == 200
+        first = _first_event(url + "/viewer/events", token="view-me")
+        assert first["reset"] is True and first["robots"] == [] and first["sessions"] == []
+        # only the viewer takes the token from the URL
+        assert requests.get(url + "/robots", params={"token": "view-me"}, timeout=10).status_code == 401
+        assert "/viewer" not in requests.get(url + "/openapi.json", headers={"Authorization": "Bearer view-me"},
+                                             timeout=10).json()["paths"]
+        # an open event stream does not hold the server's shutdown
+        held = requests.get(url + "/viewer/events", params={"token": "view-me"}, stream=True, timeout=10)
+        assert next(held.iter_lines()) is not None
+        t = time.monotonic()
+        server.stop()
+        assert not server._thread.is_alive() and time.monotonic() - t < 5
+        held.close()
+    finally:
+        server.stop()
+        service.stop()
