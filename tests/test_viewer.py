@@ -165,3 +165,79 @@ def test_viewer_takes_the_token_as_a_query_parameter_with_protect_reads(tmp_path
     finally:
         server.stop()
         service.stop()
+
+
+class _Service:
+    """The service as the viewer reads it: its store and its robots."""
+
+    def __init__(self, store, robots):
+        self.store, self._robots = store, robots
+
+    def robots(self):
+        return list(self._robots)
+
+
+def _keyframe(store, sid, x: float) -> int:
+    from storage.records import KeyframeRecord
+
+    pose = np.eye(4)
+    pose[0, 3] = x
+    rng = np.random.default_rng(int(x * 10))
+    return store.add_keyframe(KeyframeRecord(session_id=sid, stamp=x, pose=pose,
+                                             keypoints=(rng.random((20, 2)) * 640).astype(np.float32),
+                                             descriptors=rng.integers(0, 256, (20, 32), dtype=np.uint8),
+                                             points=rng.normal(size=(20, 3)).astype(np.float32)))
+
+
+def test_feed_sends_what_changed(tmp_path):
+    """The feed of one client over a real map: a first full update (trajectory decimated, the
+    memory sizes, the objects), then nothing while nothing changes, new keyframes appended,
+    the whole trajectory again with its loop link when one is added (and every `full_every`
+    seconds while live), and the session marked ended when its robot goes."""
+    from service.semantics.queries import ObjectIndex
+    from service.viewer import Limits, ViewerFeed
+    from storage.records import LinkType
+    from test_api_objects import _robot, make_map
+
+    store, sid, ids, _ = make_map(tmp_path / "map.db")  # keyframes at x = 0..9; doors, chairs, a table
+    store.set_statistics(ids[-1], {"timings_ms": {"loop": 1.0}, "memory": {"stm": 3, "wm": 7, "ltm": 0, "words": 42}})
+    now = [100.0]
+    service = _Service(store, [_robot("r1", [9.0, 0.0, 0.0], ids[-1], sid)])
+    index = ObjectIndex(store)
+    feed = ViewerFeed(service, objects=lambda s: index, limits=Limits(max_points=4, full_every=5.0),
+                      clock=lambda: now[0])
+    try:
+        first = feed.next()
+        assert first["reset"] is True and first["robots"][0]["robot"] == "r1"
+        (s,) = first["sessions"]
+        assert s["id"] == sid and s["live"] is True and s["full"] is True and s["nodes"] == 10
+        assert np.reshape(s["points"], (-1, 3))[:, 0].tolist() == [0.0, 3.0, 6.0, 9.0]  # decimated, ends kept
+        assert s["links"] == [] and s["memory"] == {"stm": 3, "wm": 7, "ltm": 0, "words": 42}
+        assert first["objects"]["total"] == 5 and {"door", "chair", "table"} == {o["label"] for o in first["objects"]["items"]}
+        assert ["door", 2] in first["objects"]["labels"]
+
+        quiet = feed.next()
+        assert quiet["reset"] is False and quiet["sessions"] == [] and "objects" not in quiet
+
+        new = [_keyframe(store, sid, 10.0), _keyframe(store, sid, 11.0)]
+        (s,) = feed.next()["sessions"]
+        assert s["full"] is False and s["nodes"] == 12 and s["points"] == [10.0, 0.0, 0.0, 11.0, 0.0, 0.0]
+
+        store.add_link(ids[0], new[-1], LinkType.GLOBAL_CLOSURE, np.eye(4))  # a loop closure
+        (s,) = feed.next()["sessions"]
+        assert s["full"] is True and s["nodes"] == 12 and len(s["points"]) == 4 * 3
+        assert s["links"] == [["loop", 0.0, 0.0, 0.0, 11.0, 0.0, 0.0]]
+        assert feed.next()["sessions"] == []
+
+        now[0] += 6.0  # a live session's whole trajectory again every full_every seconds
+        (s,) = feed.next()["sessions"]
+        assert s["full"] is True and s["links"] == [["loop", 0.0, 0.0, 0.0, 11.0, 0.0, 0.0]]
+
+        service._robots = []  # the robot went: its session is ended, sent once more as such
+        (s,) = feed.next()["sessions"]
+        assert s["live"] is False and "points" not in s
+        now[0] += 6.0
+        assert feed.next()["sessions"] == []  # nothing changed in it
+    finally:
+        index.close()
+        store.close()
