@@ -55,9 +55,10 @@ log = logging.getLogger("mnemoslam.viewer")
 
 PAGE = Path(__file__).resolve().with_name("static") / "viewer.html"
 
-# the links drawn (odometry links are the trajectory's polyline), by the names of GET /graph
-LINKS = {LinkType.GLOBAL_CLOSURE: "loop", LinkType.LOCAL_SPACE: "proximity", LinkType.LOCAL_TIME: "local_time",
-         LinkType.USER: "user", LinkType.VIRTUAL: "virtual", LinkType.MERGED: "merged"}
+# the links drawn, by the names of GET /graph: odometry links are the trajectory's polyline, and
+# local-time links (between keyframes close in time, hundreds per loop) would only hide it
+LINKS = {LinkType.GLOBAL_CLOSURE: "loop", LinkType.LOCAL_SPACE: "proximity", LinkType.USER: "user",
+         LinkType.VIRTUAL: "virtual", LinkType.MERGED: "merged"}
 ROBOT_KEYS = ("robot", "state", "session_id", "position", "node_id", "keyframes", "frames_processed", "fps",
               "map_backlog")
 
