@@ -19,7 +19,7 @@ from client.transport import ZenohSettings
 from conftest import require_chromium
 from service.api import TOKEN_ENV, ApiThread, create_app
 from service.config import load_config
-from service.demo import ServiceProcess, free_port
+from service.demo import ServiceProcess, free_port, log_errors
 from service.server import SlamService
 
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -108,9 +108,11 @@ def test_viewer_shows_the_stream_live_in_chromium(tmp_path):
                 browser.close()
     finally:
         stop.set()
-        streamer.join(60) if streamer.is_alive() else None
+        if streamer.is_alive():
+            streamer.join(60)
         svc.stop()
     assert not failed, failed
+    assert log_errors(svc.log_path) == []  # no error in the service, its shutdown with the stream open included
 
     image = cv2.imread(str(shot))
     assert image is not None and image.shape[0] >= 800 and image.shape[1] >= 1200, "not a full-page PNG"
