@@ -10,7 +10,6 @@ import time
 
 import cv2
 import numpy as np
-import pytest
 import requests
 
 from client.datasets import open_dataset
