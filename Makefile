@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test venv bench clean
+.PHONY: demo test venv browser bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -19,8 +19,20 @@ demo: $(STAMP)
 	$(BIN)/mnemoslam demo
 
 ## The test suite (real-data tests read MNEMOSLAM_DATA, default ../shared/data).
-test: $(STAMP)
+test: $(STAMP) browser
 	$(BIN)/python -m pytest -q
+
+## Chromium for the viewer's browser test (tests/test_viewer.py): the Debian package, installed
+## with apt-get when it is missing and apt-get can (root, or sudo without a password). Not fatal:
+## without it that test skips, or fails where browsers are required (MNEMOSLAM_REQUIRE_DATA, CI).
+CHROMIUM ?= $(or $(MNEMOSLAM_CHROMIUM),/usr/bin/chromium)
+browser:
+	@if [ ! -x "$(CHROMIUM)" ] && command -v apt-get >/dev/null 2>&1; then \
+		if [ "$$(id -u)" = 0 ]; then sudo=; else sudo="sudo -n"; fi; \
+		echo "make: installing chromium (apt-get) for the viewer's browser test"; \
+		{ $$sudo apt-get update -qq && $$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } \
+			>/dev/null 2>&1 || echo "make: chromium not installed: the viewer's browser test will skip (fail in CI)"; \
+	fi
 
 bench: $(STAMP)
 	$(BIN)/python bench/run_sequences.py

@@ -2,7 +2,9 @@
 statistics, and the semantic map (objects: nearest of a label, by label / around a point, one,
 labels with counts, a path along the pose graph to one). OpenAPI docs at /docs; every
 response has a Pydantic model there. Prometheus metrics at /metrics (service/metrics.py; not
-in the OpenAPI).
+in the OpenAPI). The live web viewer at /viewer, fed by server-sent events at /viewer/events
+(service/viewer.py; not in the OpenAPI either); serve the app with `ApiServer`, which ends
+those streams when it shuts down.
 
 Reads go to the service's live state, to the SQLite long-term memory and, for objects, to the
 query layer (`service.semantics.queries`); route handlers only translate its answers to HTTP.
@@ -14,7 +16,9 @@ Access control (`api.token`, overridden by the environment variable MNEMOSLAM_AP
   401 without it or with another token; when no token is configured they answer 403 (how to
   set one), so a service is never writable by accident;
 - reads are open, or need the token too when `api.protect_reads` is true (that needs a
-  token: create_app refuses to start otherwise); /health stays open for liveness probes.
+  token: create_app refuses to start otherwise); /health stays open for liveness probes;
+- the viewer's routes are reads, but with api.protect_reads they also take the token as
+  `?token=` (a browser's EventSource sends no header); no other route does.
 
 Semantics off (`semantics.enabled` false or no model): the object endpoints still answer
 from the objects the database holds (earlier sessions' objects stay queryable) and say so:
@@ -30,9 +34,10 @@ import threading
 import time
 from typing import Annotated, Any
 
+import uvicorn
 from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import PlainTextResponse
+from fastapi.responses import HTMLResponse, PlainTextResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -44,6 +49,7 @@ from .config import Config
 from .metrics import Metrics, RequestTimer
 from .semantics.queries import NotFound, ObjectIndex, ObjectView, QueryError, Unavailable, robot_location
 from .server import SlamService
+from .viewer import Viewer
 
 LINK_TYPES = {0: "odometry", 1: "loop", 2: "proximity", 3: "local_time", 4: "user", 5: "virtual", 10: "merged"}
 TOKEN_ENV = "MNEMOSLAM_API_TOKEN"
@@ -336,6 +342,24 @@ async def read_access(request: Request, credentials: Credentials) -> None:
         access.check(credentials)
 
 
+async def viewer_access(request: Request, credentials: Credentials,
+                        token: Annotated[str | None, Query(description="the API token, with api.protect_reads (a "
+                                                                       "browser's EventSource sends no header)")] = None
+                        ) -> None:
+    """The viewer's page and events: reads, but the token may also come as `?token=` (the
+    browser's EventSource cannot send an Authorization header). Only there, and only looked at
+    with api.protect_reads."""
+    access: Access = request.app.state.access
+    if access.protect_reads:
+        if credentials is None and token is not None:
+            credentials = HTTPAuthorizationCredentials(scheme="Bearer", credentials=token)
+        try:
+            access.check(credentials)
+        except HTTPException as e:
+            raise HTTPException(e.status_code, f"{e.detail} (the viewer: open /viewer?token=<token>)",
+                                headers=e.headers) from None
+
+
 ServiceDep = Annotated[SlamService, Depends(get_service)]
 
 
@@ -470,17 +494,21 @@ def create_app(service: SlamService) -> FastAPI:
     app.state.objects = _IndexHolder()
     app.state.semantics = None  # (when, semantics_status()) for the object endpoints
     app.state.metrics = Metrics(service)
+    app.state.viewer = Viewer(service, objects=app.state.objects.get)
     app.add_middleware(RequestTimer, observe=app.state.metrics.observe_request)
     app.router.add_event_handler("shutdown", app.state.objects.close)
     app.include_router(open_routes)
     app.include_router(read_routes)
     app.include_router(write_routes)
+    app.include_router(viewer_routes)
     return app
 
 
 open_routes = APIRouter()
 read_routes = APIRouter(dependencies=[Depends(read_access)], responses=_errors(401, 403))
 write_routes = APIRouter(dependencies=[Depends(require_token)], responses=_errors(401, 403))
+# the live viewer: not in the OpenAPI (a page and an endless event stream, no JSON API)
+viewer_routes = APIRouter(dependencies=[Depends(viewer_access)], include_in_schema=False)
 
 
 @open_routes.get("/health", response_model=Health)
@@ -660,6 +688,33 @@ def delete_object(object_id: DbId, objects: ObjectsDep):
         return {"deleted": objects.index.delete(object_id)}
 
 
+# -- the live viewer (service/viewer.py) -------------------------------------------------------------
+@viewer_routes.get("/viewer", response_class=HTMLResponse)
+def viewer_page(request: Request):
+    """The viewer: top-down and 3D views of each session's trajectory and graph (loop links),
+    the objects, the robots' live poses and the memory sizes, updated from /viewer/events."""
+    return HTMLResponse(request.app.state.viewer.page(), headers={"Cache-Control": "no-cache"})
+
+
+@viewer_routes.get("/viewer/events")
+async def viewer_events(request: Request):
+    """Server-sent events: a compact JSON update every ~0.5 s (service/viewer.py)."""
+    return StreamingResponse(request.app.state.viewer.events(request.is_disconnected), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+class ApiServer(uvicorn.Server):
+    """uvicorn's server for an app of `create_app`. At shutdown it first ends the app's event
+    streams (the viewer's): uvicorn waits for open responses to end before it tells the app to
+    shut down, and an event stream does not end by itself."""
+
+    async def shutdown(self, sockets=None) -> None:
+        viewer = getattr(getattr(self.config.app, "state", None), "viewer", None)
+        if viewer is not None:
+            viewer.close()
+        await super().shutdown(sockets)
+
+
 class ApiThread:
     """An app served by uvicorn on a free local port in a thread (tests, benchmarks):
     `with ApiThread(create_app(service)) as url: ...`."""
@@ -667,14 +722,12 @@ class ApiThread:
     def __init__(self, app: FastAPI, host: str = "127.0.0.1", **uvicorn_options):
         import socket
 
-        import uvicorn
-
         # TCP explicitly, for TCP_NODELAY on its connections (service/cli.py `_listen_socket`)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP)
         self.sock.bind((host, 0))
         self.port = self.sock.getsockname()[1]
         self.url = f"http://{host}:{self.port}"
-        self.server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False, **uvicorn_options))
+        self.server = ApiServer(uvicorn.Config(app, log_level="warning", access_log=False, **uvicorn_options))
         self._thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True,
                                         name="api-thread")
 

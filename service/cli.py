@@ -119,7 +119,7 @@ def _cmd_serve(args) -> int:
 
     import uvicorn
 
-    from .api import create_app
+    from .api import ApiServer, create_app
     from .config import load_config
     from .server import SlamService
 
@@ -143,7 +143,7 @@ def _cmd_serve(args) -> int:
         sock = _listen_socket(config.api.host, config.api.port) if config.api.enabled else None
         print(serve_banner(config, sock.getsockname()[1] if sock is not None else None), flush=True)
         if sock is not None:
-            server = uvicorn.Server(uvicorn.Config(create_app(service), host=config.api.host, port=config.api.port,
+            server = ApiServer(uvicorn.Config(create_app(service), host=config.api.host, port=config.api.port,
                                                    log_level="warning", access_log=False))
             server.run(sockets=[sock])  # returns on SIGINT / SIGTERM
         else:

@@ -136,6 +136,28 @@ class Queries(Connection):
             return [tuple(r) for r in c.execute(sql, (_as_int(session_id, "session_id"),
                                                       _as_int(after_node, "after_node")))]
 
+    # -- the live viewer (service.viewer) -----------------------------------------------------
+    def node_positions(self, session_id: int, after_id: int = 0) -> np.ndarray:
+        """(N, 4) float64 rows (id, x, y, z) of the session's map nodes (not merged into another)
+        with id > `after_id`, by id: the viewer's trajectory without decoding poses."""
+        with self._read() as c:
+            rows = c.execute("SELECT id, x, y, z FROM nodes WHERE session_id = ? AND id > ? AND merged_into IS NULL "
+                             "ORDER BY id", (_as_int(session_id, "session_id"), _as_int(after_id, "after_id"))).fetchall()
+        return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+    def link_segments(self, types: Iterable[int], session_id: int, limit: int | None = None) -> list[tuple]:
+        """Links of the given types ending at a node of `session_id` (as `count_links` counts
+        them) with both ends' positions: (from, to, type, x1, y1, z1, x2, y2, z2), the
+        newest `limit` (by their end node) in (to, from, type) order."""
+        kinds = json.dumps(sorted({_as_int(t, "type") for t in types}))
+        lim = -1 if limit is None else _as_int(limit, "limit")
+        sql = ("SELECT * FROM (SELECT l.from_id, l.to_id, l.type, a.x, a.y, a.z, b.x, b.y, b.z "
+               "FROM nodes b JOIN links l ON l.to_id = b.id JOIN nodes a ON a.id = l.from_id "
+               "WHERE b.session_id = ? AND l.type IN (SELECT value FROM json_each(?)) "
+               "ORDER BY l.to_id DESC, l.from_id DESC, l.type DESC LIMIT ?) ORDER BY 2, 1, 3")
+        with self._read() as c:
+            return [tuple(r) for r in c.execute(sql, (_as_int(session_id, "session_id"), kinds, lim))]
+
     def count_links(self, types: Iterable[int], session_id: int | None = None) -> dict[int, int]:
         """{link type: links} of the given types, of those ending at a node of `session_id`
         when given (a loop closure's link ends at the new keyframe)."""

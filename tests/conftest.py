@@ -36,6 +36,22 @@ def _missing(msg: str):
     pytest.skip(msg)
 
 
+CHROMIUM = Path(os.environ.get("MNEMOSLAM_CHROMIUM", "/usr/bin/chromium"))
+
+
+def require_chromium() -> Path:
+    """The headless browser of the viewer's test (the Debian chromium package; `make test`
+    installs it when apt-get can) with Playwright to drive it: skipped with the reason when
+    either is missing, or failed when MNEMOSLAM_REQUIRE_DATA is set (as in CI)."""
+    if not os.access(CHROMIUM, os.X_OK):
+        _missing(f"no Chromium at {CHROMIUM} (apt-get install chromium, or set MNEMOSLAM_CHROMIUM)")
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError as e:
+        _missing(f"playwright is not installed ({e}; pip install -e '.[test]')")
+    return CHROMIUM
+
+
 # ------------------------------------------------------------------------------------------
 # Synthetic frames rendered once per test session
 
