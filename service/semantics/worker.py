@@ -101,11 +101,15 @@ class SemanticWorker:
                                os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + int(self.config.nice))
             except (AttributeError, OSError) as e:  # pragma: no cover - not Linux
                 log.info("semantic worker keeps its priority: %s", e)
+        duty = min(1.0, max(0.05, float(self.config.max_duty)))
         while True:
             kf = self._queue.get()
             if kf is _STOP:
                 return
+            t = time.perf_counter()
             self._process(kf)
+            if duty < 1.0:  # rest in proportion: busy at most `max_duty` of the time (a stop waits for it)
+                time.sleep((time.perf_counter() - t) * (1.0 / duty - 1.0))
 
     def _process(self, kf: SemanticKeyframe) -> None:
         t = time.perf_counter()
