@@ -48,7 +48,7 @@ from dataclasses import dataclass
 from .frames import Calibration, DatasetError, Frame
 from .protocol import (DEFAULT_CLASSES, DEFAULT_PREFIX, KINDS, LABEL_ENCODINGS, KeySpace, ProtocolError,
                        decode_pose, encode_frame, encode_info, frame_kind)
-from .transport import DEFAULT_ENDPOINT, MODES, ZenohSettings, open_session
+from .transport import DEFAULT_ENDPOINT, MODES, ZenohSettings, open_session, undeclare_all
 
 log = logging.getLogger(__name__)
 
@@ -188,11 +188,7 @@ class CameraStreamer:
         if self._closed:
             return
         self._closed = True
-        for entity in (self._publisher, self._queryable, self._poses):
-            try:
-                entity.undeclare()
-            except Exception as e:  # session already closed
-                log.debug("undeclare failed: %s", e)
+        undeclare_all((self._publisher, self._queryable, self._poses))
 
     def __enter__(self) -> "CameraStreamer":
         return self

@@ -28,12 +28,15 @@ host for payloads above 3 KiB (zenoh's default).
 from __future__ import annotations
 
 import atexit
+import logging
 import json
 import re
 import threading
 from dataclasses import dataclass, field
 
 DEFAULT_PORT = 7447
+log = logging.getLogger("mnemoslam.transport")
+
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 MODES = ("peer", "client", "router")
 _ENDPOINT = re.compile(r"[a-z0-9]+/\S+")
@@ -152,3 +155,13 @@ def open_session(settings: ZenohSettings | None = None):
 
 __all__ = ["DEFAULT_PORT", "DEFAULT_ENDPOINT", "MODES", "TransportError", "ZenohSettings", "open_session",
            "close_all_sessions"]
+
+
+def undeclare_all(entities) -> None:
+    """Undeclare Zenoh subscribers / publishers / queryables; one already gone with its closed
+    session is skipped."""
+    for entity in entities:
+        try:
+            entity.undeclare()
+        except Exception as e:  # the session is closed already
+            log.debug("undeclare failed: %s", e)

@@ -32,7 +32,7 @@ sensor_msgs/CompressedImage; any other colour / depth key sensor_msgs/Image. Enc
 `client.ros_cdr`.
 
 How a ROS robot is mapped: its camera info (ROS publishes it with every image) admits it as a
-native camera info does (`SlamService._admit`: a slot when one is free; a changed calibration
+native camera info does (`SlamService.admit`: a slot when one is free; a changed calibration
 is counted). Colour and depth images are paired by header stamp: a new image pairs with the
 unpaired image of the other stream whose stamp is nearest, within `ros.sync_tolerance`; the
 pair's older unpaired images are dropped and counted ``unpaired``, as are images pushed out of a
@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 from client import ros_cdr
 from client.frames import Frame
 from client.protocol import ROBOT_PATTERN, ProtocolError
+from client.transport import undeclare_all
 
 from .config import ConfigError, RosConfig
 
@@ -163,7 +164,7 @@ class _Stream:
 
 class RosIngest:
     """Subscribes to the configured robots' topics on the service's Zenoh session and feeds
-    the service's admission path (`SlamService._admit`, `SlamService.ingest`)."""
+    the service's admission path (`SlamService.admit`, `SlamService.ingest`)."""
 
     def __init__(self, service, config: RosConfig):
         self.service = service
@@ -180,11 +181,7 @@ class RosIngest:
             log.info("ROS robot robot=%s color=%s depth=%s info=%s pose=%s", r.robot, r.color, r.depth, r.info, r.pose)
 
     def stop(self) -> None:
-        for sub in self._subscribers:
-            try:
-                sub.undeclare()
-            except Exception:  # already closed
-                pass
+        undeclare_all(self._subscribers)
         self._subscribers = []
 
     # -- Zenoh threads -------------------------------------------------------------------
@@ -192,7 +189,7 @@ class RosIngest:
         session = self.service.sessions.get(robot)
         if session is not None:
             session.reject(reason)
-        self.service._count_reject(reason, key, err)
+        self.service.count_reject(reason, key, err)
 
     def _on_info(self, st: _Stream, sample) -> None:
         key = str(sample.key_expr)
@@ -200,12 +197,12 @@ class RosIngest:
             msg = ros_cdr.deserialize(sample.payload.to_bytes(), ros_cdr.CAMERA_INFO, self.service.limits.max_message_bytes)
             cal = ros_cdr.calibration(msg, st.robot.intrinsics, self.service.config.service.max_image_side)
         except ProtocolError as e:
-            self.service._count_reject(e.reason if e.reason == "bad_cdr" else "bad_info", key, e)
+            self.service.count_reject(e.reason if e.reason == "bad_cdr" else "bad_info", key, e)
             return
         except Exception as e:  # a bug here must not reach Zenoh's thread
-            self.service._count_reject("internal", key, e)
+            self.service.count_reject("internal", key, e)
             return
-        self.service._admit(st.robot.robot, cal, None)
+        self.service.admit(st.robot.robot, cal, None)
 
     def _on_image(self, st: _Stream, sample, is_depth: bool) -> None:
         key = str(sample.key_expr)
@@ -283,4 +280,4 @@ class RosIngest:
         except Exception as e:  # never let the pose kill the robot's worker
             log.warning("robot %s: pose not published: %s", robot, e)
             return
-        self.service._publish(st.robot.pose, payload)
+        self.service.publish(st.robot.pose, payload)

@@ -19,7 +19,7 @@ from collections import Counter, deque
 
 from client import protocol
 from client.frames import Calibration, Frame
-from client.transport import ZenohSettings, open_session
+from client.transport import ZenohSettings, open_session, undeclare_all
 from storage import MapStore
 
 from .builder import build_pipeline
@@ -85,11 +85,7 @@ class SlamService:
     def stop(self) -> None:
         """Stop ingest, let every session finish its current frame, end the sessions and
         close the database (every stored keyframe is already committed)."""
-        for sub in self._subscribers:
-            try:
-                sub.undeclare()
-            except Exception:  # already closed
-                pass
+        undeclare_all(self._subscribers)
         self._subscribers = []
         if self.ros is not None:
             self.ros.stop()
@@ -121,7 +117,7 @@ class SlamService:
         key = str(sample.key_expr)
         robot = self.keys.robot_of(key)
         if robot is None:
-            self._count_reject("bad_key", key, None)
+            self.count_reject("bad_key", key, None)
             return
         self.ingest(robot, key, sample.payload.to_bytes())
 
@@ -149,11 +145,11 @@ class SlamService:
                 seq, frame = msg.seq, msg.frame
         except protocol.ProtocolError as e:
             session.reject(e.reason)
-            self._count_reject(e.reason, key, e)
+            self.count_reject(e.reason, key, e)
             return
         except Exception as e:  # a bug in decoding must not reach Zenoh's thread
             session.reject("internal")
-            self._count_reject("internal", key, e)
+            self.count_reject("internal", key, e)
             return
         session.submit(seq, frame)
 
@@ -183,7 +179,7 @@ class SlamService:
                     self._held_bytes -= len(held[1].popleft()[1])
                     dropped += 1
         for _ in range(dropped):
-            self._count_reject("no_calibration", key, None)
+            self.count_reject("no_calibration", key, None)
         return None
 
     def _release_held(self, robot: str, session: RobotSession | None) -> None:
@@ -195,7 +191,7 @@ class SlamService:
         for key, payload, decode in held[1]:
             self._held_bytes -= len(payload)
             if session is None:
-                self._count_reject("no_calibration", key, None)
+                self.count_reject("no_calibration", key, None)
             else:
                 self._submit(session, key, payload, decode)
 
@@ -206,18 +202,18 @@ class SlamService:
             if info.robot != self.keys.robot_of(key):
                 raise protocol.ProtocolError("robot_mismatch", f"camera info of {info.robot!r} on key {key!r}")
         except protocol.ProtocolError as e:
-            self._count_reject("bad_info", key, e)
+            self.count_reject("bad_info", key, e)
             return
-        self._admit(info.robot, info.calibration, info.classes)
+        self.admit(info.robot, info.calibration, info.classes)
 
-    def _count_reject(self, reason: str, key: str, err) -> None:
+    def count_reject(self, reason: str, key: str, err) -> None:
         with self._lock:
             self.rejected[reason] += 1
             n = self.rejected[reason]
         if n <= 3 or n % 1000 == 0:  # structured, rate-limited
             log.warning("rejected message reason=%s key=%s count=%d detail=%s", reason, key, n, err)
 
-    def _admit(self, robot: str, calibration: Calibration,
+    def admit(self, robot: str, calibration: Calibration,
                classes: tuple[str, ...] | None = None) -> RobotSession | None:
         """The robot's session, made when its calibration arrives and a slot is free. A camera
         that restarts with another calibration or class table keeps its session (counted, not
@@ -279,12 +275,12 @@ class SlamService:
                 try:
                     info = protocol.decode_info_message(reply.ok.payload.to_bytes())
                 except protocol.ProtocolError as e:
-                    self._count_reject("bad_info", self.keys.info(robot), e)
+                    self.count_reject("bad_info", self.keys.info(robot), e)
                     continue
                 if info.robot == robot:
-                    self._admit(robot, info.calibration, info.classes)
+                    self.admit(robot, info.calibration, info.classes)
                     return
-                self._count_reject("bad_info", self.keys.info(robot), f"camera info of {info.robot!r}")
+                self.count_reject("bad_info", self.keys.info(robot), f"camera info of {info.robot!r}")
         except Exception as e:  # the session closed while asking
             log.debug("info query for %s failed: %s", robot, e)
         finally:
@@ -312,7 +308,7 @@ class SlamService:
     # -- per-frame output (worker threads) ---------------------------------------------
     def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:
         events = self.keys.events(robot)
-        on_event = lambda kind, data: self._publish(events, protocol.encode_event(robot, kind, **data))
+        on_event = lambda kind, data: self.publish(events, protocol.encode_event(robot, kind, **data))
         pipeline = build_pipeline(self.store, robot, calibration, self.config, mapping=self.mapping,
                                   background=True, on_event=on_event)
         on_event("session_started", {"session_id": pipeline.session_id})
@@ -322,18 +318,18 @@ class SlamService:
 
     def _on_result(self, session: RobotSession, frame: Frame, result: FrameResult) -> None:
         robot = session.robot
-        self._publish(self.keys.pose(robot), protocol.encode_pose(
+        self.publish(self.keys.pose(robot), protocol.encode_pose(
             robot, frame.index, frame.stamp, result.status, result.pose, bool(result.keyframe), result.segment,
             result.node_id, queue_depth=session.queue_depth, dropped=session.stats.dropped_queue))
         if result.node_id is not None:
-            self._publish(self.keys.events(robot), protocol.encode_event(
+            self.publish(self.keys.events(robot), protocol.encode_event(
                 robot, "keyframe_added", node_id=result.node_id, seq=frame.index, stamp=frame.stamp))
         if result.status == "lost" and session.stats.previous_status != "lost":
-            self._publish(self.keys.events(robot), protocol.encode_event(robot, "tracking_lost", seq=frame.index, stamp=frame.stamp))
+            self.publish(self.keys.events(robot), protocol.encode_event(robot, "tracking_lost", seq=frame.index, stamp=frame.stamp))
         if self.ros is not None:  # a ROS robot's pose key: CDR PoseStamped
             self.ros.on_result(robot, frame, result.pose)
 
-    def _publish(self, key: str, payload: bytes) -> None:
+    def publish(self, key: str, payload: bytes) -> None:
         z = self.zenoh
         if z is None:
             return

@@ -41,6 +41,14 @@ def _config(path, **kw) -> SemanticsConfig:
     return SemanticsConfig(enabled=True, model=path, model_input="image", model_size=SIZE, classes=list(CLASSES), **kw)
 
 
+def _assert_one_door(seg, rows: slice, cols: slice) -> None:
+    """A 64×64 image's labels are door (1) at [rows, cols] and unlabelled elsewhere."""
+    labels = seg.segment(np.zeros((64, 64, 3), np.uint8))
+    expected = np.full((64, 64), len(CLASSES))
+    expected[rows, cols] = 1
+    np.testing.assert_array_equal(labels, expected)
+
+
 def test_boxes_model_labels_its_boxes_in_image_pixels(tmp_path):
     """Boxes in model-input pixels come back to the image (128×96 resized by 0.5 into the
     64² input); low scores and class ids outside the table are ignored; a smaller box in
@@ -73,10 +81,7 @@ def test_tf_style_boxes_normalized_yxyx_counting_from_one(tmp_path):
                                          class_offset=-1,
                                          box_outputs=["detection_boxes", "detection_scores", "detection_classes"]))
     assert reason is None
-    labels = seg.segment(np.zeros((64, 64, 3), np.uint8))
-    expected = np.full((64, 64), len(CLASSES))
-    expected[16:48, 32:64] = 1
-    np.testing.assert_array_equal(labels, expected)
+    _assert_one_door(seg, slice(16, 48), slice(32, 64))
 
 
 def test_yolo_output_is_suppressed_to_the_best_box(tmp_path):
@@ -90,10 +95,7 @@ def test_yolo_output_is_suppressed_to_the_best_box(tmp_path):
     path = _model(tmp_path / "yolo.onnx", {"output0": cands.T[None]})
     seg, reason = make_segmenter(_config(path, model_output="yolo"))
     assert reason is None
-    labels = seg.segment(np.zeros((64, 64, 3), np.uint8))
-    expected = np.full((64, 64), len(CLASSES))
-    expected[8:32, 12:28] = 1
-    np.testing.assert_array_equal(labels, expected)
+    _assert_one_door(seg, slice(8, 32), slice(12, 28))
 
 
 def test_a_misconfigured_detection_model_turns_semantics_off_with_the_reason(tmp_path):

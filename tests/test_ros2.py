@@ -165,7 +165,7 @@ class _Service:
         self.config, self.sessions, self.limits = config, {}, protocol.Limits()
         self.rejected, self.frames = [], []
 
-    def _count_reject(self, reason, key, err):
+    def count_reject(self, reason, key, err):
         self.rejected.append(reason)
 
     def ingest(self, robot, key, pair, decode=None, ask_info=True):
