@@ -223,9 +223,11 @@ def test_ros_robots_map_exactly_as_the_native_robot(tmp_path):
     # stamps whole nanoseconds (a ROS stamp is sec + nanosec), the same for every robot
     stamps_ns = [1_700_000_000 * 10**9 + int(round(float(t) * 1e9)) for t in ds.stamps[:FRAMES]]
     frames = [dataclasses.replace(ds.frame(i), stamp=ns / 1e9, extras={}) for i, ns in enumerate(stamps_ns)]
-    # loop closure and rehearsal off: they would link the three robots' identical keyframes in the one map
+    # loop closure and rehearsal off: they would link the three robots' identical keyframes in the one map.
+    # sync_queue FRAMES: the frames are sent unpaced, and the thread that completes a pair decodes it, so
+    # one stream's callbacks can run many images behind the other's (10 seen; the default keeps 8)
     svc = ServiceProcess(tmp_path / "map.db", {
-        "ros": {"enabled": True, "robots": [RAW, CMP]}, "loop": {"enabled": False}, "memory": {"rehearsal": False},
+        "ros": {"enabled": True, "robots": [RAW, CMP], "sync_queue": FRAMES}, "loop": {"enabled": False}, "memory": {"rehearsal": False},
         "service": {"queue_size": 1000, "queue_mb": 1024.0, "idle_timeout": 3600.0}}).start()
     z = None
     try:
