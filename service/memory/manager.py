@@ -145,12 +145,11 @@ class MemoryManager:
             step = gtsam.Pose3.Logmap(gtsam.Pose3(invert(old.transform) @ t)) / (n + 1)
             transform = old.transform @ gtsam.Pose3.Expmap(step).matrix()
             information = information * min(n + 1, 3)
-            self.graph.remove_loop(a, b, old.transform)
-        outcome = self.graph.add_loop(a, b, transform, information, check=check)
+        # (one optimisation replaces the previous link; a refused one leaves it in place)
+        outcome = self.graph.add_loop(a, b, transform, information, check=check,
+                                      replace=None if old is None else old.transform)
         if outcome.accepted:
             self._merge_links[key] = _MergeLink(a, b, transform, information, n + 1)
-        elif old is not None:  # the previous link goes back
-            self.graph.add_loop(old.from_id, old.to_id, old.transform, old.information, check=False)
         return outcome
 
     def merge(self, node: int, survivor: int, previous: int, transform: np.ndarray, information: np.ndarray) -> bool:
