@@ -415,6 +415,15 @@ class PoseGraph:
             return LoopOutcome(accepted, reason, err_before, err_after, max_err, worst, iterations,
                                (time.perf_counter() - t0) * 1e3)
 
+    def link_error(self, from_id: int, to_id: int, transform, information) -> float:
+        """Normalised error (σ, as the loop check) of a measurement T_from_to on the current
+        estimate, without adding it."""
+        t = _as_pose(transform, "transform")
+        info = _as_information(information, "information")
+        with self._lock:
+            est = self._estimate_locked()
+            return float(normalized_errors(est[int(from_id)][None], est[int(to_id)][None], t[None], info[None])[0])
+
     def remove_loop(self, from_id: int, to_id: int, transform=None) -> int:
         """Remove the loop link(s) between two nodes (either direction; with ``transform``,
         only the link from_id -> to_id with that T_from_to) and re-optimise. Returns how many
