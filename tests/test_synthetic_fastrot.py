@@ -10,6 +10,10 @@ from client.frames import DatasetError, PinholeCamera
 from client.synthetic import SyntheticDataset, get_scene, trajectory
 from client.synthetic import kinect
 from client.synthetic.blur import blur_length, motion_blur
+from client.geometry import rotation_angle
+from service.config import load_config
+from service.evaluation import evaluate
+from service.runner import run_dataset
 
 SMALL = dict(width=320, height=240, fx=262.5)
 SMALL_CAM = PinholeCamera(262.5, 262.5, 159.5, 119.5, 320, 240)
@@ -117,3 +121,20 @@ def test_kinect_depth_noise_grows_with_z_squared_in_disparity_steps():
         assert abs(err[sel].mean()) < 0.25 * expect
         stds.append(err[sel].std()), expects.append(expect)
     assert stds[1] / stds[0] == pytest.approx(expects[1] / expects[0], rel=0.15)  # ~z²: about 3 between the bins
+
+
+def test_fastrot_tracked_without_loss(tmp_path):
+    """The first 5 s (150 frames at 30 Hz, 640×480, blur and Kinect noise as the path has
+    them): every frame tracked in one segment. Measured 0.35 cm ATE (odometry alone 0.35 cm;
+    without the motion model, unguided matching, 0.32 cm); the whole 30 s: see README."""
+    ds = open_dataset("synthetic:fastrot", max_frames=150)
+    assert ds.noise == "kinect" and ds.exposure == pytest.approx(0.02)
+    R = ds.ground_truth.poses[:, :3, :3]
+    turn = np.degrees(rotation_angle(np.einsum("nji,njk->nik", R[:-1], R[1:]))) * ds.rate
+    assert turn.max() > 75 and np.mean(turn) > 45  # deg/s between frames: it is fast all along
+    out = run_dataset(ds, load_config(), tmp_path, progress=False)
+    s = out.summary
+    assert s.tracked == len(ds) == 150 and s.lost == 0 and s.segments == 1
+    ev = evaluate(ds.ground_truth, out.trajectory)
+    assert ev.matched == 150
+    assert ev.ate_rmse < 0.007
