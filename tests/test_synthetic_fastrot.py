@@ -6,17 +6,15 @@ import numpy as np
 import pytest
 
 from client.datasets import open_dataset
-from client.frames import DatasetError, PinholeCamera
-from client.synthetic import SyntheticDataset, get_scene, trajectory
-from client.synthetic import kinect
-from client.synthetic.blur import blur_length, motion_blur
+from client.frames import DatasetError
 from client.geometry import rotation_angle
+from client.synthetic import SyntheticDataset, get_scene, kinect, trajectory
+from client.synthetic.blur import blur_length, motion_blur
 from service.config import load_config
 from service.evaluation import evaluate
 from service.runner import run_dataset
 
 SMALL = dict(width=320, height=240, fx=262.5)
-SMALL_CAM = PinholeCamera(262.5, 262.5, 159.5, 119.5, 320, 240)
 
 
 def _body_rates(path, dt=0.005):

@@ -86,7 +86,8 @@ class SyntheticDataset(Dataset):
 
     def __repr__(self) -> str:
         return (f"SyntheticDataset({self.trajectory!r}, {len(self)} frames @ {self.rate:g} Hz, "
-                f"{self.camera.width}x{self.camera.height}, noise={self.noise}, exposure={self.exposure:g}, seed={self.seed})")
+                f"{self.camera.width}x{self.camera.height}, noise={self.noise}, exposure={self.exposure:g}, "
+                f"seed={self.seed})")
 
     def pose(self, i: int) -> np.ndarray:
         return self.ground_truth.poses[i]
