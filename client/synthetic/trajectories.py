@@ -15,7 +15,7 @@ start pose at t = duration: every periodic term has a whole number of cycles.
 pitch and roll with sinusoidal angle rates (`PathSpec.spin`), its mean heading making one full
 turn in 30 s. The Euler-angle peaks (52, 54, 35.5°/s) are set so that the angular velocity
 about each of the camera's own axes (x: pitch, y: yaw, z: roll) peaks at 60°/s; the three
-together reach 82°/s (mean 53°/s). Its frames come with motion blur and the Kinect
+together reach 81°/s (mean 53°/s). Its frames come with motion blur and the Kinect
 disparity noise model by default (`PathSpec.noise` / `exposure`, see `dataset.py`).
 """
 from __future__ import annotations
