@@ -37,6 +37,9 @@ def sequences(data: Path, synthetic_frames: int):
     yield "euroc v101 head (stereo)", data / "euroc_v101_head", {}
     yield "synthetic loop", "synthetic:loop", {"max_frames": synthetic_frames}
     yield "synthetic loop + noise", "synthetic:loop", {"max_frames": synthetic_frames, "noise": True}
+    # issue 12: 30 s handheld look-around at up to 60 deg/s per axis, 20 ms motion blur and the
+    # Kinect disparity noise (the path's defaults), always whole (901 frames)
+    yield "synthetic fastrot", "synthetic:fastrot", {}
 
 
 def pipeline_fps(ds, config, limit=300) -> float:
