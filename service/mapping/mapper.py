@@ -126,6 +126,7 @@ class Mapper:
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
+        self.links_dropped = 0  # verified loop / proximity links refused as inaccurate (their estimated σ beyond loop.link_max_sigma_*)
         # the statistics of the last STATISTICS_KEPT updates (every update's are in the database)
         self.statistics: collections.OrderedDict[int, LoopStatistics] = collections.OrderedDict()
         self._queue: queue.Queue | None = None
