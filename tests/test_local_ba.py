@@ -54,9 +54,15 @@ def _window(rng, n_kf=6, n_pts=600, odo_noise=0.01, px_noise=0.5, depth_bias=Non
     return truth, odo, obs
 
 
+def _desc(ids):
+    """A distinct ORB-like descriptor per point id (the same for every view of the point)."""
+    table = np.random.default_rng(99).integers(0, 256, (20_000, 32), dtype=np.uint8)
+    return table[np.asarray(ids) % len(table)]
+
+
 def _solve(ba, odo, obs):
     for k, (uv, pts, spx, sz, ids) in enumerate(obs):
-        ba.add(k, odo[k], uv, pts, spx, sz, ids, continues=k > 0)
+        ba.add(k, odo[k], uv, _desc(ids), pts, spx, sz, ids, continues=k > 0)
     return ba.solve()
 
 
@@ -80,6 +86,27 @@ def test_refines_noisy_odometry(depth_weight, fixed):
     else:  # reprojection only: the scale is that of the two fixed (noisy) poses
         assert after < 0.5 * before
     np.testing.assert_allclose(res.poses[0], odo[0], atol=1e-6)  # the oldest is held
+
+
+def test_tracks_found_by_projection_when_the_tracker_gave_none():
+    """Keyframes the tracker registered densely come without point ids: the window matches
+    their features to its points by projection and descriptor, and still refines them."""
+    rng = np.random.default_rng(7)
+    truth, odo, obs = _window(rng, odo_noise=0.003)
+    ba = LocalBundleAdjustment(CAM, window=6)
+    matched = []
+    for k, (uv, pts, spx, sz, ids) in enumerate(obs):
+        given = ids if k == 0 else np.full(len(ids), -1)
+        matched.append(ba.add(k, odo[k], uv, _desc(ids), pts, spx, sz, given, continues=k > 0))
+    assert min(matched[1:]) > 150
+    first: dict = {}  # every view of an assigned id must be the same true point
+    pairs = [(int(a), int(t)) for kf, o in zip(ba.keyframes, obs) for a, t in zip(kf.point_ids, o[4])]
+    wrong = sum(first.setdefault(a, t) != t for a, t in pairs)
+    assert len(first) < 0.7 * len(pairs) and wrong < 0.01 * len(pairs)
+    res = ba.solve()
+    before = np.mean([_rel_error(truth, {k: odo[k] for k in range(6)}, k - 1, k) for k in range(1, 6)])
+    after = np.mean([_rel_error(truth, res.poses, k - 1, k) for k in range(1, 6)])
+    assert after < 0.5 * before
 
 
 def test_wrong_tracks_do_not_break_it():
@@ -123,12 +150,13 @@ def test_window_restarts_on_a_new_segment_and_needs_shared_points():
     truth, odo, obs = _window(rng, n_kf=3)
     ba = LocalBundleAdjustment(CAM, window=4)
     uv, pts, spx, sz, ids = obs[0]
-    ba.add(0, odo[0], uv, pts, spx, sz, ids, continues=False)
+    ba.add(0, odo[0], uv, _desc(ids), pts, spx, sz, ids, continues=False)
     assert ba.solve() is None  # one keyframe: nothing to adjust
     uv, pts, spx, sz, ids = obs[1]
-    ba.add(1, odo[1], uv, pts, spx, sz, ids + 10_000, continues=True)  # no shared points
+    ba.add(1, odo[1], uv + 200.0, _desc(ids + 10_000), pts, spx, sz, ids + 10_000, continues=True)  # no shared points
     assert ba.solve() is None
-    ba.add(2, odo[2], *obs[2][:4], obs[2][4], continues=False)
+    uv, pts, spx, sz, ids = obs[2]
+    ba.add(2, odo[2], uv, _desc(ids), pts, spx, sz, ids, continues=False)
     assert len(ba.keyframes) == 1 and 2 in ba and 0 not in ba
 
 

@@ -63,6 +63,7 @@ class WindowKeyframe:
     points: np.ndarray  # (n, 3) camera-frame points (NaN: no depth)
     sigma_px: np.ndarray  # (n,) keypoint σ (px)
     sigma_z: np.ndarray  # (n,) depth σ (m, NaN: none)
+    descriptors: np.ndarray  # (n, 32) ORB
 
 
 @dataclass
@@ -78,6 +79,14 @@ class LocalBAResult:
     timings_ms: dict = field(default_factory=dict)
 
 
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """All pairwise Hamming distances (n, m) of binary descriptors (n, 32), (m, 32) uint8, as
+    one matrix product of their bits: |a xor b| = |a| + |b| − 2 a·b."""
+    x = np.unpackbits(a, axis=1).astype(np.float32)
+    y = np.unpackbits(b, axis=1).astype(np.float32)
+    return x.sum(1)[:, None] + y.sum(1)[None, :] - 2.0 * (x @ y.T)
+
+
 class LocalBundleAdjustment:
     """A sliding window of keyframes and the local BA over it.
 
@@ -88,7 +97,8 @@ class LocalBundleAdjustment:
 
     def __init__(self, camera: PinholeCamera, window: int = 8, fixed: int = 1, iterations: int = 10,
                  depth_weight: float = 1.0, adaptive_depth: bool = True, min_points: int = 30,
-                 max_initial_error: float = 10.0):
+                 max_initial_error: float = 10.0, search_radius: float = 15.0, max_hamming: int = 64,
+                 match_ratio: float = 0.8):
         if window < 2 or not 1 <= fixed < window:
             raise ValueError(f"local BA needs window >= 2 and 1 <= fixed < window, got {window}, {fixed}")
         self.camera = camera
@@ -99,6 +109,8 @@ class LocalBundleAdjustment:
         self.adaptive_depth = bool(adaptive_depth)
         self.min_points = int(min_points)
         self.max_initial_error = float(max_initial_error)
+        self.search_radius, self.max_hamming, self.match_ratio = float(search_radius), int(max_hamming), float(match_ratio)
+        self._next_id = 1 << 40  # ids of points this module creates (the tracker's count up from 0)
         self.keyframes: collections.deque[WindowKeyframe] = collections.deque(maxlen=self.window)
         self._K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
         self._Ks = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, VIRTUAL_BASELINE)
@@ -107,21 +119,77 @@ class LocalBundleAdjustment:
     def __contains__(self, node_id: int) -> bool:
         return any(k.node_id == node_id for k in self.keyframes)
 
-    def add(self, node_id: int, pose: np.ndarray, keypoints: np.ndarray, points: np.ndarray,
-            sigma_px: np.ndarray, sigma_z: np.ndarray | None, point_ids: np.ndarray | None,
-            continues: bool) -> None:
-        """A new keyframe: its odometry pose, features and point ids. `continues`: it follows
-        the window's newest keyframe on the odometry chain (else the window starts again)."""
-        if not continues or point_ids is None:
+    def add(self, node_id: int, pose: np.ndarray, keypoints: np.ndarray, descriptors: np.ndarray,
+            points: np.ndarray, sigma_px: np.ndarray, sigma_z: np.ndarray | None, point_ids: np.ndarray | None,
+            continues: bool) -> int:
+        """A new keyframe: its odometry pose, features and the tracker's point ids (-1: none).
+        `continues`: it follows the window's newest keyframe on the odometry chain (else the
+        window starts again). Features without a tracker id (e.g. a frame the tracker
+        registered densely) are matched to the window's points by projection (ORB-SLAM's
+        search by projection: descriptor within `max_hamming` and ratio, at most
+        `search_radius` px from where the odometry pose projects the point); the other ones
+        with depth become new points. Returns how many were matched that way."""
+        if not continues:
             self.keyframes.clear()
-        if point_ids is None:
-            point_ids = np.full(len(keypoints), -1, np.int64)
-        has = np.asarray(point_ids) >= 0
-        sz = np.full(len(keypoints), np.nan) if sigma_z is None else np.asarray(sigma_z, np.float64)
+        n = len(keypoints)
+        ids = np.full(n, -1, np.int64) if point_ids is None else np.asarray(point_ids, np.int64).copy()
+        pts = np.asarray(points, np.float64)
+        desc = np.asarray(descriptors, np.uint8)
+        uv = np.asarray(keypoints, np.float64)
+        matched = self._search_by_projection(np.asarray(pose, np.float64), uv, desc, ids) if self.keyframes else 0
+        fresh = (ids < 0) & np.isfinite(pts[:, 2])
+        ids[fresh] = self._next_id + np.arange(int(fresh.sum()))
+        self._next_id += int(fresh.sum())
+        has = ids >= 0
+        sz = np.full(n, np.nan) if sigma_z is None else np.asarray(sigma_z, np.float64)
         self.keyframes.append(WindowKeyframe(
-            int(node_id), np.asarray(pose, np.float64), np.asarray(keypoints, np.float64)[has],
-            np.asarray(point_ids, np.int64)[has], np.asarray(points, np.float64)[has],
-            np.asarray(sigma_px, np.float64)[has], sz[has]))
+            int(node_id), np.asarray(pose, np.float64), uv[has], ids[has], pts[has],
+            np.asarray(sigma_px, np.float64)[has], sz[has], desc[has]))
+        return matched
+
+    def _search_by_projection(self, pose: np.ndarray, uv: np.ndarray, desc: np.ndarray, ids: np.ndarray) -> int:
+        """Give features without an id (in place) the id of the window point they see."""
+        free = np.nonzero(ids < 0)[0]
+        if not len(free):
+            return 0
+        kfs = list(self.keyframes)
+        all_ids = np.concatenate([k.point_ids for k in kfs])
+        pc = np.concatenate([k.points for k in kfs])
+        kf = np.concatenate([np.full(len(k.point_ids), i) for i, k in enumerate(kfs)])
+        d_all = np.concatenate([k.descriptors for k in kfs])
+        depth = np.nonzero(np.isfinite(pc[:, 2]))[0][::-1]  # the newest view with depth places the point ...
+        uniq, where = np.unique(all_ids[depth], return_index=True)
+        src = depth[where]
+        last = len(all_ids) - 1 - np.unique(all_ids[::-1], return_index=True)[1]  # ... its newest view describes it
+        lm_desc = d_all[last[np.searchsorted(np.unique(all_ids), uniq)]]
+        poses = np.stack([k.pose for k in kfs])
+        X = np.einsum("nij,nj->ni", poses[kf[src], :3, :3], pc[src]) + poses[kf[src], :3, 3]
+        keep = ~np.isin(uniq, ids[ids >= 0])  # points this keyframe already sees
+        T_cw = np.linalg.inv(pose)
+        p = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        cam = self.camera
+        with np.errstate(divide="ignore", invalid="ignore"):
+            proj = p[:, :2] / p[:, 2:3] * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+        keep &= (p[:, 2] > 0.05) & (proj[:, 0] >= 0) & (proj[:, 0] < cam.width) & (proj[:, 1] >= 0) \
+            & (proj[:, 1] < cam.height)
+        cand = np.nonzero(keep)[0]
+        if len(cand) < 2:
+            return 0
+        dist = hamming(desc[free], lm_desc[cand])
+        px = np.linalg.norm(uv[free][:, None, :] - proj[cand][None], axis=2)
+        dist = np.where(px <= self.search_radius, dist, 256.0)
+        best = np.argmin(dist, axis=1)
+        d1 = dist[np.arange(len(free)), best]
+        dist[np.arange(len(free)), best] = 256.0
+        d2 = dist.min(axis=1)
+        ok = (d1 <= self.max_hamming) & (d1 < self.match_ratio * d2)
+        q, t, d1 = free[ok], best[ok], d1[ok]
+        order = np.lexsort((d1, t))  # one feature per point: the closest descriptor
+        first = np.ones(len(order), bool)
+        first[1:] = t[order][1:] != t[order][:-1]
+        keep_m = order[first]
+        ids[q[keep_m]] = uniq[cand[t[keep_m]]]
+        return len(keep_m)
 
     def solve(self) -> LocalBAResult | None:
         """Bundle-adjust the window; None when it is too small or shares too few points."""
@@ -164,8 +232,9 @@ class LocalBundleAdjustment:
         obs &= seen[inv] >= 2
         sel = np.nonzero(obs)[0]
         lm_ids = np.unique(inv[sel])
-        if len(lm_ids) < self.min_points:
-            return None
+        per_kf = np.bincount(kf[sel], minlength=n_kf)
+        if len(lm_ids) < self.min_points or per_kf[self.fixed:].min() < self.min_points:
+            return None  # a free keyframe held by a few points only would go where they put it
         use_depth = depth_ok[sel] & np.isfinite(sz[sel]) & (self.depth_weight > 0)
         # σ_d = f·b·σ_z / z², from the depth weight (information × weight = σ / √weight)
         sigma_d = np.where(use_depth, self._fb * np.nan_to_num(sz[sel]) / np.maximum(pc[sel, 2], 1e-6) ** 2

@@ -129,7 +129,8 @@ class Mapper:
         self.memory = MemoryManager(mc, config, store, camera, self.graph, self.vocabulary, self.detector)
         self.local_ba = LocalBundleAdjustment(
             camera, config.local_ba_window, config.local_ba_fixed, config.local_ba_iterations,
-            config.local_ba_depth_weight, config.local_ba_adaptive_depth) if config.local_ba else None
+            config.local_ba_depth_weight, config.local_ba_adaptive_depth, config.local_ba_min_points) \
+            if config.local_ba else None
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
@@ -279,25 +280,39 @@ class Mapper:
     def _bundle_adjust(self, u: KeyframeUpdate) -> tuple[KeyframeUpdate, dict] | None:
         """Add the keyframe to the local BA's window and solve it (`loop.local_ba`): the
         keyframe's odometry link becomes the refined relative pose to the keyframe before it
-        (same information). Returns (the update, what the BA did) or None when it is off or
-        did not solve."""
+        (same information), and with `loop.local_ba_relink` so do the graph's odometry links
+        between the window's older keyframes. A link the BA moves more than
+        local_ba_max_correction / _rotation from the tracker's is left as the tracker made it.
+        Returns (the update, what the BA did) or None when it is off or did not solve."""
         if self.local_ba is None:
             return None
         t0 = time.perf_counter()
         f = u.features
         ba = self.local_ba
         continues = u.odom_from is not None and bool(ba.keyframes) and ba.keyframes[-1].node_id == u.odom_from
-        ba.add(u.node_id, u.odom_pose, f.keypoints, f.points, f.pixel_sigmas(), f.depth_sigma, u.point_ids, continues)
+        matched = ba.add(u.node_id, u.odom_pose, f.keypoints, f.descriptors, f.points, f.pixel_sigmas(), f.depth_sigma,
+                         u.point_ids, continues)
         res = ba.solve() if continues else None
         if res is None:
             return None
-        T = invert(res.poses[u.odom_from]) @ res.poses[u.node_id]
-        info = {"keyframes": res.keyframes, "points": res.points, "observations": res.observations,
-                "depth_observations": res.depth_observations, "depth_scale": round(res.depth_scale, 3),
-                "error_before": res.error_before, "error_after": res.error_after,
-                "correction_m": float(np.linalg.norm((invert(u.transform) @ T)[:3, 3])),
-                "ms": (time.perf_counter() - t0) * 1e3, "timings_ms": res.timings_ms}
-        return dataclasses.replace(u, transform=T), info
+        c = self.config
+        links = {}
+        kfs = list(ba.keyframes)
+        for a, b in zip(kfs[c.local_ba_fixed - 1:-1], kfs[c.local_ba_fixed:]):
+            T = invert(res.poses[a.node_id]) @ res.poses[b.node_id]
+            correction = invert(invert(a.pose) @ b.pose) @ T  # against the tracker's link
+            if (np.linalg.norm(correction[:3, 3]) <= c.local_ba_max_correction
+                    and np.degrees(rotation_angle(correction[:3, :3])) <= c.local_ba_max_rotation):
+                links[(a.node_id, b.node_id)] = T
+        relinked = self.graph.replace_odometry(
+            {k: v for k, v in links.items() if k[1] != u.node_id}) if c.local_ba_relink else 0
+        info = {"keyframes": res.keyframes, "matched": matched, "points": res.points,
+                "observations": res.observations, "depth_observations": res.depth_observations,
+                "depth_scale": round(res.depth_scale, 3), "error_before": res.error_before,
+                "error_after": res.error_after, "relinked": relinked, "ms": (time.perf_counter() - t0) * 1e3,
+                "timings_ms": res.timings_ms}
+        T = links.get((u.odom_from, u.node_id))
+        return (u if T is None else dataclasses.replace(u, transform=T)), info
 
     # -- rehearsal ---------------------------------------------------------------------------
     def _rehearse(self, u: KeyframeUpdate, stats: LoopStatistics) -> Rehearsal:
