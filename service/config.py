@@ -124,6 +124,7 @@ class LoopConfig:
     local_ba_iterations: int = 10  # Levenberg-Marquardt iterations per window
     local_ba_depth_weight: float = 1.0  # × the depth term's information (σ_z = features.depth_noise·z² for RGB-D); 0 = reprojection only
     local_ba_relink: bool = True  # also replace the graph's odometry links between the window's older keyframes (they gain the points seen after them)
+    local_ba_fuse: bool = True  # a keyframe feature that matches an older window point by projection and descriptor fuses the tracker's point into it (the local map re-creates points it lost: one surface point, several ids)
     local_ba_min_points: int = 30  # shared points (and observations per free keyframe) below which a window is not solved
     local_ba_max_correction: float = 0.03  # m; a BA link farther than this from the tracker's is not used ...
     local_ba_max_rotation: float = 2.0  # deg; ... nor one turned more

@@ -217,3 +217,25 @@ def test_mapping_process_hands_the_point_ids_over():
                       np.zeros(3, np.int8))
     u = KeyframeUpdate(1, 0.0, np.eye(4), f, None, None, None, np.array([4, -1, 7]))
     assert _slim(u, keep_images=False).point_ids.tolist() == [4, -1, 7]
+
+
+def test_duplicate_tracker_points_are_fused():
+    """The tracker re-creates points it lost (a new id for the same surface point): with
+    `fuse` the window maps them back onto its older point, so tracks get long again."""
+    rng = np.random.default_rng(8)
+    truth, odo, obs = _window(rng, odo_noise=0.003)
+    sizes = {}
+    for fuse in (False, True):
+        ba = LocalBundleAdjustment(CAM, window=6, fuse=fuse)
+        for k, (uv, pts, spx, sz, ids) in enumerate(obs):
+            given = ids.copy()
+            lost = rng.random(len(ids)) < 0.4  # re-created by the tracker under a new id
+            given[lost] = 100_000 * (k + 1) + ids[lost]
+            ba.add(k, odo[k], uv, _desc(ids), pts, spx, sz, given, continues=k > 0)
+        pairs = [(int(a), int(t)) for kf, o in zip(ba.keyframes, obs) for a, t in zip(kf.point_ids, o[4])]
+        first: dict = {}
+        wrong = sum(first.setdefault(a, t) != t for a, t in pairs)
+        assert wrong < 0.01 * len(pairs)
+        sizes[fuse] = len(first)
+    truly = len({t for _, t in pairs})
+    assert sizes[False] > 1.5 * truly and sizes[True] < 1.1 * truly

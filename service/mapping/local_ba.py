@@ -93,12 +93,14 @@ class LocalBundleAdjustment:
     Parameters: ``window`` keyframes at most; ``fixed`` oldest ones held fixed; ``iterations``
     of Levenberg–Marquardt; ``depth_weight`` multiplies the depth term's information (0: no
     depth term, reprojection only); ``adaptive_depth`` rescales σ_d per window from the
-    residuals; ``min_points`` shared points below which the window is not solved."""
+    residuals; ``min_points`` shared points (and observations per free keyframe) below which
+    the window is not solved; ``search_radius`` / ``max_hamming`` / ``match_ratio`` of the
+    search by projection; ``fuse``: fuse the tracker's duplicate points (see ``add``)."""
 
     def __init__(self, camera: PinholeCamera, window: int = 8, fixed: int = 1, iterations: int = 10,
                  depth_weight: float = 1.0, adaptive_depth: bool = True, min_points: int = 30,
                  max_initial_error: float = 10.0, search_radius: float = 15.0, max_hamming: int = 64,
-                 match_ratio: float = 0.8):
+                 match_ratio: float = 0.8, fuse: bool = False):
         if window < 2 or not 1 <= fixed < window:
             raise ValueError(f"local BA needs window >= 2 and 1 <= fixed < window, got {window}, {fixed}")
         self.camera = camera
@@ -111,6 +113,10 @@ class LocalBundleAdjustment:
         self.max_initial_error = float(max_initial_error)
         self.search_radius, self.max_hamming, self.match_ratio = float(search_radius), int(max_hamming), float(match_ratio)
         self._next_id = 1 << 40  # ids of points this module creates (the tracker's count up from 0)
+        self.fuse = bool(fuse)
+        # tracker ids found to be the same point as an older window point -> that point's id (sorted keys)
+        self._alias_from = np.zeros(0, np.int64)
+        self._alias_to = np.zeros(0, np.int64)
         self.keyframes: collections.deque[WindowKeyframe] = collections.deque(maxlen=self.window)
         self._K = gtsam.Cal3_S2(camera.fx, camera.fy, 0.0, camera.cx, camera.cy)
         self._Ks = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, VIRTUAL_BASELINE)
@@ -128,14 +134,20 @@ class LocalBundleAdjustment:
         registered densely) are matched to the window's points by projection (ORB-SLAM's
         search by projection: descriptor within `max_hamming` and ratio, at most
         `search_radius` px from where the odometry pose projects the point); the other ones
-        with depth become new points. Returns how many were matched that way."""
+        with depth become new points. With `fuse`, features with a tracker id are searched
+        too: one that matches an older window point is that point (the tracker's local map
+        creates a new point for every feature it did not match, so one surface point gets
+        several ids), and its id is mapped to the older one from then on. Returns how many
+        features were matched by projection."""
         if not continues:
             self.keyframes.clear()
+            self._alias_from, self._alias_to = np.zeros(0, np.int64), np.zeros(0, np.int64)
         n = len(keypoints)
         ids = np.full(n, -1, np.int64) if point_ids is None else np.asarray(point_ids, np.int64).copy()
         pts = np.asarray(points, np.float64)
         desc = np.asarray(descriptors, np.uint8)
         uv = np.asarray(keypoints, np.float64)
+        ids = self._resolve(ids)
         matched = self._search_by_projection(np.asarray(pose, np.float64), uv, desc, ids) if self.keyframes else 0
         fresh = (ids < 0) & np.isfinite(pts[:, 2])
         ids[fresh] = self._next_id + np.arange(int(fresh.sum()))
@@ -147,9 +159,25 @@ class LocalBundleAdjustment:
             np.asarray(sigma_px, np.float64)[has], sz[has], desc[has]))
         return matched
 
+    def _resolve(self, ids: np.ndarray) -> np.ndarray:
+        """`ids` with every fused id replaced by the point it was fused into."""
+        if not len(self._alias_from) or not len(ids):
+            return ids
+        k = np.minimum(np.searchsorted(self._alias_from, ids), len(self._alias_from) - 1)
+        return np.where(self._alias_from[k] == ids, self._alias_to[k], ids)
+
+    def _add_aliases(self, old: np.ndarray, new: np.ndarray) -> None:
+        """Fuse points `old` into `new` (earlier aliases that pointed at an `old` follow)."""
+        keep = ~np.isin(self._alias_from, old)
+        src = np.concatenate([self._alias_from[keep], old])
+        dst = np.concatenate([self._alias_to[keep], new])
+        order = np.argsort(src, kind="stable")
+        self._alias_from, self._alias_to = src[order], dst[order]
+        self._alias_to = self._resolve(self._alias_to)  # chains a -> b -> c become a -> c
+
     def _search_by_projection(self, pose: np.ndarray, uv: np.ndarray, desc: np.ndarray, ids: np.ndarray) -> int:
         """Give features without an id (in place) the id of the window point they see."""
-        free = np.nonzero(ids < 0)[0]
+        free = np.nonzero(ids < 0)[0] if not self.fuse else np.arange(len(ids))
         if not len(free):
             return 0
         kfs = list(self.keyframes)
@@ -188,7 +216,13 @@ class LocalBundleAdjustment:
         first = np.ones(len(order), bool)
         first[1:] = t[order][1:] != t[order][:-1]
         keep_m = order[first]
-        ids[q[keep_m]] = uniq[cand[t[keep_m]]]
+        q, lm = q[keep_m], uniq[cand[t[keep_m]]]
+        dup = ids[q] >= 0  # a tracker point that is an older window point: fuse them (ORB-SLAM's fusion)
+        if dup.any():
+            self._add_aliases(ids[q[dup]], lm[dup])
+            for k in self.keyframes:
+                k.point_ids[:] = self._resolve(k.point_ids)
+        ids[q] = lm
         return len(keep_m)
 
     def solve(self) -> LocalBAResult | None:

@@ -129,7 +129,8 @@ class Mapper:
         self.memory = MemoryManager(mc, config, store, camera, self.graph, self.vocabulary, self.detector)
         self.local_ba = LocalBundleAdjustment(
             camera, config.local_ba_window, config.local_ba_fixed, config.local_ba_iterations,
-            config.local_ba_depth_weight, config.local_ba_adaptive_depth, config.local_ba_min_points) \
+            config.local_ba_depth_weight, config.local_ba_adaptive_depth, config.local_ba_min_points,
+            fuse=config.local_ba_fuse) \
             if config.local_ba else None
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
