@@ -46,6 +46,8 @@ def _cmd_run(args) -> int:
             from .evaluation import evaluate_map_loops
 
             print(evaluate_map_loops(dataset.ground_truth, Path(args.out) / "map.db", config.loop.min_age).format())
+        if out.links is not None:
+            print(out.links.format())
     return 0 if out.summary.tracked else 1
 
 

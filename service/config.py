@@ -113,6 +113,17 @@ class LoopConfig:
     refine_min_overlap: float = 0.1  # share of the new keyframe's points the registration must associate
     refine_max_correction: float = 0.1  # m; a refinement that moves the PnP link more is not used ...
     refine_max_rotation: float = 5.0  # deg; ... nor one that turns it more
+    # Accurate loop / proximity links, or none (issue 12): a verified link with features is
+    # re-estimated by a two-view reprojection refinement over both keyframes' matched features
+    # (service/mapping/link_refinement.py); its covariance (Hessian at the solution × the
+    # residual's variance factor) gives the link's information, and a link whose σ is beyond
+    # these bounds is dropped (counted: `run`'s "inaccurate link(s) dropped").
+    link_refine: bool = True  # refine loop / proximity links by two-view reprojection and check their σ
+    link_max_sigma_translation: float = 0.01  # m; a link whose largest translation σ is beyond this is dropped ...
+    link_max_sigma_rotation: float = 0.5  # deg; ... as one whose largest rotation σ is beyond this
+    link_min_sigma_translation: float = 0.003  # m; the link's information claims no σ below this ...
+    link_min_sigma_rotation: float = 0.15  # deg; ... nor below this (model errors the σ cannot see: calibration, depth bias)
+    link_depth_noise: float = 0.003  # each point's depth σ = this × z² (m), along its viewing ray
     process: bool = True  # service: every robot's map update in one child process (its own GIL), so a slow update never slows tracking; false = a thread of the service (offline runs are always inline)
     process_nice: int = 10  # that child's nice increment (lower CPU priority than tracking); 0 = same priority
     # Local bundle adjustment (service/mapping/local_ba.py): each keyframe's odometry link

@@ -213,6 +213,38 @@ def evaluate_files(gt_path: str | Path, est_path: str | Path, align: str = "se3"
     return json.dumps(res.to_dict(), indent=2) if as_json else res.format()
 
 
+def _node_truth(gt: Trajectory, stamps: np.ndarray, max_dt: float) -> np.ndarray:
+    """(n, 4, 4) ground-truth pose of each keyframe stamp; NaN where none is within `max_dt`."""
+    gi, ei = associate_stamps(gt.stamps, stamps, max_dt)
+    P = np.full((len(stamps), 4, 4), np.nan)
+    P[ei] = gt.poses[gi]
+    return P
+
+
+def _link_errors(P: np.ndarray, node_ids, from_ids, to_ids, transforms):
+    """Errors of links T_from_to against the keyframes' true poses `P` (rows in `node_ids`
+    order; NaN: no ground truth), vectorized over the links. Returns ((rows of the from
+    keyframes, rows of the to keyframes), kept: mask over the links with both keyframes in
+    `P`) packed as ((ka, kb, kept), translation error m, rotation error deg) for the kept
+    links: the error is the transform between the measured and the true relative pose."""
+    ids = np.asarray(node_ids, np.int64)
+    order = np.argsort(ids, kind="stable")
+    a, b = np.asarray(from_ids, np.int64).reshape(-1), np.asarray(to_ids, np.int64).reshape(-1)
+
+    def rows(x):
+        k = np.clip(np.searchsorted(ids[order], x), 0, max(len(ids) - 1, 0))
+        found = (ids[order][k] == x) if len(ids) else np.zeros(len(x), bool)
+        return order[k] if len(ids) else k, found
+
+    (ka, fa), (kb, fb) = rows(a), rows(b)
+    kept = fa & fb
+    kept[kept] &= ~np.isnan(P[ka[kept], 0, 0]) & ~np.isnan(P[kb[kept], 0, 0])
+    ka, kb = ka[kept], kb[kept]
+    T = np.asarray(transforms, np.float64).reshape(-1, 4, 4)[kept] if kept.any() else np.zeros((0, 4, 4))
+    e = invert(invert(P[ka]) @ P[kb]) @ T
+    return (ka, kb, kept), np.linalg.norm(e[:, :3, 3], axis=1), np.degrees(_angle(e[:, :3, :3]))
+
+
 @dataclass
 class LoopReport:
     """Loop links against ground truth: precision (true links / links) and recall (keyframes
@@ -254,24 +286,16 @@ def evaluate_loops(gt: Trajectory, node_ids, node_stamps, links, min_age: float 
     relative pose. A keyframe revisits when an older keyframe (by `min_age` s or more) has
     its true camera within `revisit_radius` and its optical axis within `revisit_angle_deg`.
     Keyframes without a ground-truth pose within `max_dt` count as neither."""
-    ids = np.asarray(node_ids, np.int64)
     stamps = np.asarray(node_stamps, np.float64)
-    gi, ei = associate_stamps(gt.stamps, stamps, max_dt)
-    P = np.full((len(ids), 4, 4), np.nan)
-    P[ei] = gt.poses[gi]
-    index = {int(i): k for k, i in enumerate(ids)}
-    errors, true, linked = [], [], np.zeros(len(ids), bool)
-    for a, b, T in links:
-        ka, kb = index.get(int(a)), index.get(int(b))
-        if ka is None or kb is None or np.isnan(P[ka, 0, 0]) or np.isnan(P[kb, 0, 0]):
-            continue
-        e = invert(invert(P[ka]) @ P[kb]) @ np.asarray(T, np.float64)
-        errors.append(float(np.linalg.norm(e[:3, 3])))
-        true.append(errors[-1] < true_link[0] and np.degrees(_angle(e[:3, :3])) < true_link[1])
-        if true[-1]:
-            linked[ka] = linked[kb] = True
-    err, n = np.array(errors), len(errors)
-    false = n - int(np.sum(true))
+    P = _node_truth(gt, stamps, max_dt)
+    links = list(links)
+    scored, err, err_deg = _link_errors(P, node_ids, [a for a, _, _ in links], [b for _, b, _ in links],
+                                        [T for _, _, T in links])
+    true = (err < true_link[0]) & (err_deg < true_link[1])
+    linked = np.zeros(len(stamps), bool)
+    linked[scored[0][true]] = linked[scored[1][true]] = True
+    n = len(err)
+    false = n - int(true.sum())
     has = ~np.isnan(P[:, 0, 0])
     pos, fwd = P[:, :3, 3], P[:, :3, 2]
     dist = np.linalg.norm(pos[:, None] - pos[None], axis=2)
@@ -299,3 +323,118 @@ def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.
         links = [x for t in types for x in store.links(type=t)]
     return evaluate_loops(gt, [n.id for n in nodes], [n.stamp for n in nodes],
                           [(x.from_id, x.to_id, x.transform) for x in links], min_age=min_age, **options)
+
+
+# -- link accuracy ------------------------------------------------------------------------------
+
+LINK_KINDS = {0: "odometry", 1: "loop", 2: "proximity", 3: "path", 4: "user", 5: "virtual",
+              6: "odometry_merged", 7: "pose_prior", 8: "landmark", 10: "merged"}
+"""Report names of the graph's link types (storage.LinkType values): NEIGHBOR is odometry,
+GLOBAL_CLOSURE an appearance loop, LOCAL_SPACE proximity by space, LOCAL_TIME a link along
+the own path (proximity by time), MERGED rehearsal's survivor → merged keyframe."""
+
+LINK_CSV_COLUMNS = ("from_id", "to_id", "type", "error_cm", "error_deg")
+
+
+@dataclass
+class LinkTypeAccuracy:
+    """The links of one type against ground truth (errors of their measured relative pose)."""
+
+    kind: str
+    count: int  # links with both keyframes in the ground truth
+    median_cm: float
+    max_cm: float
+    median_deg: float
+    max_deg: float
+    beyond: int  # links beyond either bound (LinkReport.bounds)
+    unmatched: int = 0  # links of this type left out: a keyframe without a ground-truth pose
+
+
+@dataclass
+class LinkReport:
+    """Per-type accuracy of a pose graph's links and the per-link errors (`rows`: from id,
+    to id, kind, error cm, error deg)."""
+
+    bounds: tuple[float, float]  # (cm, deg): a link beyond either is counted in `beyond`
+    types: list[LinkTypeAccuracy]
+    rows: list[tuple[int, int, str, float, float]]
+
+    def by_kind(self) -> dict[str, LinkTypeAccuracy]:
+        return {t.kind: t for t in self.types}
+
+    def format(self) -> str:
+        """One line per link type; "links        none" without links."""
+        if not self.types:
+            return "links        none with ground truth"
+        cm, deg = self.bounds
+        lines = []
+        for t in self.types:
+            if not t.count:
+                lines.append(f"links        {t.kind:<10} {t.unmatched} without ground truth")
+                continue
+            lines.append(f"links        {t.kind:<10} {t.count:4d}: median {t.median_cm:.2f} cm / {t.median_deg:.2f} deg, "
+                         f"worst {t.max_cm:.2f} cm / {t.max_deg:.2f} deg, {t.beyond} beyond {cm:g} cm or {deg:g} deg"
+                         + (f" ({t.unmatched} without ground truth)" if t.unmatched else ""))
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """The summary (no per-link rows), JSON-serialisable."""
+        return {"bounds_cm_deg": list(self.bounds),
+                "types": [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                           for k, v in asdict(t).items()} for t in self.types]}
+
+    def write(self, folder: str | Path) -> None:
+        """`links.csv` (one row per link with ground truth) and `links.json` (the summary)."""
+        folder = Path(folder)
+        with open(folder / "links.csv", "w") as f:
+            f.write(",".join(LINK_CSV_COLUMNS) + "\n")
+            f.writelines(f"{a},{b},{k},{e:.4f},{d:.4f}\n" for a, b, k, e, d in self.rows)
+        (folder / "links.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+
+def evaluate_links(gt: Trajectory, node_ids, node_stamps, links, max_dt: float = 0.02,
+                   bounds: tuple[float, float] = (5.0, 3.0)) -> LinkReport:
+    """Accuracy of graph links `links` = [(from_id, to_id, type, T_from_to)] between keyframes
+    (`node_ids`, `node_stamps`) against ground truth, per type (`LINK_KINDS` names; an
+    unknown type by its number): the error of a link is the rigid transform between its
+    measured T_from_to and the true relative pose of the two keyframes' stamps; count,
+    median and worst (cm, degrees), and how many are beyond `bounds` (cm, degrees).
+    Types are listed in their numeric order."""
+    links = list(links)
+    stamps = np.asarray(node_stamps, np.float64)
+    P = _node_truth(gt, stamps, max_dt)
+    types = np.array([int(t) for _, _, t, _ in links], np.int64)
+    (ka, kb, kept), err, err_deg = _link_errors(P, node_ids, [x[0] for x in links], [x[1] for x in links],
+                                                np.stack([np.asarray(x[3], np.float64) for x in links])
+                                                if links else np.zeros((0, 4, 4)))
+    err_cm = err * 100.0
+    kinds = [LINK_KINDS.get(int(t), str(int(t))) for t in types]
+    ids = np.asarray(node_ids, np.int64)
+    kept_types = types[kept]
+    out = []
+    for t in np.unique(types).tolist():
+        sel = kept_types == t
+        e, d = err_cm[sel], err_deg[sel]
+        n = int(sel.sum())
+        out.append(LinkTypeAccuracy(
+            LINK_KINDS.get(t, str(t)), n, float(np.median(e)) if n else float("nan"),
+            float(e.max()) if n else float("nan"), float(np.median(d)) if n else float("nan"),
+            float(d.max()) if n else float("nan"), int(((e > bounds[0]) | (d > bounds[1])).sum()),
+            int((types == t).sum()) - n))
+    kept_kinds = [k for k, keep in zip(kinds, kept) if keep]
+    rows = [(int(ids[a]), int(ids[b]), k, float(e), float(d))
+            for a, b, k, e, d in zip(ka, kb, kept_kinds, err_cm, err_deg)]
+    return LinkReport((float(bounds[0]), float(bounds[1])), out, rows)
+
+
+def evaluate_map_links(gt: Trajectory, db_path: str | Path, max_dt: float = 0.02,
+                       bounds: tuple[float, float] = (5.0, 3.0)) -> LinkReport:
+    """`evaluate_links` over every link of a map database (every session, merged keyframes
+    included)."""
+    from storage import MapStore
+
+    with MapStore(db_path, create=False) as store:
+        nodes = store.nodes(limit=None)
+        links = store.links()
+    return evaluate_links(gt, [n.id for n in nodes], [n.stamp for n in nodes],
+                          [(x.from_id, x.to_id, int(x.type), x.transform) for x in links], max_dt, bounds)

@@ -24,6 +24,7 @@ from storage import MapStore
 
 from .builder import build_pipeline
 from .config import Config
+from .evaluation import LinkReport, evaluate_map_links
 from .pipeline import FrameResult, Pipeline
 
 log = logging.getLogger("mnemoslam.run")
@@ -43,12 +44,14 @@ class RunSummary:
     fps: float
     loops: int = 0  # accepted loop closures
     merged: int = 0  # keyframes merged into a node the map had (rehearsal): the map has keyframes - merged nodes
+    links_dropped: int = 0  # verified loop / proximity links refused because their estimated uncertainty was too large
 
     def line(self) -> str:
         merged = f" ({self.merged} merged)" if self.merged else ""
+        dropped = f" ({self.links_dropped} inaccurate link(s) dropped)" if self.links_dropped else ""
         return (f"{self.dataset}: {self.frames} frames, {self.tracked} tracked, {self.keyframes} keyframes{merged}, "
                 f"{self.lost} lost, {self.skipped} skipped, {self.bad} unreadable, {self.segments} segment(s), "
-                f"{self.loops} loop(s), {self.fps:.1f} frames/s")
+                f"{self.loops} loop(s){dropped}, {self.fps:.1f} frames/s")
 
 
 @dataclass
@@ -59,6 +62,7 @@ class RunOutput:
     results: list[FrameResult]
     online: Trajectory | None = None  # every tracked frame as published while running (map at that time)
     instance_frames: np.ndarray | None = None  # synthetic + semantics: frames in which ≥ 200 px of each instance id were visible
+    links: "LinkReport | None" = None  # the map's links against ground truth, per type (datasets with ground truth)
 
     def __post_init__(self):
         if self.online is None:
@@ -96,12 +100,17 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             out.trajectory = _anchored(out.results, final)
             out.summary.loops = len(mapper.loops)
             out.summary.merged = mapper.merged
+            out.summary.links_dropped = mapper.links_dropped
+        if dataset.ground_truth is not None:  # every link of the map against the true relative poses
+            out.links = evaluate_map_links(dataset.ground_truth, db)
     if out_dir is not None:
         write_tum(out_dir / "trajectory.tum", out.trajectory)
         write_tum(out_dir / "trajectory_online.tum", out.online)
         write_tum(out_dir / "keyframes.tum", out.keyframes)
         if dataset.ground_truth is not None:
             write_tum(out_dir / "groundtruth.tum", dataset.ground_truth)
+        if out.links is not None:
+            out.links.write(out_dir)
         (out_dir / "summary.json").write_text(json.dumps(asdict(out.summary), indent=2) + "\n")
         if mapper is not None:
             with MapStore(db, create=False) as reader:  # every update's statistics (the mapper keeps the last ones)

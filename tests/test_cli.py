@@ -61,12 +61,17 @@ def fake_demo(monkeypatch):
 # -- run ------------------------------------------------------------------------------------
 
 def test_run_prints_no_progress_when_stderr_is_not_a_terminal(tmp_path, capsys):
-    assert main(["run", "synthetic:straight", "--out", str(tmp_path / "o"), "--max-frames", "12"]) == 0
+    assert main(["run", "synthetic:straight", "--out", str(tmp_path / "o"), "--max-frames", "30"]) == 0
     out, err = capsys.readouterr()
-    assert "12 frames" in out
+    assert "30 frames" in out
     assert err == ""  # no progress bar lines (captured stderr is not a terminal)
     # no loop on a straight path: said plainly, no nan, no vacuous 1.000 (0/0)
     assert "no loop links" in out and "no true revisits" in out and "nan" not in out and "0/0" not in out
+    # the graph's links against ground truth, per type, printed and written (links.csv, links.json)
+    assert "links        odometry" in out and " beyond 5 cm or 3 deg" in out
+    rows = (tmp_path / "o" / "links.csv").read_text().splitlines()
+    assert rows[0] == "from_id,to_id,type,error_cm,error_deg" and any(",odometry," in r for r in rows[1:])
+    assert (tmp_path / "o" / "links.json").exists()
 
 
 def test_progress_bars_only_on_a_terminal_and_not_with_quiet(tmp_path, monkeypatch, fake_run, fake_demo):

@@ -257,3 +257,39 @@ def test_loop_report_without_loops_says_so():
     assert r.revisits > 0 and r.recalled == 0
     text = r.format()
     assert "no loop links" in text and f"recall 0.000 (0/{r.revisits}" in text and "nan" not in text
+
+
+def test_link_report_per_type_with_a_perturbed_link(tmp_path):
+    from service.evaluation import LINK_CSV_COLUMNS, evaluate_links
+    gt = smooth_trajectory(20, seed=3)
+    P = gt.poses
+    rel = lambda a, b: invert(P[a]) @ P[b]  # noqa: E731
+    ids = np.arange(20) + 100  # node ids are not row numbers
+    links = [(100 + k, 101 + k, 0, rel(k, k + 1)) for k in range(19)]  # exact odometry
+    links[4] = (104, 105, 0, rel(4, 5) @ make_pose(np.eye(3), [0.0, 0.02, 0.0]))  # one 2 cm off
+    turn = make_pose(rodrigues([0.0, np.radians(4.0), 0.0]), [0.0, 0.0, 0.0])
+    links += [(100, 110, 1, rel(0, 10) @ make_pose(np.eye(3), [0.06, 0.0, 0.0])),  # loop 6 cm off
+              (102, 112, 2, rel(2, 12) @ turn),  # proximity 4 deg off
+              (103, 113, 2, rel(3, 13)),
+              (105, 999, 2, np.eye(4))]  # a node without ground truth: left out, counted
+    stamps = gt.stamps.copy()
+    stamps[19] += 5.0  # node 119 has no ground truth pose within max_dt: the odometry link 118 -> 119 is left out
+    r = evaluate_links(gt, ids, stamps, links)
+    kinds = r.by_kind()
+    assert list(kinds) == ["odometry", "loop", "proximity"]
+    odo, loop, prox = kinds["odometry"], kinds["loop"], kinds["proximity"]
+    assert (odo.count, odo.unmatched, odo.beyond) == (18, 1, 0)  # 104 -> 105 is 2 cm off: within 5 cm
+    assert odo.max_cm == pytest.approx(2.0, abs=1e-6) and odo.median_cm < 1e-6
+    assert (loop.count, loop.beyond) == (1, 1) and loop.median_cm == pytest.approx(6.0, abs=1e-6)
+    assert loop.max_deg < 1e-4
+    assert (prox.count, prox.unmatched, prox.beyond) == (2, 1, 1)
+    assert prox.max_deg == pytest.approx(4.0, abs=1e-6) and prox.max_cm < 1e-6
+    text = r.format()
+    assert "loop" in text and "6.00 cm" in text and "1 beyond 5 cm or 3 deg" in text and "nan" not in text
+    r.write(tmp_path)
+    lines = (tmp_path / "links.csv").read_text().splitlines()
+    assert lines[0] == ",".join(LINK_CSV_COLUMNS) and len(lines) == 1 + 18 + 1 + 2
+    assert "100,110,loop,6.0000,0.0000" in lines
+    summary = json.loads((tmp_path / "links.json").read_text())
+    assert [t["kind"] for t in summary["types"]] == ["odometry", "loop", "proximity"]
+    assert summary["types"][2]["unmatched"] == 1

@@ -207,6 +207,33 @@ def test_remove_loop_and_changed_poses(scene):
     assert max_diff(before, g.poses()) < 1e-5
 
 
+def test_replace_loop_in_one_update(scene):
+    """add_loop(..., replace=T_old): the new measurement takes the old link's place (one link,
+    the optimum of a graph that only ever had the new one); a refused replacement leaves the
+    old link and the estimate as they were."""
+    truth, odo, rng = scene
+    n = len(truth) - 1
+    first, second = loop_measurement(truth, n, 0, rng), loop_measurement(truth, n, 0, rng)
+    g = build(truth, odo)
+    assert g.add_loop(n, 0, first, LOOP_INFO).accepted
+    out = g.add_loop(n, 0, second, LOOP_INFO, replace=first)
+    assert out.accepted
+    assert g.loops() == [(n, 0)]
+    only = build(truth, odo)
+    assert only.add_loop(n, 0, second, LOOP_INFO).accepted
+    assert max_diff(g.poses(), only.poses()) < 1e-4
+    # a replacement the graph refuses (2 m off): the accepted one stays, and the estimate
+    before = g.poses()
+    wrong = second @ exp([0, 0, 0, 2.0, 0, 0])
+    out = g.add_loop(n, 0, wrong, LOOP_INFO, replace=second)
+    assert not out.accepted
+    assert g.loops() == [(n, 0)]
+    assert max_diff(before, g.poses()) < 1e-6
+    assert g.remove_loop(n, 0, second) == 1  # the link back is the old measurement
+    # nothing to replace: a plain add
+    assert g.add_loop(n, 0, first, LOOP_INFO, replace=wrong).accepted and g.loops() == [(n, 0)]
+
+
 def test_bad_input():
     g = PoseGraph()
     g.add_node(1, np.eye(4))

@@ -56,6 +56,34 @@ def test_revisits_are_closed_without_false_links(mapped):
     assert proximity, "proximity detection adds links between keyframes the graph places together"
 
 
+def test_link_report_against_ground_truth(mapped, tmp_path):
+    """The run's link report (issue #12): per type, on the exact synthetic ground truth; a link
+    put 7 cm off into a copy of the map is reported with that error."""
+    import shutil
+
+    from client.geometry import invert, make_pose
+    from service.evaluation import evaluate_map_links
+
+    ds, slam, cfg, db = mapped
+    kinds = slam.links.by_kind()
+    assert kinds["odometry"].count > 0 and kinds["odometry"].median_cm < 1.0, slam.links.format()
+    for kind in ("loop", "proximity"):  # every loop-closing link within 5 cm and 3 deg
+        if kind in kinds:
+            assert kinds[kind].beyond == 0, slam.links.format()
+    assert kinds["proximity"].count > 0
+    copy = tmp_path / "map.db"
+    shutil.copy(db, copy)
+    with MapStore(copy, create=False) as store:
+        a, b = [n for n in store.nodes(limit=None, merged=False)][:2]
+        gt = ds.ground_truth
+        true = invert(gt.poses[np.argmin(np.abs(gt.stamps - a.stamp))]) @ gt.poses[np.argmin(np.abs(gt.stamps - b.stamp))]
+        store.add_link(a.id, b.id, LinkType.USER, true @ make_pose(np.eye(3), [0.0, 0.07, 0.0]))
+    r = evaluate_map_links(ds.ground_truth, copy)
+    user = r.by_kind()["user"]
+    assert user.count == 1 and user.beyond == 1 and user.max_cm == pytest.approx(7.0, abs=1e-3)
+    assert (a.id, b.id, "user") in [row[:3] for row in r.rows]
+
+
 def test_links_along_the_own_path_are_exact_and_not_loops(mapped):
     ds, slam, cfg, db = mapped
     path = evaluate_map_loops(ds.ground_truth, db, cfg.loop.min_age, types=(LinkType.LOCAL_TIME,))

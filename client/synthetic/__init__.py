@@ -3,8 +3,10 @@
 A living room, an office and a hall (world z up, metres) built from axis-aligned quads and
 boxes with procedural, seed-deterministic textures, ray-cast exactly into RGB (BGR uint8),
 depth (z in metres), semantic labels (ADE20K-32 class ids, `CLASS_NAMES`) and object
-instance ids. Camera paths ("loop", "figure8", "walk_a", "walk_b", "straight") and a
-`Dataset` player on top:
+instance ids. Camera paths ("loop", "figure8", "walk_a", "walk_b", "straight"; "fastrot", a
+handheld look-around at up to 60°/s per axis) and a `Dataset` player on top, with optional
+depth noise (`noise=True`/"axial", or "kinect": `kinect.py`) and motion blur (`exposure`,
+`blur.py`):
 
     from client.synthetic import SyntheticDataset, SyntheticScene, get_scene, trajectory
     ds = SyntheticDataset("loop", rate=30, noise=True)          # or open_dataset("synthetic:loop")

@@ -10,7 +10,10 @@ import numpy as np
 from ..datasets.base import Dataset
 from ..frames import Calibration, DatasetError, Frame, PinholeCamera
 from ..trajectory import Trajectory
+from .blur import motion_blur
+from .kinect import add_kinect_noise
 from .scene import SyntheticScene, get_scene
+from .trajectories import TRAJECTORIES
 from .trajectories import trajectory as make_path
 
 # Kinect-like depth noise: sigma(z) = A + B (z - Z0)^2 metres
@@ -19,6 +22,7 @@ MISSING_FRACTION = 0.02  # random missing depth pixels
 MAX_INCIDENCE_DEG = 75.0  # no depth on surfaces seen at a more grazing angle
 DEPTH_QUANTUM = 0.001  # metres
 RGB_SIGMA = 2.0  # grey levels
+NOISE_MODELS = ("axial", "kinect")  # noise=True is "axial"
 
 
 def depth_sigma(z):
@@ -32,16 +36,24 @@ class SyntheticDataset(Dataset):
     Frame k is at stamp k / rate, from 0 to the path's duration inclusive (so a closed path's
     last frame repeats the first pose). `ground_truth` holds the exact camera-to-world poses.
     Frames carry `extras={"labels": H×W uint8 class ids, "instances": H×W int32 ids}`.
-    With `noise=True` depth gets Kinect-like noise (see `depth_sigma`), 2 % random holes,
-    holes on surfaces seen at > 75° incidence and 1 mm quantisation, and RGB gets σ = 2
-    Gaussian noise, all deterministic by (seed, frame index).
+    With `noise=True` (or "axial") depth gets Kinect-like axial noise (see `depth_sigma`), 2 %
+    random holes, holes on surfaces seen at > 75° incidence and 1 mm quantisation; with
+    `noise="kinect"` the Kinect's disparity model (`kinect.py`: σ_z = 1.5e-3·z², disparity
+    steps, holes at depth edges, grazing angles and in blotches, 0.45–5 m). Either way RGB gets
+    σ = 2 Gaussian noise, all deterministic by (seed, frame index). `noise=False` (or "none"):
+    exact depth and colour.
+    With `exposure` > 0 (seconds) the colour image is blurred by the camera's motion over an
+    exposure centred on the frame's stamp (`blur.py`); depth, labels and the ground truth are
+    those of the stamp (mid-exposure). `noise=None` / `exposure=None` take the trajectory's
+    defaults (`PathSpec.noise` / `exposure`: off, except "fastrot": "kinect" and 20 ms).
     """
 
     format = "synthetic"
 
     def __init__(self, trajectory: str = "loop", rate: float = 30.0, width: int = 640, height: int = 480,
-                 fx: float = 525.0, noise: bool = False, seed: int = 0, max_frames: int | None = None,
-                 duration: float | None = None, scene: SyntheticScene | None = None, frames: int | None = None):
+                 fx: float = 525.0, noise: bool | str | None = None, seed: int = 0, max_frames: int | None = None,
+                 duration: float | None = None, scene: SyntheticScene | None = None, frames: int | None = None,
+                 exposure: float | None = None):
         if not (isinstance(rate, (int, float)) and rate > 0):
             raise DatasetError(f"synthetic: rate must be > 0 Hz, got {rate!r}")
         if int(width) < 8 or int(height) < 8:
@@ -51,7 +63,11 @@ class SyntheticDataset(Dataset):
         self.trajectory = str(trajectory)
         self.path = make_path(self.trajectory, duration)  # DatasetError for unknown names
         self.rate = float(rate)
-        self.noise = bool(noise)
+        spec = TRAJECTORIES[self.trajectory]
+        self.noise = _noise_model(spec.noise if noise is None else noise)
+        self.exposure = float(spec.exposure if exposure is None else exposure)
+        if not (math.isfinite(self.exposure) and 0.0 <= self.exposure <= 1.0):
+            raise DatasetError(f"synthetic: exposure must be 0..1 s, got {exposure!r}")
         self.seed = int(seed)
         self.scene = scene if scene is not None else get_scene(self.seed)
         w, h = int(width), int(height)
@@ -70,7 +86,8 @@ class SyntheticDataset(Dataset):
 
     def __repr__(self) -> str:
         return (f"SyntheticDataset({self.trajectory!r}, {len(self)} frames @ {self.rate:g} Hz, "
-                f"{self.camera.width}x{self.camera.height}, noise={self.noise}, seed={self.seed})")
+                f"{self.camera.width}x{self.camera.height}, noise={self.noise}, exposure={self.exposure:g}, "
+                f"seed={self.seed})")
 
     def pose(self, i: int) -> np.ndarray:
         return self.ground_truth.poses[i]
@@ -79,15 +96,33 @@ class SyntheticDataset(Dataset):
         if not 0 <= i < len(self):
             raise IndexError(f"{self.name}: frame {i} out of range 0..{len(self) - 1}")
         pose = self.ground_truth.poses[i]
-        r = self.scene.render(pose, self.camera, incidence=self.noise)
+        r = self.scene.render(pose, self.camera, incidence=bool(self.noise))
         rgb, depth = r.rgb, r.depth
+        if self.exposure > 0:
+            t = float(self.ground_truth.stamps[i])
+            start, end = self.path(np.array([t - self.exposure / 2, t + self.exposure / 2]))
+            rgb = motion_blur(rgb, depth, self.camera, pose, start, end)
         if self.noise:
             rng = np.random.default_rng([self.seed, i, 0x5EED])
-            depth = add_depth_noise(depth, r.incidence, rng)
+            if self.noise == "kinect":
+                depth = add_kinect_noise(depth, r.incidence, rng)
+            else:
+                depth = add_depth_noise(depth, r.incidence, rng)
             rgb = add_rgb_noise(rgb, rng)
         return Frame(index=i, stamp=float(self.ground_truth.stamps[i]), image=rgb, depth=depth,
                      source=f"synthetic:{self.trajectory}#{i}",
                      extras={"labels": r.labels, "instances": r.instances})
+
+
+def _noise_model(noise) -> str | bool:
+    """False (no noise) or the name of a noise model: True means "axial"."""
+    if noise is False or noise is None or noise == "none":
+        return False
+    if noise is True or noise == "axial":
+        return "axial"
+    if noise in NOISE_MODELS:
+        return noise
+    raise DatasetError(f"synthetic: unknown noise {noise!r}; known: none, {', '.join(NOISE_MODELS)} (true = axial)")
 
 
 def add_depth_noise(depth: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Generator) -> np.ndarray:

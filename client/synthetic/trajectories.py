@@ -9,6 +9,14 @@ roll, sway and a 1 cm walking bob. Closed paths ("loop", "figure8") return exact
 start pose at t = duration: every periodic term has a whole number of cycles.
 
 `duration` rescales time: the same path is walked faster or slower.
+
+"fastrot" is not a walk but a handheld look-around (issue 12): the camera drifts slowly
+(0.11 m/s) round a small loop in the middle of the living room while it is swung about yaw,
+pitch and roll with sinusoidal angle rates (`PathSpec.spin`), its mean heading making one full
+turn in 30 s. The Euler-angle peaks (52, 54, 35.5°/s) are set so that the angular velocity
+about each of the camera's own axes (x: pitch, y: yaw, z: roll) peaks at 60°/s; the three
+together reach 81°/s (mean 53°/s). Its frames come with motion blur and the Kinect
+disparity noise model by default (`PathSpec.noise` / `exposure`, see `dataset.py`).
 """
 from __future__ import annotations
 
@@ -32,6 +40,16 @@ class PathSpec:
     pitch: float = -6.0  # degrees (negative = looking down)
     sway: float = 4.0  # degrees of slow yaw sway
     description: str = ""
+    # Handheld fast rotation instead of looking along the walking direction: for yaw, pitch
+    # and roll, (peak angular velocity in deg/s, whole cycles over the path). Each angle's
+    # rate is peak·sin(2π·cycles·t/duration) (0 at the start and the end), swinging round
+    # `pitch`, 0 (roll) and the mean heading, which starts at yaw_offset and makes
+    # `spin_turns` full turns (its rate counts in the yaw peak).
+    spin: tuple = ()
+    spin_turns: float = 0.0
+    # what the dataset gives its frames unless told otherwise (SyntheticDataset noise / exposure)
+    noise: bool | str = False
+    exposure: float = 0.0  # s; > 0: colour images blurred by the motion during the exposure
 
 
 # Doorway centres: living<->office (6.05, 2.5), living<->hall (2.6, 5.05), office<->hall (8.6, 5.05).
@@ -80,6 +98,12 @@ TRAJECTORIES: dict[str, PathSpec] = {
         points=((1.0, 6.1), (4.0, 6.1), (7.0, 6.1), (10.0, 6.1)),
         duration=24.0, closed=False, yaw_offset=55.0, pitch=-3.0, sway=2.0,
         description="straight along the hall's north wall and its six identical posters, no revisit"),
+    "fastrot": PathSpec(
+        points=((3.0, 2.3), (3.6, 2.35), (3.85, 2.85), (3.4, 3.25), (2.85, 2.95)),
+        duration=30.0, closed=True, yaw_offset=-90.0, pitch=-5.0, sway=0.0,
+        spin=((52.0, 8), (54.0, 11), (35.5, 14)), spin_turns=1.0, noise="kinect", exposure=0.02,
+        description="handheld look-around in the living room: roll, pitch and yaw swung at up to 60 deg/s each, "
+                    "one full turn, slow drift round a 0.9 m loop; motion blur and Kinect depth noise"),
 }
 
 
@@ -202,6 +226,13 @@ def _build(name: str, spec: PathSpec, duration: float, hz: float = 200.0) -> Cam
         return max(1, round(freq_hz * duration)) / duration if closed else freq_hz
 
     f_sway, f_pitch, f_roll, f_step = periodic(0.11), periodic(0.07), periodic(0.13), periodic(1.8)
+    if spec.spin:
+        yaw, pitch, roll = _spin(spec, t, duration)
+        z = EYE_HEIGHT + 0.01 * np.sin(2 * np.pi * f_step * t) + 0.02 * np.sin(2 * np.pi * f_pitch * t)
+        if closed:
+            x[-1], y[-1] = x[0], y[0]
+        return CameraPath(name, float(duration), closed, spec.description, t,
+                          np.stack([x, y, z], 1), np.stack([yaw, pitch, roll], 1))
     yaw = yaw + math.radians(spec.yaw_offset) + math.radians(spec.sway) * np.sin(2 * np.pi * f_sway * t)
     pitch = math.radians(spec.pitch) + math.radians(2.0) * np.sin(2 * np.pi * f_pitch * t + 0.5)
     roll = math.radians(1.2) * np.sin(2 * np.pi * f_roll * t + 1.0)
@@ -213,6 +244,22 @@ def _build(name: str, spec: PathSpec, duration: float, hz: float = 200.0) -> Cam
         x[-1], y[-1] = x[0], y[0]
     return CameraPath(name, float(duration), closed, spec.description, t,
                       np.stack([x, y, z], 1), np.stack([yaw, pitch, roll], 1))
+
+
+def _spin(spec: PathSpec, t: np.ndarray, duration: float):
+    """Yaw, pitch, roll (radians) of a `spin` path: each angle's rate is
+    peak·sin(2π·f·t) with f = cycles / duration, so the angle swings round its base as
+    base − peak/(2πf)·cos 2πft, at rest at an extreme at both ends; the heading's full
+    turns take part of the yaw peak (the swing's amplitude is what is left of it)."""
+    base_rate = 360.0 * spec.spin_turns / duration  # deg/s
+    base = (np.radians(spec.yaw_offset + base_rate * t), np.full_like(t, math.radians(spec.pitch)), np.zeros_like(t))
+    out = []
+    for k, ((peak, cycles), b) in enumerate(zip(spec.spin, base)):
+        if k == 0:
+            peak = peak - abs(base_rate)
+        f = cycles / duration
+        out.append(b - math.radians(peak) / (2 * np.pi * f) * np.cos(2 * np.pi * f * t))
+    return out
 
 
 _CACHE: dict = {}

@@ -24,6 +24,7 @@ runs on a background thread).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import threading
 import time
 from dataclasses import dataclass
@@ -351,14 +352,19 @@ class PoseGraph:
         return noise
 
     def add_loop(self, from_id: int, to_id: int, transform, information, robust: bool | str = True,
-                 check: bool | str = True) -> LoopOutcome:
+                 check: bool | str = True, replace=None) -> LoopOutcome:
         """Add a loop link T_from_to between two graph nodes, optimise, and check the graph error.
 
         ``robust``: True = the graph's default kernel, False/"none" = plain Gaussian, or "huber" /
         "cauchy". ``check=False`` (or ``max_error`` ≤ 0) keeps the link whatever the error;
         ``check="link"`` checks the new link's own error only (not the other links': one
         already at the limit would refuse every link that moves it). A rejected link is removed
-        again and the estimate restored."""
+        again and the estimate restored.
+
+        ``replace``: T_from_to of a loop link from_id -> to_id that the new one replaces, in the
+        same iSAM2 update (one optimisation instead of a ``remove_loop``'s and an ``add_loop``'s);
+        if the new link is rejected, that link is back and the estimate restored. No such link:
+        a plain add."""
         t0 = time.perf_counter()
         a, b = int(from_id), int(to_id)
         t = _as_pose(transform, "transform")
@@ -374,11 +380,15 @@ class PoseGraph:
                 raise ValueError("a loop link needs two different nodes")
             before = self._estimate_locked()
             err_before = float(normalized_errors(before[a][None], before[b][None], t[None], info[None])[0])
+            old = [] if replace is None else [l for l in self._links if l.loop and l.from_id == a and l.to_id == b
+                                              and np.array_equal(l.transform, replace)][:1]
             graph = gtsam.NonlinearFactorGraph()
             graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), self._loop_noise(info, kernel)))
             index = self._n_factors
-            self._isam.update(graph, gtsam.Values())
+            self._isam.update(graph, gtsam.Values(), [l.factor_index for l in old])
             self._n_factors += 1
+            if old:
+                self._links = [l for l in self._links if l is not old[0]]
             link = _Link(a, b, t.copy(), info, True, index)
             self._links.append(link)
             iterations = 1 + self._converge_locked()
@@ -400,7 +410,7 @@ class PoseGraph:
             else:
                 accepted, reason = True, "accepted"
             if not accepted:
-                self._remove_links_locked([link], restore=before)
+                self._remove_links_locked([link], restore=before, back=old)
             self._publish_locked()
             return LoopOutcome(accepted, reason, err_before, err_after, max_err, worst, iterations,
                                (time.perf_counter() - t0) * 1e3)
@@ -431,6 +441,15 @@ class PoseGraph:
             self._publish_locked()
             return len(new)
 
+    def link_error(self, from_id: int, to_id: int, transform, information) -> float:
+        """Normalised error (σ, as the loop check) of a measurement T_from_to on the current
+        estimate, without adding it."""
+        t = _as_pose(transform, "transform")
+        info = _as_information(information, "information")
+        with self._lock:
+            est = self._estimate_locked()
+            return float(normalized_errors(est[int(from_id)][None], est[int(to_id)][None], t[None], info[None])[0])
+
     def remove_loop(self, from_id: int, to_id: int, transform=None) -> int:
         """Remove the loop link(s) between two nodes (either direction; with ``transform``,
         only the link from_id -> to_id with that T_from_to) and re-optimise. Returns how many
@@ -444,10 +463,20 @@ class PoseGraph:
                 self._publish_locked()
             return len(gone)
 
-    def _remove_links_locked(self, links: list[_Link], restore: dict[int, np.ndarray] | None) -> None:
-        self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [l.factor_index for l in links])
+    def _remove_links_locked(self, links: list[_Link], restore: dict[int, np.ndarray] | None,
+                             back: list[_Link] = ()) -> None:
+        """Remove `links` (and put the loop links `back` again, with the default kernel, in the
+        same update)."""
+        graph = gtsam.NonlinearFactorGraph()
+        for l in back:
+            graph.add(gtsam.BetweenFactorPose3(l.from_id, l.to_id, _pose3(l.transform),
+                                               self._loop_noise(l.information, self.robust)))
+        self._isam.update(graph, gtsam.Values(), [l.factor_index for l in links])
         ids = {id(l) for l in links}
         self._links = [l for l in self._links if id(l) not in ids]
+        for l in back:
+            self._links.append(dataclasses.replace(l, factor_index=self._n_factors))
+            self._n_factors += 1
         self._converge_locked()
         self._cache = None
         if restore is not None:

@@ -33,6 +33,7 @@ from ..tracking.features import FrameFeatures
 from ..tracking.odometry import _match
 from .graph import PoseGraph
 from .local_ba import LocalBundleAdjustment
+from .link_refinement import refine_link
 from .loop_detection import LoopDetector
 from .proximity import nearby
 from .verification import Verification, refine, register_dense, verify
@@ -91,6 +92,7 @@ class LoopStatistics:
     matches: int = 0
     inliers: int = 0
     refined: bool = False  # the accepted link was refined by dense registration
+    sigma: list | None = None  # [m, deg] largest standard deviations of the link's estimate (two-view refinement)
     proximity: list = field(default_factory=list)  # [{node, decision, inliers, refined}] spatial candidates
     path: list = field(default_factory=list)  # [{node, decision, inliers, refined}] recent keyframes of its own path
     rehearsal: dict = field(default_factory=dict)  # {node, similarity, inliers, distance, rotation, decision}: the node it was or wasn't merged into
@@ -135,6 +137,7 @@ class Mapper:
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
+        self.links_dropped = 0  # verified loop / proximity links refused as inaccurate (their estimated σ beyond loop.link_max_sigma_*)
         # the statistics of the last STATISTICS_KEPT updates (every update's are in the database)
         self.statistics: collections.OrderedDict[int, LoopStatistics] = collections.OrderedDict()
         self._queue: queue.Queue | None = None
@@ -265,6 +268,7 @@ class Mapper:
             stats.decision, v = self._close_loop(u, hyp.best_id, LinkType.GLOBAL_CLOSURE)
             if v is not None:
                 stats.matches, stats.inliers, stats.refined = v.matches, v.inliers, v.refined
+                stats.sigma = None if v.sigma is None else [round(x, 5) for x in v.sigma]
         t4 = time.perf_counter()
         if self.config.proximity_by_space:
             self._close_nearby(u, candidates, stats, verified)
@@ -405,12 +409,14 @@ class Mapper:
         for k, candidate in enumerate(near.tolist()):
             prior = invert(poses[candidate]) @ poses[u.node_id] if k == 0 and c.proximity_dense else None
             if verified is not None and verified[0] == candidate:
-                v = verified[1]
-                decision = self._add_link(u, candidate, LinkType.LOCAL_SPACE, v)
+                decision, v = self._accurate(u, candidate, verified[1])
+                if decision == "ok":
+                    decision = self._add_link(u, candidate, LinkType.LOCAL_SPACE, v)
             else:
                 decision, v = self._close_loop(u, candidate, LinkType.LOCAL_SPACE, prior)
             stats.proximity.append({"node": candidate, "decision": decision,
-                                    "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined)})
+                                    "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined),
+                                    "sigma": None if v is None or v.sigma is None else [round(x, 5) for x in v.sigma]})
             if decision == "accepted":
                 return
 
@@ -462,6 +468,29 @@ class Mapper:
                        max_correction=(c.refine_max_correction, c.refine_max_rotation))
         return "ok", v
 
+    def _accurate(self, u: KeyframeUpdate, candidate: int, v: Verification) -> tuple[str, Verification]:
+        """A loop / proximity link as accurate as both keyframes' features make it, or none:
+        two-view reprojection refinement from the verified transform (`link_refinement`);
+        the link takes its information from the refinement's covariance, and is refused
+        ("rejected: inaccurate …", counted in `links_dropped`) when its σ is beyond
+        loop.link_max_sigma_*. A dense refinement that passed its check keeps its transform
+        (it explains the PnP inliers and uses thousands of points). Links registered densely
+        without features (no inliers) keep their dense estimate."""
+        c = self.config
+        if not c.link_refine or not v.inliers:
+            return "ok", v
+        e = refine_link(self.camera, u.features, self.memory.features[candidate], v.transform,
+                        depth_noise=c.link_depth_noise, min_inliers=c.min_inliers,
+                        max_sigma=(c.link_max_sigma_translation, c.link_max_sigma_rotation))
+        if not e.ok:
+            self.links_dropped += 1
+            why = e.reason if e.covariance is None else \
+                f"σ {e.sigma_translation * 100:.2f} cm / {e.sigma_rotation:.2f} deg"
+            return f"rejected: inaccurate ({why})", v
+        T = v.transform if v.refined else e.transform
+        info = e.information((c.link_min_sigma_translation, c.link_min_sigma_rotation))
+        return "ok", dataclasses.replace(v, transform=T, information=info, sigma=(e.sigma_translation, e.sigma_rotation))
+
     def _add_link(self, u: KeyframeUpdate, candidate: int, kind: LinkType, v: Verification) -> str:
         """Add a verified link to the graph (which may refuse it) and store it (the poses it
         moved are written at the end of the update). Returns "accepted" or "rejected: graph why"."""
@@ -502,9 +531,11 @@ class Mapper:
 
     def _close_loop(self, u: KeyframeUpdate, candidate: int, kind: LinkType,
                     prior: np.ndarray | None = None) -> tuple[str, Verification | None]:
-        """Verify a loop candidate and add the link to the graph. Returns the decision
-        ("accepted" or "rejected: why") and the verification."""
+        """Verify a loop candidate, make the link accurate or drop it (`_accurate`) and add it
+        to the graph. Returns the decision ("accepted" or "rejected: why") and the verification."""
         decision, v = self._register(u, candidate, prior)
+        if decision == "ok":
+            decision, v = self._accurate(u, candidate, v)
         if decision == "ok":
             decision = self._add_link(u, candidate, kind, v)
         return decision, v

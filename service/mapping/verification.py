@@ -43,6 +43,7 @@ class Verification:
     refined: bool = False  # the transform was refined by dense registration
     inlier_points: np.ndarray | None = None  # (n, 3) candidate-frame points of the PnP inliers
     inlier_pixels: np.ndarray | None = None  # (n, 2) their pixels in the new keyframe
+    sigma: tuple[float, float] | None = None  # (m, deg) largest standard deviations of the link's estimate, when one was made
 
 
 class DenseView:

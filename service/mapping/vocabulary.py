@@ -268,31 +268,31 @@ class Vocabulary:
         slots = np.unique(np.asarray(slots, np.int64))
         if not len(slots):
             return
-        keys = self._keys(self._desc[slots])
+        L = self.n_tables
+        keys = self._keys(self._desc[slots]).ravel()  # (word, table) pairs, word-major: the tables at once
+        tbl = np.tile(np.arange(L), len(slots))
         last = len(slots) - 1
 
         def removed(link: np.ndarray) -> np.ndarray:  # link values (slot + 1, 0 = none)
             s = link.astype(np.int64) - 1
             return slots[np.minimum(np.searchsorted(slots, s), last)] == s
 
-        for t in range(self.n_tables):
-            nxt = self._nxt[:, t]
-            prv = self._prv[:, t]
-            p = prv[slots]
-            m = np.nonzero(removed(p))[0]
-            while len(m):
-                p[m] = prv[p[m] - 1]
-                m = m[removed(p[m])]
-            n = nxt[slots]
-            m = np.nonzero(removed(n))[0]
-            while len(m):
-                n[m] = nxt[n[m] - 1]
-                m = m[removed(n[m])]
-            hp = p > 0
-            nxt[p[hp] - 1] = n[hp]
-            self._head[keys[~hp, t]] = n[~hp]
-            hn = n > 0
-            prv[n[hn] - 1] = p[hn]
+        nxt, prv = self._nxt, self._prv
+        p = prv[slots].ravel()
+        m = np.nonzero(removed(p))[0]
+        while len(m):
+            p[m] = prv[p[m] - 1, tbl[m]]
+            m = m[removed(p[m])]
+        n = nxt[slots].ravel()
+        m = np.nonzero(removed(n))[0]
+        while len(m):
+            n[m] = nxt[n[m] - 1, tbl[m]]
+            m = m[removed(n[m])]
+        hp = p > 0
+        nxt[p[hp] - 1, tbl[hp]] = n[hp]
+        self._head[keys[~hp]] = n[~hp]
+        hn = n > 0
+        prv[n[hn] - 1, tbl[hn]] = p[hn]
         self._nxt[slots] = 0
         self._prv[slots] = 0
 
@@ -306,38 +306,38 @@ class Vocabulary:
         slots = np.unique(np.asarray(slots, np.int64))
         if not len(slots):
             return
-        keys = self._keys(self._desc[slots])
-        s1 = (slots + 1).astype(np.int32)  # link values
-        for t in range(self.n_tables):
-            nxt = self._nxt[:, t]
-            prv = self._prv[:, t]
-            k = keys[:, t]
-            pred = np.zeros(len(slots), np.int32)  # chain word before the gap (0: the head)
-            succ = self._head[k]  # chain word after the gap (0: the end)
-            act = np.nonzero(succ > s1)[0]  # newer words come first: walk past them
-            while len(act):
-                pred[act] = succ[act]
-                succ[act] = nxt[succ[act] - 1]
-                act = act[succ[act] > s1[act]]
-            order = np.lexsort((-slots, succ, k))  # by bucket, gap, then id descending
-            K, P, N, S = k[order], pred[order], succ[order], s1[order]
-            first = np.ones(len(S), bool)  # first / last word of its gap
-            np.not_equal(K[1:], K[:-1], out=first[1:])
-            first[1:] |= N[1:] != N[:-1]
-            last = np.ones(len(S), bool)
-            last[:-1] = first[1:]
-            before = np.zeros_like(S)  # the batch word before / after in the same gap
-            before[1:] = S[:-1]
-            after = np.zeros_like(S)
-            after[:-1] = S[1:]
-            prv[S - 1] = np.where(first, P, before)
-            nxt[S - 1] = np.where(last, N, after)
-            hp = first & (P > 0)
-            nxt[P[hp] - 1] = S[hp]
-            hh = first & (P == 0)
-            self._head[K[hh]] = S[hh]
-            tl = last & (N > 0)
-            prv[N[tl] - 1] = S[tl]
+        L = self.n_tables
+        k = self._keys(self._desc[slots]).ravel()  # (word, table) pairs, word-major: the tables at once
+        tbl = np.tile(np.arange(L), len(slots))
+        s1 = np.repeat((slots + 1).astype(np.int32), L)  # link values
+        nxt, prv = self._nxt, self._prv
+        pred = np.zeros(len(s1), np.int32)  # chain word before the gap (0: the head)
+        succ = self._head[k]  # chain word after the gap (0: the end)
+        act = np.nonzero(succ > s1)[0]  # newer words come first: walk past them
+        while len(act):
+            pred[act] = succ[act]
+            succ[act] = nxt[succ[act] - 1, tbl[act]]
+            act = act[succ[act] > s1[act]]
+        # by bucket (keys are flat over the tables: a bucket is one table's), gap, then id descending
+        order = np.lexsort((-s1, succ, k))
+        K, P, N, S, T = k[order], pred[order], succ[order], s1[order], tbl[order]
+        first = np.ones(len(S), bool)  # first / last word of its gap
+        np.not_equal(K[1:], K[:-1], out=first[1:])
+        first[1:] |= N[1:] != N[:-1]
+        last = np.ones(len(S), bool)
+        last[:-1] = first[1:]
+        before = np.zeros_like(S)  # the batch word before / after in the same gap
+        before[1:] = S[:-1]
+        after = np.zeros_like(S)
+        after[:-1] = S[1:]
+        prv[S - 1, T] = np.where(first, P, before)
+        nxt[S - 1, T] = np.where(last, N, after)
+        hp = first & (P > 0)
+        nxt[P[hp] - 1, T[hp]] = S[hp]
+        hh = first & (P == 0)
+        self._head[K[hh]] = S[hh]
+        tl = last & (N > 0)
+        prv[N[tl] - 1, T[tl]] = S[tl]
 
     def _wake(self, word_ids: np.ndarray) -> None:
         """Relink the dormant words among `word_ids` (distinct, held)."""

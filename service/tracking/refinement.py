@@ -160,3 +160,21 @@ def offset_information(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixel
     info = float(H[6, 6] - Hpd @ sol[:, 0])
     grad = float(b[6] - Hpd @ sol[:, 1])
     return grad, max(info, 0.0)
+
+
+def pose_normal_equations(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray,
+                          sigma_px: np.ndarray, rays: np.ndarray, sigma_ray: np.ndarray,
+                          chi: float | np.ndarray = HUBER_CHI, active: np.ndarray | None = None):
+    """The whitened, Huber-weighted Gauss–Newton system of pixel observations of world points
+    under the pose T_cw (same model as `refine_pose`: pixel noise `sigma_px`, each point
+    uncertain along its unit ray `rays` by `sigma_ray` m), for solvers that join it with other
+    terms. `active` (n,) bool leaves observations out (weight 0). Returns (H, b, chi2, w): H ξ
+    = −b for a left perturbation ξ = (ω, τ) of T_cw, the squared Mahalanobis distances (n,)
+    and the Huber weights (n,) used."""
+    obs = _Observations(np.asarray(T_cw, np.float64), K, np.asarray(world, np.float64),
+                        np.asarray(pixels, np.float64), sigma_px, rays, sigma_ray)
+    w = obs.weights(np.broadcast_to(np.asarray(chi, np.float64), (len(obs.r),)))
+    if active is not None:
+        w = np.where(active, w, 0.0)
+    H, b = obs.normal_equations(w)
+    return H, b, obs.chi2(), w
