@@ -126,6 +126,20 @@ class LoopConfig:
     link_depth_noise: float = 0.003  # each point's depth σ = this × z² (m), along its viewing ray
     process: bool = True  # service: every robot's map update in one child process (its own GIL), so a slow update never slows tracking; false = a thread of the service (offline runs are always inline)
     process_nice: int = 10  # that child's nice increment (lower CPU priority than tracking); 0 = same priority
+    # Local bundle adjustment (service/mapping/local_ba.py): each keyframe's odometry link
+    # becomes the relative pose a windowed BA of the newest keyframes and their shared points
+    # gives (GTSAM, robust reprojection + a depth term weighted by the sensor's depth σ).
+    local_ba: bool = False  # refine odometry links by local bundle adjustment (ORB-SLAM's local BA)
+    local_ba_window: int = 8  # keyframes of the odometry chain in the window ...
+    local_ba_fixed: int = 1  # ... of which the oldest this many are held fixed (gauge)
+    local_ba_iterations: int = 10  # Levenberg-Marquardt iterations per window
+    local_ba_depth_weight: float = 1.0  # × the depth term's information (σ_z = features.depth_noise·z² for RGB-D); 0 = reprojection only
+    local_ba_relink: bool = True  # also replace the graph's odometry links between the window's older keyframes (they gain the points seen after them)
+    local_ba_fuse: bool = True  # a keyframe feature that matches an older window point by projection and descriptor fuses the tracker's point into it (the local map re-creates points it lost: one surface point, several ids)
+    local_ba_min_points: int = 30  # shared points (and observations per free keyframe) below which a window is not solved
+    local_ba_max_correction: float = 0.03  # m; a BA link farther than this from the tracker's is not used ...
+    local_ba_max_rotation: float = 2.0  # deg; ... nor one turned more
+    local_ba_adaptive_depth: bool = True  # scale the depth σ per window by the robust spread of its residuals when > 1 (misregistered depth loses weight)
 
 
 @dataclass

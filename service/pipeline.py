@@ -111,7 +111,7 @@ class Pipeline:
         if self.mapper is not None:
             link = self.memory.last_link
             self.mapper.submit(KeyframeUpdate(node_id, frame.stamp, tracked.pose, features,
-                                              *(link if link else (None, None, None))))
+                                              *(link if link else (None, None, None)), tracked.point_ids))
         return node_id
 
     def _fuse_semantics(self, frame: Frame, node_id: int, pose: np.ndarray) -> None:

@@ -151,7 +151,8 @@ VISIBLE_PIXELS = 200  # an object counts as seen in a frame with at least this m
 
 
 UPDATE_COLUMNS = ("keyframe", "stamp", "update_ms", "stm", "wm", "ltm", "transferred", "retrieved", "merged", "words")
-UPDATE_STEPS = ("rehearsal", "graph", "vocabulary", "detection", "verification_optimization", "proximity", "path", "memory")
+UPDATE_STEPS = ("local_ba", "rehearsal", "graph", "vocabulary", "detection", "verification_optimization", "proximity", "path",
+                "memory")
 
 
 def write_updates(path: Path, statistics) -> None:

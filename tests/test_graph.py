@@ -342,3 +342,20 @@ def test_restore_continues_a_stored_graph(scene):
         PoseGraph().restore({0: truth[0], 1: truth[1]}, [(1, 0, odo[0], INFO)])
     with pytest.raises(ValueError, match="loop link"):
         PoseGraph().restore({0: truth[0]}, [], [(0, 5, odo[0], LOOP_INFO)])
+
+
+def test_replace_odometry_takes_the_new_measurements(scene):
+    """Local BA hands refined relative poses for odometry links: the chain follows them, a
+    loop link and pairs without an odometry link are left alone."""
+    truth, odo, rng = scene
+    g = build(truth, odo[:10])
+    g.add_loop(0, 5, loop_measurement(truth, 0, 5, rng), LOOP_INFO)
+    exact = {(i, i + 1): inv(truth[i]) @ truth[i + 1] for i in range(5, 10)}
+    assert g.replace_odometry({**exact, (0, 5): np.eye(4), (2, 9): np.eye(4)}) == 5
+    est = g.poses()
+    for (a, b), t in exact.items():  # the links after the loop's end are now exact
+        assert np.abs(inv(est[a]) @ est[b] - t).max() < 1e-4
+    assert g.loops() == [(0, 5)]
+    links = {(a, b): e for a, b, loop, e in g.link_errors() if not loop}
+    assert len(links) == 10 and max(links[k] for k in exact) < 0.01  # σ units
+    assert g.replace_odometry({}) == 0

@@ -32,6 +32,7 @@ from ..memory.manager import MemoryManager, series_information
 from ..tracking.features import FrameFeatures
 from ..tracking.odometry import _match
 from .graph import PoseGraph
+from .local_ba import LocalBundleAdjustment
 from .link_refinement import refine_link
 from .loop_detection import LoopDetector
 from .proximity import nearby
@@ -52,6 +53,7 @@ class KeyframeUpdate:
     odom_from: int | None  # previous keyframe of the same segment
     transform: np.ndarray | None  # T_from_to of that odometry link
     information: np.ndarray | None
+    point_ids: np.ndarray | None = None  # per feature: the tracker's stable local-map point id or -1 (local BA's tracks); None: unknown
 
     @classmethod
     def from_store(cls, store: MapStore, node_id: int, images: bool = True) -> "KeyframeUpdate":
@@ -96,6 +98,7 @@ class LoopStatistics:
     rehearsal: dict = field(default_factory=dict)  # {node, similarity, inliers, distance, rotation, decision}: the node it was or wasn't merged into
     timings_ms: dict = field(default_factory=dict)
     memory: dict = field(default_factory=dict)  # after the update: stm, wm, ltm sizes, transferred / retrieved ids, words
+    local_ba: dict = field(default_factory=dict)  # {keyframes, points, observations, depth_scale, ms}: the local BA that refined its odometry link
 
 
 @dataclass
@@ -126,6 +129,11 @@ class Mapper:
         self.graph = PoseGraph(max_error=config.optimize_max_error)
         # STM / WM / LTM: which keyframes are loop candidates, with their features, words and views in RAM
         self.memory = MemoryManager(mc, config, store, camera, self.graph, self.vocabulary, self.detector)
+        self.local_ba = LocalBundleAdjustment(
+            camera, config.local_ba_window, config.local_ba_fixed, config.local_ba_iterations,
+            config.local_ba_depth_weight, config.local_ba_adaptive_depth, config.local_ba_min_points,
+            fuse=config.local_ba_fuse) \
+            if config.local_ba else None
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
@@ -217,15 +225,21 @@ class Mapper:
         new node with its loop closures (each optimises the graph); then memory management
         (retrieval, transfer), the update published, and the new map→odometry correction."""
         t0 = time.perf_counter()
+        ba = self._bundle_adjust(u)
+        if ba is not None:
+            u = ba[0]
         u = self.memory.through_merges(u)
         self.memory.add_view(u)
         stats = LoopStatistics(u.node_id)
+        if ba is not None:
+            stats.local_ba = ba[1]
         r = self._rehearse(u, stats) if self.memory_config.rehearsal and u.odom_from is not None else Rehearsal()
         t1 = time.perf_counter()
         best = r.survivor if r.survivor is not None else self._add_keyframe(u, stats, r.verified)
         t2 = time.perf_counter()
         transferred, retrieved = self.memory.manage(u.node_id, best, (t2 - t0) * 1e3)
-        stats.timings_ms["rehearsal"] = (t1 - t0) * 1e3
+        stats.timings_ms["rehearsal"] = (t1 - t0) * 1e3 - stats.local_ba.get("ms", 0.0)
+        stats.timings_ms["local_ba"] = stats.local_ba.get("ms", 0.0)
         stats.timings_ms["memory"] = (time.perf_counter() - t2) * 1e3
         stats.memory = self.memory.statistics(u.stamp, transferred, retrieved, r.survivor)
         self._publish(stats)
@@ -266,6 +280,44 @@ class Mapper:
                             "detection": (t3 - t2) * 1e3, "verification_optimization": (t4 - t3) * 1e3,
                             "proximity": (t5 - t4) * 1e3, "path": (t6 - t5) * 1e3}
         return hyp.best_id
+
+    # -- local bundle adjustment ---------------------------------------------------------------
+    def _bundle_adjust(self, u: KeyframeUpdate) -> tuple[KeyframeUpdate, dict] | None:
+        """Add the keyframe to the local BA's window and solve it (`loop.local_ba`): the
+        keyframe's odometry link becomes the refined relative pose to the keyframe before it
+        (same information), and with `loop.local_ba_relink` so do the graph's odometry links
+        between the window's older keyframes. A link the BA moves more than
+        local_ba_max_correction / _rotation from the tracker's is left as the tracker made it.
+        Returns (the update, what the BA did) or None when it is off or did not solve."""
+        if self.local_ba is None:
+            return None
+        t0 = time.perf_counter()
+        f = u.features
+        ba = self.local_ba
+        continues = u.odom_from is not None and bool(ba.keyframes) and ba.keyframes[-1].node_id == u.odom_from
+        matched = ba.add(u.node_id, u.odom_pose, f.keypoints, f.descriptors, f.points, f.pixel_sigmas(), f.depth_sigma,
+                         u.point_ids, continues)
+        res = ba.solve() if continues else None
+        if res is None:
+            return None
+        c = self.config
+        links = {}
+        kfs = list(ba.keyframes)
+        for a, b in zip(kfs[c.local_ba_fixed - 1:-1], kfs[c.local_ba_fixed:]):
+            T = invert(res.poses[a.node_id]) @ res.poses[b.node_id]
+            correction = invert(invert(a.pose) @ b.pose) @ T  # against the tracker's link
+            if (np.linalg.norm(correction[:3, 3]) <= c.local_ba_max_correction
+                    and np.degrees(rotation_angle(correction[:3, :3])) <= c.local_ba_max_rotation):
+                links[(a.node_id, b.node_id)] = T
+        relinked = self.graph.replace_odometry(
+            {k: v for k, v in links.items() if k[1] != u.node_id}) if c.local_ba_relink else 0
+        info = {"keyframes": res.keyframes, "matched": matched, "points": res.points,
+                "observations": res.observations, "depth_observations": res.depth_observations,
+                "depth_scale": round(res.depth_scale, 3), "error_before": res.error_before,
+                "error_after": res.error_after, "relinked": relinked, "ms": (time.perf_counter() - t0) * 1e3,
+                "timings_ms": res.timings_ms}
+        T = links.get((u.odom_from, u.node_id))
+        return (u if T is None else dataclasses.replace(u, transform=T)), info
 
     # -- rehearsal ---------------------------------------------------------------------------
     def _rehearse(self, u: KeyframeUpdate, stats: LoopStatistics) -> Rehearsal:

@@ -88,7 +88,7 @@ def _slim(update: KeyframeUpdate, keep_images: bool) -> KeyframeUpdate:
                              f.depth if keep_images else None, f.grey if keep_images else None,
                              f.depth_sigma, f.level_scale)
     return KeyframeUpdate(update.node_id, update.stamp, update.odom_pose, features, update.odom_from,
-                          update.transform, update.information)
+                          update.transform, update.information, update.point_ids)
 
 
 # -- child process -------------------------------------------------------------------------

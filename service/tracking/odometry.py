@@ -50,6 +50,7 @@ class TrackResult:
     segment: int = 0
     map_index: np.ndarray | None = None  # per frame feature: matched local-map point or -1
     inlier_mask: np.ndarray | None = None  # per frame feature: PnP inlier
+    point_ids: np.ndarray | None = None  # per frame feature: stable id of the local-map point it is (inlier or new point), or -1
 
     @property
     def tracked(self) -> bool:
@@ -70,19 +71,25 @@ class LocalMap:
         self.origins = np.zeros((0, 3), np.float64)  # camera centre of the first sighting
         self.disparity = np.zeros(0, np.float64)  # stereo: disparity measured at the first sighting (NaN: none)
         self.cos0 = np.zeros(0, np.float64)  # cosine between the first ray and that camera's optical axis
+        self.ids = np.zeros(0, np.int64)  # stable point ids (indices shift when points are trimmed): the map update's point tracks
+        self._next_id = 0
 
     def __len__(self) -> int:
         return len(self.points)
 
     def clear(self) -> None:
+        next_id = self._next_id  # ids stay unique over segments
         self.__init__(self.capacity)
+        self._next_id = next_id
 
-    def update(self, stamp_id: int, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> None:
+    def update(self, stamp_id: int, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> np.ndarray:
         """Insert a tracked frame: features matched to a map point refresh its descriptor
         (the point keeps its first position: later observations come from poses that have
         drifted more, and averaging them in moves the map with the drift); unmatched
         features with depth become new points; the least recently seen points beyond
-        capacity are dropped."""
+        capacity are dropped. Returns each feature's stable point id (the matched point's, the
+        new point's, or -1)."""
+        ids = np.where(map_index >= 0, self.ids[np.maximum(map_index, 0)] if len(self.ids) else -1, -1)
         has_depth = features.has_depth
         world = features.points.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
         matched = (map_index >= 0) & has_depth
@@ -95,6 +102,9 @@ class LocalMap:
         self.last_seen[map_index[seen_only]] = stamp_id
         new = (map_index < 0) & has_depth
         n_new = int(new.sum())
+        ids[new] = np.arange(self._next_id, self._next_id + n_new)
+        self.ids = np.concatenate([self.ids, ids[new]])
+        self._next_id += n_new
         rays = world[new] - pose[:3, 3]
         rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
         self.points = np.concatenate([self.points, world[new]])
@@ -112,6 +122,7 @@ class LocalMap:
             self.disparity = np.concatenate([self.disparity, features.disparity[new].astype(np.float64)])
             self.cos0 = np.concatenate([self.cos0, p[:, 2] / np.maximum(np.linalg.norm(p, axis=1), 1e-12)])
         self._trim()
+        return ids
 
     def place_stereo_points(self, offset: float, fb: float, disparity_sigma: float) -> None:
         """Move every point triangulated by stereo along its first ray to the depth its
@@ -132,6 +143,7 @@ class LocalMap:
             self.observations, self.last_seen = self.observations[keep], self.last_seen[keep]
             self.rays, self.sigma = self.rays[keep], self.sigma[keep]
             self.origins, self.disparity, self.cos0 = self.origins[keep], self.disparity[keep], self.cos0[keep]
+            self.ids = self.ids[keep]
 
 
 class Odometry:
@@ -184,15 +196,18 @@ class Odometry:
         offset = self.disparity_offset
         if self.calibration is not None and features.disparity is not None:
             self._calibrate(features, pose, np.where(inliers, map_index, -1))
+        inlier_index = np.where(inliers, map_index, -1)
+        point_ids = np.where(inlier_index >= 0, self.map.ids[np.maximum(inlier_index, 0)], -1)
         if self._needs_map_update(pose, int(inliers.sum())):
-            self._update_map(features, pose, np.where(inliers, map_index, -1), int(inliers.sum()))
+            point_ids = self._update_map(features, pose, inlier_index, int(inliers.sum()))
         if self.disparity_offset != offset:  # the map follows the new estimate (the frames will)
             c = self.calibration
             self.map.place_stereo_points(c.offset, c.fb, c.config.disparity_sigma)
         self.velocity = invert(self.pose) @ pose  # motion over the last interval ...
         self._last_dt = self._dt(stamp)  # ... of this length, rescaled in _predict
         self.pose, self.last_stamp, self.lost_in_row = pose, stamp, 0
-        return TrackResult("ok", pose, int(inliers.sum()), int((map_index >= 0).sum()), self.segment, map_index, inliers)
+        return TrackResult("ok", pose, int(inliers.sum()), int((map_index >= 0).sum()), self.segment, map_index, inliers,
+                           point_ids)
 
     def _needs_map_update(self, pose: np.ndarray, inliers: int) -> bool:
         c = self.config
@@ -201,9 +216,10 @@ class Odometry:
                 or rotation_angle(delta[:3, :3]) >= c.map_update_angular
                 or inliers < c.map_update_ratio * self._map_inliers)
 
-    def _update_map(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray, inliers: int) -> None:
+    def _update_map(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray, inliers: int) -> np.ndarray:
+        """The frame's features into the local map; returns their stable point ids."""
         self._updates += 1
-        self.map.update(self._updates, features, pose, map_index)
+        ids = self.map.update(self._updates, features, pose, map_index)
         self._map_pose, self._map_inliers = pose, inliers
         if features.depth is not None:
             pending = self._pending_reference  # this frame's pyramid, if ICP already built it
@@ -211,6 +227,7 @@ class Odometry:
                 _DepthReference(features.depth, features.grey)
             ref.pose = pose
             self._reference = ref
+        return ids
 
     def _calibrate(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> None:
         """Feed the disparity-offset estimate with this frame: its inliers' information on the
@@ -253,9 +270,9 @@ class Odometry:
         self.velocity = np.eye(4)
         self.last_stamp, self.lost_in_row = stamp, 0
         self._last_dt = None
-        self._update_map(features, self.pose, np.full(len(features), -1), int(features.has_depth.sum()))
+        ids = self._update_map(features, self.pose, np.full(len(features), -1), int(features.has_depth.sum()))
         return TrackResult("init", self.pose.copy(), int(features.has_depth.sum()), 0, self.segment,
-                           np.full(len(features), -1), np.zeros(len(features), bool))
+                           np.full(len(features), -1), np.zeros(len(features), bool), ids)
 
     def _dt(self, stamp: float) -> float | None:
         return None if self.last_stamp is None else stamp - self.last_stamp
