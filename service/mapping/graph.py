@@ -145,6 +145,11 @@ def normalized_errors(poses_from: np.ndarray, poses_to: np.ndarray, transforms: 
     return np.sqrt(np.maximum(np.maximum(cr, ct), 0.0))
 
 
+def _link_error(est: dict[int, np.ndarray], a: int, b: int, t: np.ndarray, info: np.ndarray) -> float:
+    """`normalized_errors` of one measurement T_a_b on the estimate `est`."""
+    return float(normalized_errors(est[a][None], est[b][None], t[None], info[None])[0])
+
+
 class PoseGraph:
     """Incremental pose graph (iSAM2) with RTAB-Map's loop-link error check.
 
@@ -379,18 +384,10 @@ class PoseGraph:
             if a == b:
                 raise ValueError("a loop link needs two different nodes")
             before = self._estimate_locked()
-            err_before = float(normalized_errors(before[a][None], before[b][None], t[None], info[None])[0])
+            err_before = _link_error(before, a, b, t, info)
             old = [] if replace is None else [l for l in self._links if l.loop and l.from_id == a and l.to_id == b
                                               and np.array_equal(l.transform, replace)][:1]
-            graph = gtsam.NonlinearFactorGraph()
-            graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), self._loop_noise(info, kernel)))
-            index = self._n_factors
-            self._isam.update(graph, gtsam.Values(), [l.factor_index for l in old])
-            self._n_factors += 1
-            if old:
-                self._links = [l for l in self._links if l is not old[0]]
-            link = _Link(a, b, t.copy(), info, True, index)
-            self._links.append(link)
+            link, = self._swap_links_locked(old, [(_Link(a, b, t.copy(), info, True, -1), self._loop_noise(info, kernel))])
             iterations = 1 + self._converge_locked()
             self._cache = None
             after = self._estimate_locked()
@@ -425,17 +422,9 @@ class PoseGraph:
             old = [l for l in self._links if not l.loop and (l.from_id, l.to_id) in transforms]
             if not old:
                 return 0
-            graph = gtsam.NonlinearFactorGraph()
-            new = []
-            for k, l in enumerate(old):
-                t = _as_pose(transforms[(l.from_id, l.to_id)], "transform")
-                graph.add(gtsam.BetweenFactorPose3(l.from_id, l.to_id, _pose3(t),
-                                                   gtsam.noiseModel.Gaussian.Information(l.information)))
-                new.append(_Link(l.from_id, l.to_id, t.copy(), l.information, False, self._n_factors + k))
-            self._isam.update(graph, gtsam.Values(), [l.factor_index for l in old])
-            self._n_factors += len(new)
-            ids = {id(l) for l in old}
-            self._links = [l for l in self._links if id(l) not in ids] + new
+            new = [(dataclasses.replace(l, transform=_as_pose(transforms[(l.from_id, l.to_id)], "transform").copy()),
+                    gtsam.noiseModel.Gaussian.Information(l.information)) for l in old]
+            self._swap_links_locked(old, new)
             self._cache = None
             self._iterate_locked(1e-6)
             self._publish_locked()
@@ -447,8 +436,7 @@ class PoseGraph:
         t = _as_pose(transform, "transform")
         info = _as_information(information, "information")
         with self._lock:
-            est = self._estimate_locked()
-            return float(normalized_errors(est[int(from_id)][None], est[int(to_id)][None], t[None], info[None])[0])
+            return _link_error(self._estimate_locked(), int(from_id), int(to_id), t, info)
 
     def remove_loop(self, from_id: int, to_id: int, transform=None) -> int:
         """Remove the loop link(s) between two nodes (either direction; with ``transform``,
@@ -467,16 +455,7 @@ class PoseGraph:
                              back: list[_Link] = ()) -> None:
         """Remove `links` (and put the loop links `back` again, with the default kernel, in the
         same update)."""
-        graph = gtsam.NonlinearFactorGraph()
-        for l in back:
-            graph.add(gtsam.BetweenFactorPose3(l.from_id, l.to_id, _pose3(l.transform),
-                                               self._loop_noise(l.information, self.robust)))
-        self._isam.update(graph, gtsam.Values(), [l.factor_index for l in links])
-        ids = {id(l) for l in links}
-        self._links = [l for l in self._links if id(l) not in ids]
-        for l in back:
-            self._links.append(dataclasses.replace(l, factor_index=self._n_factors))
-            self._n_factors += 1
+        self._swap_links_locked(links, [(l, self._loop_noise(l.information, self.robust)) for l in back])
         self._converge_locked()
         self._cache = None
         if restore is not None:
@@ -489,6 +468,20 @@ class PoseGraph:
                     self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None, None, True)
                     self._cache = None
             self._cache = {k: _ro(v.copy()) for k, v in restore.items()}  # exactly as before
+
+    def _swap_links_locked(self, gone: list[_Link], new: list[tuple[_Link, object]]) -> list[_Link]:
+        """One iSAM2 update that removes the factors of links `gone` and adds links `new`
+        ((link, noise model), their factor indices given here); the active links follow, the
+        new ones last. Returns the new links. The estimate cache is left to the caller."""
+        graph = gtsam.NonlinearFactorGraph()
+        for l, noise in new:
+            graph.add(gtsam.BetweenFactorPose3(l.from_id, l.to_id, _pose3(l.transform), noise))
+        self._isam.update(graph, gtsam.Values(), [l.factor_index for l in gone])
+        added = [dataclasses.replace(l, factor_index=self._n_factors + k) for k, (l, _) in enumerate(new)]
+        self._n_factors += len(added)
+        ids = {id(l) for l in gone}
+        self._links = [l for l in self._links if id(l) not in ids] + added
+        return added
 
     @contextlib.contextmanager
     def _full_check(self):
