@@ -39,6 +39,7 @@ import numpy as np
 from client.frames import PinholeCamera
 
 from .graph import _pose3
+from .vocabulary import _as_u64, hamming_matrix
 
 VIRTUAL_BASELINE = 0.1  # m, of the virtual stereo measurement (any value: σ_d scales with it)
 HUBER_2 = float(np.sqrt(5.991))  # χ² 95 %, 2 dof (pixels)
@@ -77,14 +78,6 @@ class LocalBAResult:
     error_before: float = 0.0
     error_after: float = 0.0
     timings_ms: dict = field(default_factory=dict)
-
-
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """All pairwise Hamming distances (n, m) of binary descriptors (n, 32), (m, 32) uint8, as
-    one matrix product of their bits: |a xor b| = |a| + |b| − 2 a·b."""
-    x = np.unpackbits(a, axis=1).astype(np.float32)
-    y = np.unpackbits(b, axis=1).astype(np.float32)
-    return x.sum(1)[:, None] + y.sum(1)[None, :] - 2.0 * (x @ y.T)
 
 
 class LocalBundleAdjustment:
@@ -203,7 +196,7 @@ class LocalBundleAdjustment:
         cand = np.nonzero(keep)[0]
         if len(cand) < 2:
             return 0
-        dist = hamming(desc[free], lm_desc[cand])
+        dist = hamming_matrix(_as_u64(desc[free]), _as_u64(lm_desc[cand]))
         px = np.linalg.norm(uv[free][:, None, :] - proj[cand][None], axis=2)
         dist = np.where(px <= self.search_radius, dist, 256.0)
         best = np.argmin(dist, axis=1)
