@@ -317,9 +317,10 @@ def make_sevenscenes(root: Path) -> Path:
 
 
 def test_sevenscenes_poses_depth_and_intrinsics(tmp_path):
+    """The raw player (register=False): the depth camera's intrinsics, poses and depth as stored."""
     scene = make_sevenscenes(tmp_path)
     for spec in (scene, scene / "seq-01"):
-        ds = open_dataset(spec)
+        ds = open_dataset(spec, register=False)
         assert (ds.format, ds.name, len(ds)) == ("7scenes", "office/seq-01", 3)
     np.testing.assert_allclose(ds.stamps, np.arange(3) / 30)
     cam = ds.calibration.camera
@@ -337,12 +338,27 @@ def test_sevenscenes_defaults_and_bad_pose(tmp_path):
     scene = make_sevenscenes(tmp_path)
     (scene / "camera-intrinsics.txt").unlink()
     (scene / "seq-01/frame-000002.pose.txt").unlink()  # missing pose: left out
-    ds = open_dataset(scene / "seq-01")
+    ds = open_dataset(scene / "seq-01", register=False)
     assert (ds.calibration.camera.fx, ds.calibration.camera.cx) == (585, 320)
     assert len(ds.ground_truth) == 1
     (scene / "seq-01/frame-000000.pose.txt").write_text("1 0 0\n0 1 0\n")
     with pytest.raises(DatasetError, match="frame-000000.pose.txt"):
         open_dataset(scene)
+
+
+def test_sevenscenes_registers_depth_into_the_colour_camera_by_default(tmp_path):
+    """Default: the Kinect v1 colour camera (525 px at 640 wide, scaled to the images), depth
+    registered into it, and the ground truth moved to it (2.5 cm along the depth camera's x)."""
+    from client.datasets.registration import DepthRegistration
+
+    scene = make_sevenscenes(tmp_path)
+    raw, ds = open_dataset(scene, register=False), open_dataset(scene)
+    cam = ds.calibration.camera
+    assert (cam.width, cam.height) == (16, 12) and cam.fx == pytest.approx(525 * 16 / 640)
+    assert isinstance(ds.registration, DepthRegistration) and ds.registration.depth_camera == raw.calibration.camera
+    np.testing.assert_array_equal(ds.frame(0).depth, ds.registration.register(raw.frame(0).depth))
+    shift = ds.ground_truth.positions - raw.ground_truth.positions
+    np.testing.assert_allclose(shift, np.tile([0.025, 0, 0], (2, 1)), atol=1e-12)  # identity rotations
 
 
 # ---------------------------------------------------------------- layout detection
@@ -409,7 +425,9 @@ def test_real_calibrations(data_dir):
     cam = tum.camera
     assert (cam.fx, cam.fy, cam.cx, cam.cy, tum.depth_scale) == (535.4, 539.2, 320.1, 247.6, 5000)
     scenes = open_dataset(require(data_dir / "7scenes_redkitchen")).calibration
-    assert (scenes.camera.fx, scenes.camera.cx, scenes.depth_scale) == (585, 320, 1000)
+    assert (scenes.camera.fx, scenes.camera.cx, scenes.depth_scale) == (525, 319.5, 1000)  # the colour camera
+    raw = open_dataset(data_dir / "7scenes_redkitchen", register=False).calibration
+    assert (raw.camera.fx, raw.camera.cx) == (585, 320)  # camera-intrinsics.txt: the depth camera
     kitti = open_dataset(require(data_dir / "kitti_odometry_snippets/sequences/a")).calibration
     assert kitti.camera.fx == 707.0912 and kitti.baseline == pytest.approx(0.537, abs=1e-3)
     kitti_b = open_dataset(data_dir / "kitti_odometry_snippets/sequences/b").calibration
