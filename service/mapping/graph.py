@@ -412,23 +412,23 @@ class PoseGraph:
             return LoopOutcome(accepted, reason, err_before, err_after, max_err, worst, iterations,
                                (time.perf_counter() - t0) * 1e3)
 
-    def replace_odometry(self, transforms: dict[tuple[int, int], np.ndarray]) -> int:
+    def replace_odometry(self, transforms: dict[tuple[int, int], np.ndarray]) -> list:
         """Give odometry links new measurements, {(from, to): T_from_to} (e.g. a local bundle
         adjustment's), each keeping its information; pairs without an odometry link are
         skipped. One iSAM2 update (the old factors removed, the new added), then iterated with
         the partial relinearisation check (the changes are small and at the chain's end).
-        Returns how many links were replaced."""
+        Returns the replaced links with their new measurements (for the caller to store)."""
         with self._lock:
             old = [l for l in self._links if not l.loop and (l.from_id, l.to_id) in transforms]
             if not old:
-                return 0
+                return []
             new = [(dataclasses.replace(l, transform=_as_pose(transforms[(l.from_id, l.to_id)], "transform").copy()),
                     gtsam.noiseModel.Gaussian.Information(l.information)) for l in old]
             self._swap_links_locked(old, new)
             self._cache = None
             self._iterate_locked(1e-6)
             self._publish_locked()
-            return len(new)
+            return [link for link, _ in new]
 
     def link_error(self, from_id: int, to_id: int, transform, information) -> float:
         """Normalised error (σ, as the loop check) of a measurement T_from_to on the current

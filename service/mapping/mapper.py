@@ -310,11 +310,13 @@ class Mapper:
                     and np.degrees(rotation_angle(correction[:3, :3])) <= c.local_ba_max_rotation):
                 links[(a.node_id, b.node_id)] = T
         relinked = self.graph.replace_odometry(
-            {k: v for k, v in links.items() if k[1] != u.node_id}) if c.local_ba_relink else 0
+            {k: v for k, v in links.items() if k[1] != u.node_id}) if c.local_ba_relink else []
+        for link in relinked:  # the database keeps what the graph has (a reload, the link report)
+            self.store.add_link(link.from_id, link.to_id, LinkType.NEIGHBOR, link.transform, link.information, replace=True)
         info = {"keyframes": res.keyframes, "matched": matched, "points": res.points,
                 "observations": res.observations, "depth_observations": res.depth_observations,
                 "depth_scale": round(res.depth_scale, 3), "error_before": res.error_before,
-                "error_after": res.error_after, "relinked": relinked, "ms": (time.perf_counter() - t0) * 1e3,
+                "error_after": res.error_after, "relinked": len(relinked), "ms": (time.perf_counter() - t0) * 1e3,
                 "timings_ms": res.timings_ms}
         T = links.get((u.odom_from, u.node_id))
         return (u if T is None else dataclasses.replace(u, transform=T)), info
