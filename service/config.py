@@ -56,6 +56,8 @@ class OdometryConfig:
     guided_radius: float = 20.0  # px, matches must reproject this close to the predicted pose
     min_inliers: int = 20  # PnP inliers to accept a pose (Vis/MinInliers)
     confident_inliers: int = 60  # fewer: also try unguided matching, then (RGB-D) depth ICP
+    confident_sigma_rotation: float = 0.3  # deg; (RGB-D) a PnP pose whose rotation σ (from its refinement's Hessian) is larger ...
+    confident_sigma_translation: float = 0.01  # m; ... or whose translation σ is larger is not confident either: depth ICP is tried
     pnp_reprojection_error: float = 2.0  # px (Vis/PnPReprojError)
     pnp_iterations: int = 200  # RANSAC iterations (Vis/PnPIterations is 100; we refine after)
     pnp_confidence: float = 0.999

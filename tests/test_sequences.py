@@ -66,7 +66,10 @@ def test_tum_cabinet_keyframes_all_tracked(cabinet):
     _, ds, out, _ = cabinet
     ev = evaluate(ds.ground_truth, out.trajectory)
     assert out.summary.tracked == 58 and out.summary.lost == 0
-    assert ev.ate_rmse < 0.05  # measured 2.35 cm (dense photometric + geometric registration)
+    # measured 2.11 cm (dense photometric + geometric registration, and where the one PnP pose
+    # with 60 inliers has a 0.42° σ, odometry.confident_sigma_rotation sends it to ICP too:
+    # 2.81 cm before)
+    assert ev.ate_rmse < 0.025
 
 
 def test_tum_cabinet_loop_back_to_the_start_is_closed(cabinet, tmp_path):

@@ -21,7 +21,7 @@ from client.geometry import invert, make_pose, rotation_angle
 from . import icp
 from ..config import OdometryConfig, StereoConfig
 from .features import FrameFeatures
-from .refinement import mahalanobis2, offset_information, refine_pose
+from .refinement import mahalanobis2, offset_information, pose_sigma, refine_pose
 from .stereo_calibration import DisparityOffsetEstimator
 
 
@@ -185,14 +185,14 @@ class Odometry:
         result = self._register(features, predicted, gated=True) if c.motion_model else None
         if _support(result) < c.confident_inliers:  # wide baseline or bad prediction: search everywhere
             result = max(result, self._register(features, predicted, gated=False), key=_support)
-        if c.icp_fallback and _support(result) < c.confident_inliers:  # few features: use the depth
+        if c.icp_fallback and not self._confident(result):  # few features or a weak pose: use the depth
             result = self._register_depth(features, predicted if result is None else result[0]) or result
         if result is None:
             self.lost_in_row += 1
             if self.lost_in_row >= self.config.lost_frames_reset and features.has_depth.sum() >= self.config.min_inliers:
                 return self._start_segment(features, stamp, new_segment=True)
             return TrackResult("lost", None, segment=self.segment, map_index=np.full(len(features), -1))
-        pose, map_index, inliers = result
+        pose, map_index, inliers = result[:3]
         offset = self.disparity_offset
         if self.calibration is not None and features.disparity is not None:
             self._calibrate(features, pose, np.where(inliers, map_index, -1))
@@ -208,6 +208,17 @@ class Odometry:
         self.pose, self.last_stamp, self.lost_in_row = pose, stamp, 0
         return TrackResult("ok", pose, int(inliers.sum()), int((map_index >= 0).sum()), self.segment, map_index, inliers,
                            point_ids)
+
+    def _confident(self, result) -> bool:
+        """A PnP pose the depth cannot improve: enough inliers and, where its σ was estimated
+        (RGB-D), a σ within confident_sigma_* (few inliers bunched in one part of the image
+        can pass the count and still leave the pose 2° off)."""
+        c = self.config
+        if _support(result) < c.confident_inliers:
+            return False
+        sigma = result[3]
+        return sigma is None or (np.degrees(sigma[0]) <= c.confident_sigma_rotation
+                                 and sigma[1] <= c.confident_sigma_translation)
 
     def _needs_map_update(self, pose: np.ndarray, inliers: int) -> bool:
         c = self.config
@@ -259,7 +270,7 @@ class Odometry:
                            min_inlier_ratio=c.icp_min_inlier_ratio, min_conditioning=c.icp_min_conditioning)
         if not res.ok:
             return None
-        return ref.pose @ res.pose, np.full(len(features), -1), np.zeros(len(features), bool)
+        return ref.pose @ res.pose, np.full(len(features), -1), np.zeros(len(features), bool), None
 
     # -- internals ----------------------------------------------------------------------
     def _start_segment(self, features: FrameFeatures, stamp: float, new_segment: bool = False) -> TrackResult:
@@ -288,7 +299,7 @@ class Odometry:
         return self.pose @ motion
 
     def _register(self, features: FrameFeatures, predicted: np.ndarray, gated: bool):
-        """Match against the local map and solve PnP. Returns (pose, map_index, inlier mask)
+        """Match against the local map and solve PnP. Returns (pose, map_index, inlier mask, σ)
         or None when fewer than min_inliers support a pose."""
         c = self.config
         cam = self.camera
@@ -314,9 +325,9 @@ class Odometry:
         if len(q_idx) < c.min_inliers:
             return None
         sigma_px = features.pixel_sigmas()[q_idx]
-        pose, inl = self._solve_pnp(self.map.points[m_idx], features.keypoints[q_idx], T_cw,
-                                    sigma_px, self.map.rays[m_idx], self.map.sigma[m_idx],
-                                    features.points[q_idx, 2], features.depth_sigmas(nan=True)[q_idx])
+        pose, inl, sigma = self._solve_pnp(self.map.points[m_idx], features.keypoints[q_idx], T_cw,
+                                           sigma_px, self.map.rays[m_idx], self.map.sigma[m_idx],
+                                           features.points[q_idx, 2], features.depth_sigmas(nan=True)[q_idx])
         if pose is None or inl.sum() < c.min_inliers:
             return None
         if not self._depth_consistent(pose, self.map.points[m_idx[inl]], features.points[q_idx[inl]]):
@@ -327,7 +338,7 @@ class Odometry:
         map_index[q_idx] = m_idx
         inliers = np.zeros(len(features), bool)
         inliers[q_idx[inl]] = True
-        return pose, map_index, inliers
+        return pose, map_index, inliers, sigma
 
     def _plausible(self, pose: np.ndarray, predicted: np.ndarray) -> bool:
         """A registration may correct the constant-velocity prediction, not contradict it: it
@@ -373,7 +384,7 @@ class Odometry:
             confidence=c.pnp_confidence, flags=cv2.SOLVEPNP_AP3P,
         )
         if not ok or inl is None or len(inl) < 4:
-            return None, np.zeros(len(world), bool)
+            return None, np.zeros(len(world), bool), None
         mask = np.zeros(len(world), bool)
         mask[inl.ravel()] = True
         R, _ = cv2.Rodrigues(rvec)
@@ -387,8 +398,10 @@ class Odometry:
         pose = invert(T_cw)
         if c.max_translation > 0 and self.pose is not None and \
                 np.linalg.norm(pose[:3, 3] - self.pose[:3, 3]) > c.max_translation:
-            return None, np.zeros(len(world), bool)
-        return pose, mask
+            return None, np.zeros(len(world), bool), None
+        sigma = pose_sigma(T_cw, self.K, world[mask], pixels[mask], sigma_px[mask], rays[mask], sigma_ray[mask],
+                           depth[mask], depth_sigma[mask]) if mask.sum() >= 4 else None
+        return pose, mask, sigma
 
 
 def _support(result) -> int:

@@ -104,6 +104,27 @@ def mahalanobis2(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.
                          sigma_px, rays, sigma_ray).chi2()
 
 
+def pose_sigma(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
+               rays: np.ndarray, sigma_ray: np.ndarray, depth: np.ndarray | None = None,
+               depth_sigma: np.ndarray | None = None) -> tuple[float, float]:
+    """Standard deviations of a refined pose (the problem of `refine_pose` at T_cw, Huber
+    weights included): the largest of the rotation's (radians) and of the translation's
+    (metres), from the inverse of its Gauss–Newton Hessian. (inf, inf) when it is singular."""
+    z_meas = zw = None
+    chi = np.full(len(world), HUBER_CHI)
+    if depth is not None:
+        z_meas, zw, chi, _ = _depth_terms(depth, depth_sigma)
+    obs = _Observations(T_cw, K, np.asarray(world, np.float64), np.asarray(pixels, np.float64), sigma_px, rays,
+                        sigma_ray, z_meas, zw)
+    H, _ = obs.normal_equations(obs.weights(chi))
+    try:
+        C = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return float("inf"), float("inf")
+    var = np.linalg.eigvalsh(C[:3, :3])[-1], np.linalg.eigvalsh(C[3:, 3:])[-1]
+    return tuple(float(np.sqrt(v)) if v > 0 else float("inf") for v in var)
+
+
 def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
                 rays: np.ndarray, sigma_ray: np.ndarray, depth: np.ndarray | None = None,
                 depth_sigma: np.ndarray | None = None, iterations: int = 10) -> np.ndarray:
