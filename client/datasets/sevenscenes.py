@@ -104,7 +104,7 @@ class SevenScenesDataset(Dataset):
         if not valid.all():
             log.info("%s: %d of %d poses missing or non-finite, left out of the ground truth", seq, (~valid).sum(), n)
         if register:
-            poses = self.registration.colour_from_depth_poses(poses)
+            poses[valid] = self.registration.colour_from_depth_poses(poses[valid])
         self.ground_truth = Trajectory(self.stamps[valid], poses[valid])
 
     def __len__(self) -> int:
