@@ -75,7 +75,7 @@ from service.mapping.verification import verify
 from service.mapping.vocabulary import Vocabulary
 from service.memory.long_term import Memory
 from service.pipeline import Pipeline
-from service.tracking.odometry import _match
+from service.tracking.matching import match_descriptors as _match
 from storage import LinkType, MapStore
 
 PREFILL_NODE = 10_000_000  # ids of the pre-filled vocabulary nodes / graph nodes: never the store's

@@ -244,7 +244,7 @@ MAX_HEADER_BYTES = 1024
 MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1e-3, 1e9  # raw depth units per metre accepted for rgbd frames
 _U64_MAX = 2**64 - 1
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 assert FIXED_HEADER_BYTES == 39 and _LABEL_FIELDS.size == 6
@@ -544,15 +544,15 @@ def encode_frame(frame: Frame, robot: str, seq: int, *, depth_scale: float = 100
                      _LABEL_FIELDS.pack(LABEL_ENCODINGS[labels], lab.itemsize, len(p3)), p1, p2, p3))
 
 
-def _png_header(data: memoryview, what: str) -> tuple[int, int, int, int]:
+def png_header(data: memoryview, what: str) -> tuple[int, int, int, int]:
     """(width, height, bit depth, colour type) from a PNG's IHDR, without decoding."""
-    if len(data) < 33 or bytes(data[:8]) != _PNG_SIGNATURE or bytes(data[12:16]) != b"IHDR":
+    if len(data) < 33 or bytes(data[:8]) != PNG_SIGNATURE or bytes(data[12:16]) != b"IHDR":
         raise ProtocolError("decode_failed", f"{what}: not a PNG")
     w, h, bits, ctype = struct.unpack_from(">IIBB", data, 16)
     return w, h, bits, ctype
 
 
-def _jpeg_header(data: memoryview, what: str) -> tuple[int, int, int]:
+def jpeg_header(data: memoryview, what: str) -> tuple[int, int, int]:
     """(width, height, components) from a JPEG's SOF segment, without decoding."""
     n = len(data)
     if n < 4 or data[0] != 0xFF or data[1] != 0xD8:
@@ -585,7 +585,7 @@ def _jpeg_header(data: memoryview, what: str) -> tuple[int, int, int]:
     raise ProtocolError("decode_failed", f"{what}: JPEG without a frame header")
 
 
-def _imdecode(data: memoryview, what: str, w: int, h: int, channels: int, dtype) -> np.ndarray:
+def imdecode(data: memoryview, what: str, w: int, h: int, channels: int, dtype) -> np.ndarray:
     import cv2
 
     try:
@@ -611,21 +611,21 @@ def _decode_image(data: memoryview, encoding: str, what: str, w: int, h: int, ch
         a = a.reshape((h, w) if channels == 1 else (h, w, channels))
         return a.astype(dtype, copy=True)
     if encoding == "png":
-        pw, ph, pbits, ctype = _png_header(data, what)
+        pw, ph, pbits, ctype = png_header(data, what)
         if (pw, ph) != (w, h):
             raise ProtocolError("size_mismatch", f"{what}: PNG is {pw}×{ph}, header says {w}×{h}")
         want_ctype = 0 if channels == 1 else 2
         if pbits != bits or ctype != want_ctype:
             raise ProtocolError("decode_failed", f"{what}: PNG is {pbits}-bit colour type {ctype}, "
                                                  f"expected {bits}-bit colour type {want_ctype}")
-        return _imdecode(data, what, w, h, channels, dtype)
+        return imdecode(data, what, w, h, channels, dtype)
     # jpeg
-    jw, jh, comps = _jpeg_header(data, what)
+    jw, jh, comps = jpeg_header(data, what)
     if (jw, jh) != (w, h):
         raise ProtocolError("size_mismatch", f"{what}: JPEG is {jw}×{jh}, header says {w}×{h}")
     if comps != channels:
         raise ProtocolError("decode_failed", f"{what}: JPEG has {comps} components, header says {channels} channels")
-    return _imdecode(data, what, w, h, channels, dtype)
+    return imdecode(data, what, w, h, channels, dtype)
 
 
 def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS,

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from .frames import Calibration, PinholeCamera
-from .protocol import (ProtocolError, _imdecode, _jpeg_header, _png_header, _PNG_SIGNATURE, dequantize_depth,
+from .protocol import (ProtocolError, imdecode, jpeg_header, png_header, PNG_SIGNATURE, dequantize_depth,
                        quantize_depth)
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -176,7 +176,7 @@ def image_depth(msg, size: tuple[int, int] | None = None, max_side: int = 65535)
 
 
 def _codec(data: memoryview, fmt: str) -> str:
-    if len(data) >= 8 and bytes(data[:8]) == _PNG_SIGNATURE:
+    if len(data) >= 8 and bytes(data[:8]) == PNG_SIGNATURE:
         return "png"
     if len(data) >= 2 and data[0] == 0xFF and data[1] == 0xD8:
         return "jpeg"
@@ -192,18 +192,18 @@ def compressed_color(msg, size: tuple[int, int] | None = None, max_side: int = 6
         raise ProtocolError("bad_encoding", f"compressed image format {fmt!r:.60} is depth, on a colour key")
     data = memoryview(np.ascontiguousarray(msg.data, np.uint8)).cast("B")
     if _codec(data, fmt) == "png":
-        w, h, bits, ctype = _png_header(data, "image")
+        w, h, bits, ctype = png_header(data, "image")
         _check_size(w, h, "image", size, max_side)
         channels = {0: 1, 2: 3, 6: 4}.get(ctype)
         if bits != 8 or channels is None:
             raise ProtocolError("bad_encoding", f"image: {bits}-bit PNG of colour type {ctype}; colour PNGs are "
                                                 f"8-bit grey, RGB or RGBA")
     else:
-        w, h, channels = _jpeg_header(data, "image")
+        w, h, channels = jpeg_header(data, "image")
         _check_size(w, h, "image", size, max_side)
         if channels not in (1, 3):
             raise ProtocolError("bad_encoding", f"image: JPEG with {channels} components")
-    img = _imdecode(data, "image", w, h, channels, np.uint8)
+    img = imdecode(data, "image", w, h, channels, np.uint8)
     return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR) if channels == 4 else img
 
 
@@ -219,18 +219,18 @@ def compressed_depth(msg, size: tuple[int, int] | None = None, max_side: int = 6
                                             f"compressedDepth png")
     data = memoryview(np.ascontiguousarray(msg.data, np.uint8)).cast("B")
     quant = None
-    if len(data) >= 8 and bytes(data[:8]) == _PNG_SIGNATURE:  # (writers without the config header)
+    if len(data) >= 8 and bytes(data[:8]) == PNG_SIGNATURE:  # (writers without the config header)
         png = data
-    elif len(data) >= _COMPRESSED_DEPTH_HEADER.size + 8 and bytes(data[12:20]) == _PNG_SIGNATURE:
+    elif len(data) >= _COMPRESSED_DEPTH_HEADER.size + 8 and bytes(data[12:20]) == PNG_SIGNATURE:
         _, a, b = _COMPRESSED_DEPTH_HEADER.unpack_from(data, 0)
         quant, png = (a, b), data[_COMPRESSED_DEPTH_HEADER.size:]
     else:
         raise ProtocolError("decode_failed", f"compressed depth ({fmt!r:.60}): no PNG after the 12-byte header")
-    w, h, bits, ctype = _png_header(png, "depth")
+    w, h, bits, ctype = png_header(png, "depth")
     _check_size(w, h, "depth", size, max_side)
     if bits != 16 or ctype != 0:
         raise ProtocolError("decode_failed", f"depth: {bits}-bit PNG of colour type {ctype}, expected 16-bit grey")
-    q = _imdecode(png, "depth", w, h, 1, np.uint16)
+    q = imdecode(png, "depth", w, h, 1, np.uint16)
     if original != "32FC1":
         return dequantize_depth(q, DEPTH_SCALE)
     if quant is None or not all(math.isfinite(v) for v in quant):

@@ -29,7 +29,7 @@ from client.frames import PinholeCamera
 from client.geometry import invert, make_pose
 
 from ..tracking.features import FrameFeatures
-from ..tracking.odometry import _match
+from ..tracking.matching import match_descriptors
 from ..tracking.refinement import pose_normal_equations
 
 CHI2_INLIER = 5.991  # χ² 95 %, 2 dof: an inlier reprojection at the solution
@@ -90,7 +90,7 @@ def refine_link(camera: PinholeCamera, new: FrameFeatures, candidate: FrameFeatu
     when at least `min_inliers` reprojections fit and the standard deviations are within
     `max_sigma` (m, deg)."""
     K = camera.K
-    q, t = _match(new.descriptors, candidate.descriptors, ratio, max_hamming)
+    q, t = match_descriptors(new.descriptors, candidate.descriptors, ratio, max_hamming)
     if len(q) < min_inliers:
         return LinkEstimate(False, "few_matches")
     Xc, rc, src, spc_c, hc = _terms(candidate, t, depth_noise)  # candidate points → new pixels

@@ -30,7 +30,7 @@ from ..config import LoopConfig, MemoryConfig
 from ..memory.long_term import decode_images
 from ..memory.manager import MemoryManager, series_information
 from ..tracking.features import FrameFeatures
-from ..tracking.odometry import _match
+from ..tracking.matching import match_descriptors
 from .graph import PoseGraph
 from .local_ba import LocalBundleAdjustment
 from .link_refinement import refine_link
@@ -393,7 +393,7 @@ class Mapper:
         vocabulary: a few hundred by a few hundred Hamming distances instead of a search."""
         with self.vocabulary.lock:
             theirs = self.vocabulary.descriptors(self.vocabulary.node_words(node)[0])
-        shared, _ = _match(descriptors, theirs, self.vocabulary.nndr, self.vocabulary.max_distance)
+        shared, _ = match_descriptors(descriptors, theirs, self.vocabulary.nndr, self.vocabulary.max_distance)
         return len(shared) / max(len(descriptors), len(theirs), 1)
 
     def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics,

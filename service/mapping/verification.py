@@ -13,7 +13,7 @@ from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rotation_angle
 
 from ..tracking import icp
-from ..tracking.odometry import _match
+from ..tracking.matching import match_descriptors
 
 
 def loop_information(inliers: int) -> np.ndarray:
@@ -116,7 +116,7 @@ def verify(camera: PinholeCamera, new_keypoints: np.ndarray, new_descriptors: np
     if has_depth.sum() < min_inliers or len(new_descriptors) < min_inliers:
         return Verification(False, "few_matches")
     idx = np.nonzero(has_depth)[0]
-    q, t = _match(new_descriptors, cand_descriptors[idx], ratio, max_hamming)
+    q, t = match_descriptors(new_descriptors, cand_descriptors[idx], ratio, max_hamming)
     if len(q) < min_inliers:
         return Verification(False, "few_matches", len(q))
     obj = cand_points[idx[t]].astype(np.float64)

@@ -21,6 +21,7 @@ from client.geometry import invert, make_pose, rotation_angle
 from . import icp
 from ..config import OdometryConfig, StereoConfig
 from .features import FrameFeatures
+from .matching import match_descriptors
 from .refinement import mahalanobis2, offset_information, pose_sigma, refine_pose
 from .stereo_calibration import DisparityOffsetEstimator
 
@@ -317,7 +318,7 @@ class Odometry:
         cand = np.nonzero(visible)[0]
         if len(cand) < c.min_inliers or len(features) < c.min_inliers:
             return None
-        q_idx, m_idx = _match(features.descriptors, self.map.descriptors[cand], c.match_ratio, c.max_hamming)
+        q_idx, m_idx = match_descriptors(features.descriptors, self.map.descriptors[cand], c.match_ratio, c.max_hamming)
         m_idx = cand[m_idx]
         if gated:
             near = np.linalg.norm(uv[m_idx] - features.keypoints[q_idx], axis=1) <= c.guided_radius
@@ -407,26 +408,6 @@ class Odometry:
 def _support(result) -> int:
     """Inlier count of a registration result (None counts as 0)."""
     return 0 if result is None else int(result[2].sum())
-
-
-def _match(query: np.ndarray, train: np.ndarray, ratio: float, max_dist: int):
-    """Nearest-neighbour matching with the ratio test and one match per train point.
-    Returns (query indices, train indices)."""
-    if len(train) < 2 or len(query) == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    # the two nearest train descriptors of each query as arrays (what BFMatcher.knnMatch
-    # computes before it wraps them in DMatch objects)
-    dist, nearest = cv2.batchDistance(query, train, -1, normType=cv2.NORM_HAMMING, K=2, update=0, crosscheck=False)
-    qi = np.arange(len(query))
-    ti, d1, d2 = nearest[:, 0].astype(int), dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
-    ok = (d1 <= max_dist) & (d1 < ratio * d2)
-    qi, ti, d1 = qi[ok], ti[ok], d1[ok]
-    # One query per train point: keep the closest.
-    order = np.lexsort((d1, ti))
-    first = np.ones(len(order), bool)
-    first[1:] = ti[order][1:] != ti[order][:-1]
-    keep = np.sort(order[first])
-    return qi[keep], ti[keep]
 
 
 def _scale_motion(T: np.ndarray, s: float) -> np.ndarray:

@@ -1,0 +1,26 @@
+"""Descriptor matching shared by tracking (frame against the local map) and mapping (loop,
+proximity and path verification, link refinement): binary descriptors, Hamming distance."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float, max_dist: int):
+    """Nearest-neighbour matching with the ratio test and one match per train point.
+    Returns (query indices, train indices)."""
+    if len(train) < 2 or len(query) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    # the two nearest train descriptors of each query as arrays (what BFMatcher.knnMatch
+    # computes before it wraps them in DMatch objects)
+    dist, nearest = cv2.batchDistance(query, train, -1, normType=cv2.NORM_HAMMING, K=2, update=0, crosscheck=False)
+    qi = np.arange(len(query))
+    ti, d1, d2 = nearest[:, 0].astype(int), dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
+    ok = (d1 <= max_dist) & (d1 < ratio * d2)
+    qi, ti, d1 = qi[ok], ti[ok], d1[ok]
+    # One query per train point: keep the closest.
+    order = np.lexsort((d1, ti))
+    first = np.ones(len(order), bool)
+    first[1:] = ti[order][1:] != ti[order][:-1]
+    keep = np.sort(order[first])
+    return qi[keep], ti[keep]
