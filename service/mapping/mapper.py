@@ -311,15 +311,22 @@ class Mapper:
                 links[(a.node_id, b.node_id)] = T
         relinked = self.graph.replace_odometry(
             {k: v for k, v in links.items() if k[1] != u.node_id}) if c.local_ba_relink else []
-        for link in relinked:  # the database keeps what the graph has (a reload, the link report)
-            self.store.add_link(link.from_id, link.to_id, LinkType.NEIGHBOR, link.transform, link.information, replace=True)
+        # the database keeps the links the graph has (a reload, the link report): the window's
+        # older links and (below) the keyframe's own, which tracking stored as the tracker's
+        stored = [(l.from_id, l.to_id, l.transform, l.information) for l in relinked]
         info = {"keyframes": res.keyframes, "matched": matched, "points": res.points,
                 "observations": res.observations, "depth_observations": res.depth_observations,
                 "depth_scale": round(res.depth_scale, 3), "error_before": res.error_before,
                 "error_after": res.error_after, "relinked": len(relinked), "ms": (time.perf_counter() - t0) * 1e3,
                 "timings_ms": res.timings_ms}
         T = links.get((u.odom_from, u.node_id))
-        return (u if T is None else dataclasses.replace(u, transform=T)), info
+        if T is not None:
+            stored.append((u.odom_from, u.node_id, T, u.information))
+            u = dataclasses.replace(u, transform=T)
+        if self.store is not None:
+            for a, b, T_ab, information in stored:
+                self.store.add_link(a, b, LinkType.NEIGHBOR, T_ab, information, replace=True)
+        return u, info
 
     # -- rehearsal ---------------------------------------------------------------------------
     def _rehearse(self, u: KeyframeUpdate, stats: LoopStatistics) -> Rehearsal:
