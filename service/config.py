@@ -245,7 +245,8 @@ class RosConfig:
     robots: list = field(default_factory=list)  # one mapping per robot: {robot: r1, color: KEY, depth: KEY, info: KEY, pose: KEY, intrinsics: k}; KEY = the topic's Zenoh key (the bridge's: the topic without its leading '/'); depth registered to colour; pose (PoseStamped out) and intrinsics (k, or p for image_rect topics) optional
     frame_id: str = "map"  # header.frame_id of the PoseStamped poses published on a robot's pose key
     sync_tolerance: float = 0.015  # s; a colour and a depth image pair when their header stamps differ by at most this (the nearest)
-    sync_queue: int = 8  # unpaired images kept per stream waiting for their partner; older ones are dropped (counted unpaired)
+    sync_window: float = 0.5  # s; an unpaired image waits for its partner until its own stream is this far past it (the other stream's callbacks may lag), then is dropped (counted unpaired)
+    sync_queue: int = 16  # ... and at most this many unpaired images wait per stream (memory: raw 640×480 colour is 0.9 MB each); older ones are dropped (counted unpaired)
 
 
 @dataclass

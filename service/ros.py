@@ -35,8 +35,10 @@ How a ROS robot is mapped: its camera info (ROS publishes it with every image) a
 native camera info does (`SlamService.admit`: a slot when one is free; a changed calibration
 is counted). Colour and depth images are paired by header stamp: a new image pairs with the
 unpaired image of the other stream whose stamp is nearest, within `ros.sync_tolerance`; the
-pair's older unpaired images are dropped and counted ``unpaired``, as are images pushed out of a
-stream's buffer (`ros.sync_queue`). Each pair becomes one frame (seq counting pairs from 0,
+pair's older unpaired images are dropped and counted ``unpaired``, as are images that waited in
+vain: once their own stream is `ros.sync_window` (0.5 s) past them, or pushed out of a stream's
+buffer (`ros.sync_queue`, a memory cap). The window is in stamp time, not a count: the two keys'
+callbacks can run several images apart when frames come in bursts. Each pair becomes one frame (seq counting pairs from 0,
 stamp = the colour image's) that takes the native path from there: held while the robot has
 no slot (`service.hold_frames`), checked against the calibration (``size_mismatch``), stamp
 order, the robot's queue and its drops. CDR that does not decode is counted ``bad_cdr`` (per
@@ -96,6 +98,8 @@ def parse_robots(config: RosConfig) -> list[RosRobot]:
 
     if not (math.isfinite(config.sync_tolerance) and config.sync_tolerance >= 0):
         raise ConfigError(f"ros.sync_tolerance: expected seconds >= 0, got {config.sync_tolerance!r}")
+    if not (math.isfinite(config.sync_window) and config.sync_window > 0):
+        raise ConfigError(f"ros.sync_window: expected seconds > 0, got {config.sync_window!r}")
     if config.sync_queue < 1:
         raise ConfigError(f"ros.sync_queue: expected >= 1, got {config.sync_queue!r}")
     out: list[RosRobot] = []
@@ -228,7 +232,8 @@ class RosIngest:
                     best = i
             if best is None:
                 mine.append((ns, msg, len(payload)))
-                while len(mine) > self.config.sync_queue:
+                oldest = ns - int(round(self.config.sync_window * 1e9))
+                while mine and (len(mine) > self.config.sync_queue or mine[0][0] < oldest):
                     mine.popleft()
                     self._drop(robot, "unpaired", key, "no partner image in time")
                 return
