@@ -22,7 +22,7 @@ from . import icp
 from ..config import OdometryConfig, StereoConfig
 from .features import FrameFeatures
 from .matching import match_descriptors
-from .refinement import mahalanobis2, offset_information, pose_sigma, refine_pose
+from .refinement import mahalanobis2, offset_information, refine_pose, sigma_from_hessian
 from .stereo_calibration import DisparityOffsetEstimator
 
 
@@ -389,20 +389,18 @@ class Odometry:
         mask = np.zeros(len(world), bool)
         mask[inl.ravel()] = True
         R, _ = cv2.Rodrigues(rvec)
-        T_cw = refine_pose(make_pose(R, tvec.ravel()), self.K, world[mask], pixels[mask], sigma_px[mask],
-                           rays[mask], sigma_ray[mask], depth[mask], depth_sigma[mask])
+        T_cw, H = refine_pose(make_pose(R, tvec.ravel()), self.K, world[mask], pixels[mask], sigma_px[mask],
+                              rays[mask], sigma_ray[mask], depth[mask], depth_sigma[mask], hessian=True)
         # Re-select inliers under the refined pose (RANSAC's set came from a minimal sample).
         mask = mahalanobis2(T_cw, self.K, world, pixels, sigma_px, rays, sigma_ray) <= c.pnp_reprojection_error ** 2
         if mask.sum() >= 4:
-            T_cw = refine_pose(T_cw, self.K, world[mask], pixels[mask], sigma_px[mask], rays[mask], sigma_ray[mask],
-                               depth[mask], depth_sigma[mask])
+            T_cw, H = refine_pose(T_cw, self.K, world[mask], pixels[mask], sigma_px[mask], rays[mask], sigma_ray[mask],
+                                  depth[mask], depth_sigma[mask], hessian=True)
         pose = invert(T_cw)
         if c.max_translation > 0 and self.pose is not None and \
                 np.linalg.norm(pose[:3, 3] - self.pose[:3, 3]) > c.max_translation:
             return None, np.zeros(len(world), bool), None
-        sigma = pose_sigma(T_cw, self.K, world[mask], pixels[mask], sigma_px[mask], rays[mask], sigma_ray[mask],
-                           depth[mask], depth_sigma[mask]) if mask.sum() >= 4 else None
-        return pose, mask, sigma
+        return pose, mask, None if H is None else sigma_from_hessian(H)
 
 
 def _support(result) -> int:

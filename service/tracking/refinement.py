@@ -118,11 +118,18 @@ def pose_sigma(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.nd
                depth_sigma: np.ndarray | None = None) -> tuple[float, float]:
     """Standard deviations of a refined pose (the problem of `refine_pose` at T_cw, Huber
     weights included): the largest of the rotation's (radians) and of the translation's
-    (metres), from the inverse of its Gauss–Newton Hessian. (inf, inf) when it is singular."""
+    (metres), from the inverse of its Gauss–Newton Hessian. (inf, inf) when it is singular.
+    `refine_pose(..., hessian=True)` returns that Hessian without building the problem again."""
     z_meas, zw, chi = _depth_residuals(len(world), depth, depth_sigma)
     obs = _Observations(T_cw, K, np.asarray(world, np.float64), np.asarray(pixels, np.float64), sigma_px, rays,
                         sigma_ray, z_meas, zw)
     H, _ = obs.normal_equations(obs.weights(chi))
+    return sigma_from_hessian(H)
+
+
+def sigma_from_hessian(H: np.ndarray) -> tuple[float, float]:
+    """(largest rotation σ in radians, largest translation σ in metres) of a 6×6 pose Hessian
+    (rotation first); (inf, inf) when it is singular."""
     try:
         C = np.linalg.inv(H)
     except np.linalg.LinAlgError:
@@ -133,17 +140,20 @@ def pose_sigma(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.nd
 
 def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
                 rays: np.ndarray, sigma_ray: np.ndarray, depth: np.ndarray | None = None,
-                depth_sigma: np.ndarray | None = None, iterations: int = 10) -> np.ndarray:
+                depth_sigma: np.ndarray | None = None, iterations: int = 10, hessian: bool = False):
     """Gauss–Newton refinement of the world-to-camera pose T_cw from 2-D observations of
     world points. `sigma_px` (n,) pixel noise, `rays` (n, 3) unit world directions along
     which each point is uncertain with `sigma_ray` (n,) metres. With `depth` (n,) and
     `depth_sigma` (n,) the depth this frame measured for an observation (NaN: none) is a
-    third residual, as ORB-SLAM's stereo/RGB-D pose optimization uses it. Returns T_cw."""
+    third residual, as ORB-SLAM's stereo/RGB-D pose optimization uses it. Returns T_cw, or
+    with `hessian` (T_cw, H): H the problem's 6×6 Hessian at the last iteration (None with
+    fewer than 4 points), whose inverse is the pose's covariance (`sigma_from_hessian`)."""
     T = np.asarray(T_cw, np.float64).copy()
     X = np.asarray(world, np.float64)
     px = np.asarray(pixels, np.float64)
+    H = None
     if len(X) < 4:
-        return T
+        return (T, H) if hessian else T
     z_meas, zw, chi = _depth_residuals(len(X), depth, depth_sigma)
     for _ in range(iterations):
         obs = _Observations(T, K, X, px, sigma_px, rays, sigma_ray, z_meas, zw)
@@ -156,7 +166,7 @@ def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.n
         T = make_pose(dR, xi[3:]) @ T
         if np.linalg.norm(xi[:3]) < 1e-6 and np.linalg.norm(xi[3:]) < 1e-6:  # µrad, µm: converged
             break
-    return T
+    return (T, H) if hessian else T
 
 
 def offset_information(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
