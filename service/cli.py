@@ -210,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="start the service, stream the synthetic scene into it over Zenoh, report ATE and a REST query")
     d.add_argument("--trajectory", default="loop", help="synthetic camera path (loop, figure8, walk_a, walk_b, straight)")
     d.add_argument("--rate", type=float, default=15.0, help="frames per second of the synthetic camera")
-    d.add_argument("--no-noise", action="store_true", help="exact depth instead of Kinect-like noise")
+    d.add_argument("--no-noise", action="store_true", help="exact depth instead of Kinect-like noise (the path's own model where it has one: fastrot's disparity noise)")
     d.add_argument("--out", default="out/demo", help="output folder")
     _add_set(d, "of the service the demo starts")
     d.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)

@@ -185,6 +185,15 @@ def _nearest_door(api: PlannerClient, dataset, robot: str, timeout: float = 30.0
     return answer
 
 
+def _has_noise(trajectory: str) -> bool:
+    """Whether the synthetic path comes with a noise model of its own (an unknown name: no;
+    open_dataset then says it is unknown)."""
+    from client.synthetic import TRAJECTORIES
+
+    spec = TRAJECTORIES.get(trajectory)
+    return spec is not None and spec.noise not in (None, False, "none")
+
+
 def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, out: str = "out/demo",
              progress: bool = True, overrides: dict | None = None) -> int:
     """The demo; `overrides` (nested config keys, `mnemoslam demo --set`) go to the service.
@@ -200,7 +209,9 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
     db = out_dir / "map.db"
     for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
         p.unlink(missing_ok=True)
-    dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=noise)
+    # noise: the path's own sensor model where it has one (fastrot: Kinect disparity noise and
+    # blur), else the axial model; none with --no-noise
+    dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=None if noise and _has_noise(trajectory) else noise)
     print(f"demo: starting the service (database {db})")
     log_path = out_dir / "service.log"
     svc = ServiceProcess(db, service_config, log_path=log_path)

@@ -274,3 +274,12 @@ def test_rest_sockets_are_tcp_so_responses_are_not_held_back():
     finally:
         sock.close()
         api.sock.close()
+
+
+def test_demo_noise_is_the_paths_own_model_where_it_has_one():
+    """`mnemoslam demo --trajectory fastrot` streams fastrot as the bench runs it (Kinect
+    disparity noise and motion blur), the other paths with the axial model."""
+    from service.demo import _has_noise
+
+    assert _has_noise("fastrot") and not _has_noise("loop") and not _has_noise("figure8")
+    assert not _has_noise("no-such-path")
