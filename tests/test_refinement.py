@@ -3,7 +3,7 @@ import cv2
 import numpy as np
 
 from client.geometry import invert, make_pose
-from service.tracking.refinement import mahalanobis2, pose_sigma, refine_pose
+from service.tracking.refinement import mahalanobis2, refine_pose, sigma_from_hessian
 
 K = np.array([[700.0, 0, 620], [0, 700.0, 185], [0, 0, 1]])
 
@@ -59,8 +59,13 @@ def test_depth_uncertainty_only_widens_the_image_of_the_ray():
     np.testing.assert_allclose(d_across, d_plain, rtol=0.05)
 
 
+def _pose_sigma(T_cw, X, px, ones, rays, zeros):
+    """The σ the odometry takes: from the Hessian of the refinement at the pose."""
+    return sigma_from_hessian(refine_pose(T_cw, K, X, px, ones, rays, zeros, hessian=True)[1])
+
+
 def test_pose_sigma_matches_the_spread_of_refined_poses_and_grows_when_points_bunch():
-    """pose_sigma is the refinement's own uncertainty: over 200 noisy draws (1 px) the largest
+    """The refinement's own uncertainty (its Hessian's inverse): over 200 noisy draws (1 px) the largest
     rotation / translation standard deviations of the refined poses are within 30 % of it; 40
     points bunched in one corner of the image give a larger σ than 40 spread over it (the
     odometry then also tries depth ICP: `odometry.confident_sigma_*`)."""
@@ -79,13 +84,13 @@ def test_pose_sigma_matches_the_spread_of_refined_poses_and_grows_when_points_bu
             trans.append(T[:3, 3] - T_true[:3, 3])
         empirical = (np.sqrt(np.linalg.eigvalsh(np.cov(np.array(rot).T))[-1]),
                      np.sqrt(np.linalg.eigvalsh(np.cov(np.array(trans).T))[-1]))
-        return empirical, pose_sigma(T_true, K, X, px, ones, rays, zeros)
+        return empirical, _pose_sigma(T_true, X, px, ones, rays, zeros)
 
     wide = _points(rng, 40, 2, 6)
     (emp_r, emp_t), (sig_r, sig_t) = spread(wide)
     assert 0.7 < emp_r / sig_r < 1.3 and 0.7 < emp_t / sig_t < 1.3, (emp_r, sig_r, emp_t, sig_t)
     z = rng.uniform(2, 6, 40)
     bunched = np.c_[(0.3 + rng.uniform(-0.05, 0.05, 40)) * z, (0.1 + rng.uniform(-0.05, 0.05, 40)) * z, z]
-    sig_r_b, sig_t_b = pose_sigma(T_true, K, bunched, _project(T_true, bunched), np.ones(40),
-                                  bunched / np.linalg.norm(bunched, axis=1, keepdims=True), np.zeros(40))
+    sig_r_b, sig_t_b = _pose_sigma(T_true, bunched, _project(T_true, bunched), np.ones(40),
+                                   bunched / np.linalg.norm(bunched, axis=1, keepdims=True), np.zeros(40))
     assert sig_r_b > 3 * sig_r and sig_t_b > 3 * sig_t

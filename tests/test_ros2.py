@@ -172,25 +172,34 @@ class _Service:
         self.frames.append((pair.seq, pair.ns, ros_cdr.stamp_ns(pair.color), ros_cdr.stamp_ns(pair.depth)))
 
 
+def _pairing(config):
+    """A RosIngest for robot RAW on a recording service stub, and send(kind, t_ms): one raw
+    colour ("c") or depth ("d") image stamped t milliseconds through its callback."""
+    from service.ros import RosIngest
+
+    svc = _Service(config)
+    ros = RosIngest(svc, config.ros)
+    st = ros.robots["rosraw"]
+    img, depth = _images()
+
+    def send(kind, t):
+        key = RAW["color" if kind == "c" else "depth"]
+        ns = t * 1_000_000
+        payload = ros_cdr.encode_image(img, "bgr8", ns) if kind == "c" else ros_cdr.encode_image(depth, "16UC1", ns)
+        ros._on_image(st, _Sample(key, payload), kind == "d")
+
+    return svc, ros, st, send
+
+
 def test_a_stream_whose_callbacks_lag_still_pairs_within_the_sync_window():
     """Bursts: one key's callbacks can run many images behind the other's. With the defaults
     (sync_window 0.5 s, sync_queue 16) twelve colour images wait for depth images that come
     after all of them and every pair is made; images still unpaired when their own stream is
     0.5 s past them are dropped and counted."""
-    from service.ros import RosIngest
-
     config = load_config(None, {"ros": {"enabled": True, "robots": [RAW]}})
     assert config.ros.sync_window == 0.5 and config.ros.sync_queue == 16
-    svc = _Service(config)
-    ros = RosIngest(svc, config.ros)
-    st = ros.robots["rosraw"]
-    img, depth = _images()
+    svc, _, _, send = _pairing(config)
     ms = 1_000_000
-
-    def send(kind, t):
-        key = RAW["color" if kind == "c" else "depth"]
-        payload = ros_cdr.encode_image(img, "bgr8", t * ms) if kind == "c" else ros_cdr.encode_image(depth, "16UC1", t * ms)
-        ros._on_image(st, _Sample(key, payload), kind == "d")
 
     stamps = [33 * k for k in range(12)]  # 0.36 s of colour, the depth stream 12 images behind
     for t in stamps:
@@ -206,19 +215,9 @@ def test_a_stream_whose_callbacks_lag_still_pairs_within_the_sync_window():
 
 
 def test_colour_and_depth_pair_by_nearest_stamp_within_the_tolerance():
-    from service.ros import RosIngest
-
     config = load_config(None, {"ros": {"enabled": True, "robots": [RAW], "sync_tolerance": 0.015, "sync_queue": 2}})
-    svc = _Service(config)
-    ros = RosIngest(svc, config.ros)
-    st = ros.robots["rosraw"]
-    img, depth = _images()
+    svc, ros, st, send = _pairing(config)
     ms = 1_000_000
-
-    def send(kind, t):
-        key = RAW["color" if kind == "c" else "depth"]
-        payload = ros_cdr.encode_image(img, "bgr8", t * ms) if kind == "c" else ros_cdr.encode_image(depth, "16UC1", t * ms)
-        ros._on_image(st, _Sample(key, payload), kind == "d")
 
     send("c", 100)
     send("d", 120)  # 20 ms: not a pair, both wait

@@ -268,7 +268,7 @@ class Mapper:
             stats.decision, v = self._close_loop(u, hyp.best_id, LinkType.GLOBAL_CLOSURE)
             if v is not None:
                 stats.matches, stats.inliers, stats.refined = v.matches, v.inliers, v.refined
-                stats.sigma = None if v.sigma is None else [round(x, 5) for x in v.sigma]
+                stats.sigma = _rounded_sigma(v)
         t4 = time.perf_counter()
         if self.config.proximity_by_space:
             self._close_nearby(u, candidates, stats, verified)
@@ -425,7 +425,7 @@ class Mapper:
                 decision, v = self._close_loop(u, candidate, LinkType.LOCAL_SPACE, prior)
             stats.proximity.append({"node": candidate, "decision": decision,
                                     "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined),
-                                    "sigma": None if v is None or v.sigma is None else [round(x, 5) for x in v.sigma]})
+                                    "sigma": _rounded_sigma(v)})
             if decision == "accepted":
                 return
 
@@ -549,3 +549,7 @@ class Mapper:
             decision = self._add_link(u, candidate, kind, v)
         return decision, v
 
+
+def _rounded_sigma(v: Verification | None) -> list | None:
+    """A link's [m, deg] σ (two-view refinement) as the statistics record it."""
+    return None if v is None or v.sigma is None else [round(x, 5) for x in v.sigma]

@@ -113,23 +113,10 @@ def mahalanobis2(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.
                          sigma_px, rays, sigma_ray).chi2()
 
 
-def pose_sigma(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
-               rays: np.ndarray, sigma_ray: np.ndarray, depth: np.ndarray | None = None,
-               depth_sigma: np.ndarray | None = None) -> tuple[float, float]:
-    """Standard deviations of a refined pose (the problem of `refine_pose` at T_cw, Huber
-    weights included): the largest of the rotation's (radians) and of the translation's
-    (metres), from the inverse of its Gauss–Newton Hessian. (inf, inf) when it is singular.
-    `refine_pose(..., hessian=True)` returns that Hessian without building the problem again."""
-    z_meas, zw, chi = _depth_residuals(len(world), depth, depth_sigma)
-    obs = _Observations(T_cw, K, np.asarray(world, np.float64), np.asarray(pixels, np.float64), sigma_px, rays,
-                        sigma_ray, z_meas, zw)
-    H, _ = obs.normal_equations(obs.weights(chi))
-    return sigma_from_hessian(H)
-
-
 def sigma_from_hessian(H: np.ndarray) -> tuple[float, float]:
     """(largest rotation σ in radians, largest translation σ in metres) of a 6×6 pose Hessian
-    (rotation first); (inf, inf) when it is singular."""
+    (rotation first), e.g. `refine_pose(..., hessian=True)`'s, Huber weights included;
+    (inf, inf) when it is singular."""
     try:
         C = np.linalg.inv(H)
     except np.linalg.LinAlgError:
