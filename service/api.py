@@ -242,6 +242,9 @@ class SemanticsOut(Open):
     model: str | None = None
     reason: str | None = Field(None, description="why semantics are off")
     classes: list[str] = []
+    worker: dict | None = Field(None, description="the map's semantic worker: keyframes processed, dropped, "
+                                "failed and skipped, objects")
+    workers: dict[str, dict] = Field({}, description="the same counts of each connected robot's keyframes")
 
 
 class LabelIn(BaseModel):

@@ -21,15 +21,29 @@ from .semantics.worker import SemanticWorker
 log = logging.getLogger("mnemoslam.builder")
 
 
+def build_semantics(store: MapStore, config: Config, *,
+                    background: bool = False) -> tuple[SemanticWorker | None, str | None]:
+    """The semantic worker of the map `store` when `config.semantics.enabled` (on its own
+    thread with `background`, else inline), or None and why not (e.g. the model is missing)."""
+    if not config.semantics.enabled:
+        return None, "semantics.enabled is false"
+    segmenter, off = make_segmenter(config.semantics)
+    if segmenter is None:
+        log.warning("semantics are off: %s", off)
+        return None, off
+    return SemanticWorker(store, segmenter, config.semantics, background=background), None
+
+
 def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config: Config, *,
                    mapping: MappingProcess | None = None, background: bool = False,
-                   on_event: Callable[[str, dict], None] | None = None) -> Pipeline:
+                   on_event: Callable[[str, dict], None] | None = None,
+                   semantics: tuple[SemanticWorker | None, str | None] | None = None) -> Pipeline:
     """A new session of `robot` in the map `store`: its memory (a session in the database), its
     map update when `config.loop.enabled` (in `mapping`'s child process when given, else a
     Mapper on its own thread with `background`, else inline) reporting to `on_event(kind,
-    data)`, its semantic worker when `config.semantics.enabled` (on its own thread with
-    `background`, else inline; off with the reason in `Pipeline.semantics_off` when e.g. the
-    model is missing), and the pipeline over them. End it with `Pipeline.close()`."""
+    data)`, its semantic worker (`semantics`: the map's shared (worker, why off) from
+    `build_semantics`, which the caller closes; else one of its own, see `build_semantics`,
+    that the pipeline closes), and the pipeline over them. End it with `Pipeline.close()`."""
     memory = Memory(store, robot, calibration, config)
     mapper = None
     if config.loop.enabled:
@@ -38,11 +52,6 @@ def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config
         else:
             mapper = Mapper(calibration.camera, config.loop, store, on_event=on_event, background=background,
                             memory=config.memory)
-    semantics, off = None, "semantics.enabled is false"
-    if config.semantics.enabled:
-        segmenter, off = make_segmenter(config.semantics)
-        if segmenter is not None:
-            semantics = SemanticWorker(store, segmenter, config.semantics, background=background)
-        else:
-            log.warning("semantics are off: %s", off)
-    return Pipeline(calibration, config, memory, mapper, semantics, off)
+    owned = semantics is None
+    worker, off = build_semantics(store, config, background=background) if owned else semantics
+    return Pipeline(calibration, config, memory, mapper, worker, off, robot=robot, owns_semantics=owned)

@@ -46,13 +46,15 @@ class Pipeline:
     """One SLAM session for one camera."""
 
     def __init__(self, calibration: Calibration, config: Config, memory=None, mapper=None, semantics=None,
-                 semantics_off: str | None = None):
+                 semantics_off: str | None = None, *, robot: str = "", owns_semantics: bool = True):
         self.calibration = calibration
         self.config = config
         self.memory = memory  # service.memory.long_term.Memory, or None for odometry alone
         self.mapper = mapper  # service.mapping.mapper.Mapper (loop closure + graph), or None
         self.semantics = semantics  # service.semantics.worker.SemanticWorker, or None
         self.semantics_off = semantics_off  # why semantics are off (None when on)
+        self.robot = robot
+        self._owns_semantics = owns_semantics  # False: the map's shared worker, closed by its owner
         self.extractor = FeatureExtractor(calibration, config.features, config.stereo)
         self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed, stereo=config.stereo,
                                  baseline=calibration.baseline)
@@ -75,7 +77,7 @@ class Pipeline:
         poses), then the session is closed in the database with `reason`."""
         if self.mapper is not None:
             self.mapper.close()
-        if self.semantics is not None:  # after the final poses: objects are written against them
+        if self.semantics is not None and self._owns_semantics:  # after the final poses: objects are written against them
             self.semantics.close()
         if self.memory is not None:
             self.memory.close(reason)
@@ -119,7 +121,8 @@ class Pipeline:
         if self.semantics is None:
             return
         self.semantics.submit(SemanticKeyframe(node_id, pose, frame.image, frame.depth, frame.extras.get("labels"),
-                                               self.calibration.camera, frame.extras.get("label_names")))
+                                               self.calibration.camera, frame.extras.get("label_names"),
+                                               self.robot))
 
     def _has_geometry(self, frame: Frame) -> bool:
         if self.calibration.baseline:

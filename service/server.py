@@ -22,11 +22,12 @@ from client.frames import Calibration, Frame
 from client.transport import ZenohSettings, open_session, undeclare_all
 from storage import MapStore
 
-from .builder import build_pipeline
+from .builder import build_pipeline, build_semantics
 from .config import Config, to_dict
 from .mapping.process import MappingProcess
 from .pipeline import FrameResult, Pipeline
 from .recovery import recover
+from .semantics.worker import SemanticWorker
 from .session import RobotSession
 
 log = logging.getLogger("mnemoslam.service")
@@ -42,6 +43,8 @@ class SlamService:
         )
         self.store: MapStore | None = None
         self.mapping: MappingProcess | None = None  # every robot's map update (loop.process)
+        # the map's semantic worker, shared by every robot (one object set), and why it is off
+        self.semantics: tuple[SemanticWorker | None, str | None] = (None, "service not started")
         self.zenoh = None
         self.sessions: dict[str, RobotSession] = {}
         self.rejected: Counter = Counter()  # reason -> messages refused before reaching a session
@@ -69,6 +72,7 @@ class SlamService:
         recover(self.config)  # sessions a kill left open end "crashed"; their map backlog is done, before any writer starts
         if self.config.loop.enabled and self.config.loop.process:
             self.mapping = MappingProcess(self.config.storage.path, self.config.loop, self.config.memory)
+        self.semantics = build_semantics(self.store, self.config, background=True)
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
                                                 z.multicast_scouting, z.gossip_scouting))
         self._subscribers = [
@@ -94,6 +98,9 @@ class SlamService:
             self._janitor.join()
         for s in list(self.sessions.values()):
             s.stop()  # its pipeline finishes the queued map updates and ends its database session
+        if self.semantics[0] is not None:  # after every session's final poses: objects are written against them
+            self.semantics[0].close()
+            self.semantics = (None, "service stopped")
         if self.mapping is not None:
             self.mapping.close()  # every robot's updates are done: stop the child before the database closes
         if self.zenoh is not None:
@@ -310,7 +317,7 @@ class SlamService:
         events = self.keys.events(robot)
         on_event = lambda kind, data: self.publish(events, protocol.encode_event(robot, kind, **data))
         pipeline = build_pipeline(self.store, robot, calibration, self.config, mapping=self.mapping,
-                                  background=True, on_event=on_event)
+                                  background=True, on_event=on_event, semantics=self.semantics)
         on_event("session_started", {"session_id": pipeline.session_id})
         log.info("session started robot=%s session=%d camera=%dx%d kind=%s", robot, pipeline.session_id,
                  calibration.camera.width, calibration.camera.height, calibration.kind)
@@ -355,15 +362,13 @@ class SlamService:
 
     def semantics_status(self) -> dict:
         """{"enabled", "source", "model", "reason" (why off, or None), "classes"} of the
-        semantic map, plus "workers": each robot session's semantic worker counts (keyframes
-        processed, dropped, failed; objects)."""
+        semantic map, plus "worker": the map's semantic worker's counts (keyframes processed,
+        dropped, failed; objects), and "workers": the same counts of each connected robot's
+        keyframes."""
         from .semantics.segmentation import semantics_status
 
         out = semantics_status(self.config.semantics)
-        workers = {}
-        for robot, s in list(self.sessions.items()):
-            worker = getattr(getattr(s, "pipeline", None), "semantics", None)
-            if worker is not None:
-                workers[robot] = worker.stats()
-        out["workers"] = workers
+        worker = self.semantics[0]
+        out["worker"] = worker.stats() if worker is not None else None
+        out["workers"] = {robot: worker.stats(robot) for robot in list(self.sessions)} if worker is not None else {}
         return out

@@ -107,6 +107,18 @@ class Queries(Connection):
         pairs = np.array(rows, np.int64).reshape(-1, 2)
         return pairs[pairs[:, 0] != pairs[:, 1]]
 
+    def links_after(self, rowid: int = 0) -> tuple[int, np.ndarray]:
+        """The links stored after row `rowid` (a rewritten link gets a new row): (the newest
+        row, (L, 2) int64 (from, to) in row order), ids as stored. For an incremental view of
+        which nodes the links join (`service.semantics.connectivity`)."""
+        with self._read() as c:
+            rows = c.execute("SELECT rowid, from_id, to_id FROM links WHERE rowid > ? ORDER BY rowid",
+                             (_as_int(rowid, "rowid"),)).fetchall()
+        if not rows:
+            return int(rowid), np.zeros((0, 2), np.int64)
+        a = np.array(rows, np.int64)
+        return int(a[-1, 0]), a[:, 1:]
+
     def load_images(self, node_id: int) -> tuple[bytes | None, bytes | None]:
         """(JPEG colour, PNG-16 millimetre depth) as stored; (None, None) when not kept."""
         nid = _as_int(node_id, "node_id")

@@ -6,10 +6,17 @@ the camera's labels or None, camera) to `SemanticWorker.submit`, which only enqu
 segments it when the source is a model, fuses it (`objects.ObjectFusion`) with the anchors'
 current poses read from the map database, and writes the confirmed objects that changed
 (`MapStore.save_objects`). Errors are logged and counted, never raised into tracking.
+
+One worker serves one map: the service hands every robot's keyframes to the same worker, so
+the robots' objects are one set (a door two robots see is one door). A keyframe is compared
+only with objects anchored in its own connected part of the map
+(`connectivity.MapConnectivity`): robots, sessions and segments not yet joined by a link have
+unrelated frames.
 Without `background` (offline runs) `submit` does the work at once, so runs are
 reproducible."""
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import queue
@@ -23,6 +30,7 @@ import numpy as np
 from client.frames import PinholeCamera
 
 from ..config import SemanticsConfig
+from .connectivity import MapConnectivity
 from .objects import ObjectFusion
 from .segmentation import CameraLabels, Segmenter
 
@@ -38,6 +46,7 @@ class SemanticKeyframe:
     labels: np.ndarray | None  # H×W class ids from the camera, or None
     camera: PinholeCamera
     label_names: tuple | None = None  # the camera's class table, when not the configured one
+    robot: str = ""  # whose keyframe (the per-robot counts in `stats`)
 
 
 _STOP = object()
@@ -53,7 +62,9 @@ class SemanticWorker:
         self.classes = tuple(segmenter.classes)
         self.fusion = ObjectFusion(self.classes, config)
         self.fusion.load(store.objects())
+        self.connectivity = MapConnectivity()
         self.processed = self.dropped = self.errors = self.skipped = 0
+        self._per_robot: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         self.last_error: str | None = None
         self.seconds = 0.0
         self._queue: queue.Queue | None = None
@@ -77,7 +88,7 @@ class SemanticWorker:
             self._queue.put_nowait(kf)
             return True
         except queue.Full:
-            self.dropped += 1
+            self._count(kf, "dropped")
             return False
 
     def close(self, timeout: float = 60.0) -> None:
@@ -88,10 +99,18 @@ class SemanticWorker:
             self._thread = None
         self.flush()
 
-    def stats(self) -> dict:
-        return {"processed": self.processed, "dropped": self.dropped, "errors": self.errors,
-                "skipped": self.skipped, "objects": len(self.fusion.confirmed()), "last_error": self.last_error,
+    def stats(self, robot: str | None = None) -> dict:
+        """Keyframes processed, dropped, failed and skipped (of `robot`'s keyframes when given,
+        else of all), and the map's objects."""
+        counts = self._per_robot.get(robot, collections.Counter()) if robot is not None else {
+            "processed": self.processed, "dropped": self.dropped, "errors": self.errors, "skipped": self.skipped}
+        out = {k: counts.get(k, 0) for k in ("processed", "dropped", "errors", "skipped")}
+        return {**out, "objects": len(self.fusion.confirmed()), "last_error": self.last_error,
                 "ms_per_keyframe": 1e3 * self.seconds / self.processed if self.processed else None}
+
+    def _count(self, kf: SemanticKeyframe, what: str) -> None:
+        setattr(self, what, getattr(self, what) + 1)
+        self._per_robot[kf.robot][what] += 1
 
     # -- the worker's thread ----------------------------------------------------------------
     def _loop(self) -> None:
@@ -116,16 +135,17 @@ class SemanticWorker:
         try:
             labels = self._labels(kf)
             if labels is None or kf.depth is None:
-                self.skipped += 1
+                self._count(kf, "skipped")
                 return
             with self._lock:
-                anchors = self.fusion.anchors()
+                self.connectivity.refresh(self.store)  # the links stored since the last keyframe
+                anchors = [a for a in self.fusion.anchors() if self.connectivity.same(a, kf.node_id)]
                 poses = {n.id: n.pose for n in self.store.get_nodes(anchors)} if anchors else {}
                 self.fusion.fuse(kf.node_id, kf.pose, labels, kf.depth, kf.camera, poses)
             self.flush()
-            self.processed += 1
+            self._count(kf, "processed")
         except Exception as e:  # never into tracking: log, count, go on
-            self.errors += 1
+            self._count(kf, "errors")
             self.last_error = f"{type(e).__name__}: {e}"
             log.exception("semantics: keyframe %d failed", kf.node_id)
         finally:

@@ -1,0 +1,48 @@
+"""Which keyframes of the map share a frame: the connected components of its links.
+
+Poses are comparable only within one connected piece of the pose graph. A robot's odometry,
+loop, proximity and merge links join its keyframes; a new session (another robot now, or the
+same robot tomorrow) or a new segment after tracking was lost starts in a frame of its own,
+and only a link to the old nodes places it in theirs. Before that, two robots that both
+started "at the origin" have objects at the same coordinates that have nothing to do with
+each other. The semantic fusion therefore associates a keyframe's segments only with objects
+anchored in the keyframe's component (`MapConnectivity.same`).
+
+Components are kept by union–find over node ids, fed incrementally from the links table
+(`MapStore.links_after`: only the rows written since the last look). Links are only ever
+added in effect: a link deleted and rewritten (an interrupted map update redone, a local-BA
+relink) joins the same nodes again, so components never split here.
+"""
+from __future__ import annotations
+
+class MapConnectivity:
+    """Union–find over the map's node ids, joined by every link stored so far."""
+
+    def __init__(self):
+        self._parent: dict[int, int] = {}
+        self._rowid = 0  # the newest links row seen
+
+    def refresh(self, store) -> int:
+        """Join the nodes of the links stored since the last call; returns how many were read."""
+        self._rowid, pairs = store.links_after(self._rowid)
+        for a, b in pairs.tolist():
+            self.union(a, b)
+        return len(pairs)
+
+    def find(self, node: int) -> int:
+        parent = self._parent
+        root = node
+        while parent.get(root, root) != root:
+            root = parent[root]
+        while node != root:  # path compression
+            parent[node], node = root, parent.get(node, node)
+        return root
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.find(a), self.find(b)
+        if ra != rb:
+            self._parent[max(ra, rb)] = min(ra, rb)  # the older node's root stays: deterministic
+
+    def same(self, a: int, b: int) -> bool:
+        return self.find(a) == self.find(b)
+

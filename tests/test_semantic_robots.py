@@ -1,0 +1,110 @@
+"""Several robots in one map share one semantic object set (the map's one semantic worker),
+and frames that no link joins are never compared: `service.semantics.connectivity`.
+
+Robot A maps the start of the synthetic loop and leaves. Robots B and C then walk the same
+stretch at once (interleaved frames, one shared worker, map updates inline): they relocalize on
+A's map, and the doors and chairs they see are A's objects, not copies. On a fresh map the same
+two walks have nothing in common, so their objects stay apart even where their unrelated
+frames put them at the same coordinates."""
+import numpy as np
+
+from service.builder import build_pipeline, build_semantics
+from service.config import load_config
+from service.semantics.connectivity import MapConnectivity
+from storage import MapStore
+
+from conftest import LOOP_NOISY, synthetic
+
+FRAMES = 60  # 6 s of the loop at 10 Hz: door_2 and the office chairs in view
+CONFIG = {"semantics": {"enabled": True, "source": "camera", "min_observations": 2}}
+
+
+def _walk(store, worker, robots_and_starts, ds, cfg):
+    """Robots walking frames [start, start + FRAMES) of `ds` at once, interleaved, sharing `worker`."""
+    pipelines = {r: build_pipeline(store, r, ds.calibration, cfg, semantics=worker) for r, _ in robots_and_starts}
+    for i in range(FRAMES):
+        for robot, start in robots_and_starts:
+            pipelines[robot].process(ds.frame(start + i))
+    for p in pipelines.values():
+        p.close()
+    return {r: p.session_id for r, p in pipelines.items()}
+
+
+def _twins(objects, radius=0.4):
+    """Pairs of objects with the same label whose world positions are within `radius`."""
+    out = []
+    for i, a in enumerate(objects):
+        for b in objects[i + 1:]:
+            if a.label == b.label and np.linalg.norm(a.position - b.position) < radius:
+                out.append((a.id, b.id, a.label))
+    return out
+
+
+def _sessions_seen(store, objects):
+    """{object id: the sessions of the keyframes that observed it}."""
+    session = {n.id: n.session_id for n in store.get_nodes({k for o in objects for k in o.keyframes})}
+    return {o.id: {session[k] for k in o.keyframes} for o in objects}
+
+
+def test_robots_on_a_shared_map_fuse_into_its_objects(tmp_path):
+    ds = synthetic("loop", **LOOP_NOISY)
+    cfg = load_config(None, CONFIG)
+    with MapStore(tmp_path / "map.db") as store:
+        worker = build_semantics(store, cfg)
+        assert worker[0] is not None, worker[1]
+        a = _walk(store, worker, [("a", 0)], ds, cfg)["a"]
+        before = store.objects()
+        assert {"door", "chair"} <= {o.label for o in before}
+        sessions = _walk(store, worker, [("b", 3), ("c", 6)], ds, cfg)
+        worker[0].close()
+        after = store.objects()
+        seen = _sessions_seen(store, after)
+    assert not _twins(after), _twins(after)
+    # B's and C's keyframes fused into A's objects: the door A saw was seen by all three
+    door = [o for o in after if o.label == "door" and a in seen[o.id]]
+    assert door and any({a, sessions["b"], sessions["c"]} <= seen[o.id] for o in door), seen
+    assert len(after) <= len(before) + 2, ([o.label for o in before], [o.label for o in after])
+    assert worker[0].stats("b")["processed"] > 0 and worker[0].stats("c")["errors"] == 0
+
+
+def test_objects_of_unjoined_frames_stay_apart(tmp_path):
+    """The same two walks on an empty map: no link joins B's frame and C's, so each keeps its
+    own objects although their coordinates coincide (both frames start at the origin)."""
+    ds = synthetic("loop", **LOOP_NOISY)
+    cfg = load_config(None, CONFIG)
+    with MapStore(tmp_path / "map.db") as store:
+        worker = build_semantics(store, cfg)
+        sessions = _walk(store, worker, [("b", 3), ("c", 6)], ds, cfg)
+        worker[0].close()
+        objects = store.objects()
+        seen = _sessions_seen(store, objects)
+        conn = MapConnectivity()
+        conn.refresh(store)
+        b_node = store.nodes(session_id=sessions["b"], limit=1)[0].id
+        c_node = store.nodes(session_id=sessions["c"], limit=1)[0].id
+    assert not conn.same(b_node, c_node)
+    assert all(len(s) == 1 for s in seen.values()), seen  # no object mixes the two frames
+    assert _twins(objects)  # the same things, twice, where the two unrelated frames nearly coincide
+
+
+def test_connectivity_follows_the_links_as_they_are_stored(tmp_path):
+    from client.frames import Calibration, PinholeCamera
+    from storage import LinkType
+    from storage.records import KeyframeRecord
+
+    cam = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
+    with MapStore(tmp_path / "map.db") as store:
+        sid = store.begin_session("r", Calibration(cam))
+        empty = dict(keypoints=np.zeros((0, 2), np.float32), descriptors=np.zeros((0, 32), np.uint8),
+                     points=np.zeros((0, 3), np.float32))
+        ids = [store.add_keyframe(KeyframeRecord(sid, float(i), np.eye(4), **empty)) for i in range(5)]
+        conn = MapConnectivity()
+        store.add_link(ids[0], ids[1], LinkType.NEIGHBOR, np.eye(4), np.eye(6))
+        store.add_link(ids[3], ids[4], LinkType.NEIGHBOR, np.eye(4), np.eye(6))
+        assert conn.refresh(store) == 2
+        assert conn.same(ids[0], ids[1]) and conn.same(ids[3], ids[4]) and not conn.same(ids[1], ids[3])
+        assert not conn.same(ids[2], ids[0]) and conn.same(ids[2], ids[2])  # a node without links: alone
+        store.add_link(ids[4], ids[1], LinkType.GLOBAL_CLOSURE, np.eye(4), np.eye(6))
+        assert conn.refresh(store) == 1  # only the new row is read
+        assert conn.same(ids[0], ids[3]) and not conn.same(ids[0], ids[2])
+        assert conn.refresh(store) == 0
