@@ -117,6 +117,14 @@ def query_layer(path: Path, clients: int, per_client: int, labels: list[str]) ->
             index.nearest(l, q)
             lat[i] = time.perf_counter() - t
         print(f"  1 thread:  nearest p50 {pct(lat, 50):.3f} ms, p99 {pct(lat, 99):.3f} ms ({len(lat)} queries)")
+        nodes = store.node_ids()
+        at = nodes[rng.integers(0, len(nodes), len(qs))]
+        for i, (q, l) in enumerate(zip(qs, lab)):  # a robot's query: only objects links join to its keyframe
+            t = time.perf_counter()
+            index.nearest(l, q, joined_to=int(at[i]))
+            lat[i] = time.perf_counter() - t
+        print(f"  1 thread:  nearest to a robot's keyframe (joined_to) p50 {pct(lat, 50):.3f} ms, "
+              f"p99 {pct(lat, 99):.3f} ms")
         lats: list[np.ndarray] = []
         barrier = threading.Barrier(clients + 1)
 

@@ -613,16 +613,23 @@ def semantics(service: ServiceDep):
 async def nearest_object(label: LabelQuery, objects: ObjectsDep, x: Coordinate = None, y: Coordinate = None,
                          z: Coordinate = None, robot: RobotQuery = None):
     """The object labelled `label` nearest to a point (x, y, z) or to a robot's current pose
-    (`robot`; exactly one of the two). 404 says why there is none (no such label, no objects,
-    unknown robot, robot without a pose)."""
+    (`robot`; exactly one of the two; then only among objects that links join to the robot's
+    keyframe, i.e. in its frame). 404 says why there is none (no such label, no objects,
+    unknown robot, robot without a pose, robot not yet localized in the map)."""
     point = objects.point(x, y, z)
-    with objects.errors():  # in the event loop: microseconds on the index (a robot's fallback pose reads the map)
+    with objects.errors():  # in the event loop: microseconds on the index
         if (robot is None) == (point is None):
             raise QueryError("give either x, y, z or robot (one of them)")
-        origin = point if point is not None else (await run_in_threadpool(
-            robot_location, objects.service.robots(), robot, objects.store)).position
-        n = objects.index.nearest(label, origin)
+        if point is not None:
+            n = objects.index.nearest(label, point)
+        else:  # a robot's fallback pose, and links newer than the index, read the map
+            n = await run_in_threadpool(_nearest_to_robot, objects, label, robot)
     return {"object": _object_json(n.object), "distance": n.distance, "node_id": n.node_id}
+
+
+def _nearest_to_robot(objects: ObjectContext, label: str, robot: str):
+    at = robot_location(objects.service.robots(), robot, objects.store)
+    return objects.index.nearest(label, at.position, joined_to=at.node_id)
 
 
 @read_routes.get("/objects", response_model=ObjectPage, responses=_errors(400))

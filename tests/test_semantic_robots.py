@@ -7,10 +7,12 @@ A's map, and the doors and chairs they see are A's objects, not copies. On a fre
 two walks have nothing in common, so their objects stay apart even where their unrelated
 frames put them at the same coordinates."""
 import numpy as np
+import pytest
 
 from service.builder import build_pipeline, build_semantics
 from service.config import load_config
 from service.semantics.connectivity import MapConnectivity
+from service.semantics.queries import NotFound, ObjectIndex, RobotLocation
 from storage import MapStore
 
 from conftest import LOOP_NOISY, synthetic
@@ -80,11 +82,43 @@ def test_objects_of_unjoined_frames_stay_apart(tmp_path):
         seen = _sessions_seen(store, objects)
         conn = MapConnectivity()
         conn.refresh(store)
-        b_node = store.nodes(session_id=sessions["b"], limit=1)[0].id
-        c_node = store.nodes(session_id=sessions["c"], limit=1)[0].id
-    assert not conn.same(b_node, c_node)
+        b_last = store.nodes(session_id=sessions["b"], limit=None)[-1]
+        c_last = store.nodes(session_id=sessions["c"], limit=None)[-1]
+        # the planner's "nearest door to robot C" answers from C's frame only, however near B's doors are
+        index = ObjectIndex(store)
+        anchor_session = {n.id: n.session_id for n in store.get_nodes({o.node_id for o in objects})}
+        for last, sid in ((b_last, sessions["b"]), (c_last, sessions["c"])):
+            for label in ("door", "chair"):
+                n = index.nearest(label, last.position, joined_to=last.id)
+                assert anchor_session[n.node_id] == sid
+                assert index.path(n.object.id, RobotLocation("r", tuple(last.position), last.id, "keyframe")).nodes
+        other = next(o for o in objects if anchor_session[o.node_id] == sessions["b"])
+        with pytest.raises(NotFound, match="another part of the map"):
+            index.path(other.id, RobotLocation("c", tuple(c_last.position), c_last.id, "keyframe"))
+        index.close()
+    assert not conn.same(b_last.id, c_last.id)
     assert all(len(s) == 1 for s in seen.values()), seen  # no object mixes the two frames
     assert _twins(objects)  # the same things, twice, where the two unrelated frames nearly coincide
+
+
+def test_a_robot_not_yet_localized_gets_no_object_from_another_frame(tmp_path):
+    """Robot A's map has doors; robot B's first keyframe (a new session, no link yet) asks for
+    the nearest door: 404 with the reason, not A's door at B's unrelated coordinates."""
+    ds = synthetic("loop", **LOOP_NOISY)
+    cfg = load_config(None, CONFIG)
+    with MapStore(tmp_path / "map.db") as store:
+        worker = build_semantics(store, cfg)
+        _walk(store, worker, [("a", 0)], ds, cfg)
+        worker[0].close()
+        b = build_pipeline(store, "b", ds.calibration, load_config(None, {"loop": {"enabled": False}}))
+        node = b.process(ds.frame(3)).node_id
+        b.close()
+        index = ObjectIndex(store)
+        at = store.get_node(node).position
+        with pytest.raises(NotFound, match="not localized"):
+            index.nearest("door", at, joined_to=node)
+        assert index.nearest("door", at).object.label == "door"  # by point: the map frame, as asked
+        index.close()
 
 
 def test_connectivity_follows_the_links_as_they_are_stored(tmp_path):

@@ -42,6 +42,11 @@ class MapConnectivity:
         ra, rb = self.find(a), self.find(b)
         if ra != rb:
             self._parent[max(ra, rb)] = min(ra, rb)  # the older node's root stays: deterministic
+            self._parent.setdefault(min(ra, rb), min(ra, rb))
+
+    def knows(self, node: int) -> bool:
+        """Whether a link read so far touches `node` (else it is alone, or newer than the last look)."""
+        return node in self._parent
 
     def same(self, a: int, b: int) -> bool:
         return self.find(a) == self.find(b)

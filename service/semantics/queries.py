@@ -21,6 +21,11 @@ now (the API calls it after its own writes, so a deleted object is gone at once)
 
 The graph for paths (node positions and `link_pairs()`) is cached the same way, built on the
 first path query after a change.
+
+Frames: positions are comparable only where links join the keyframes (a robot, session or
+segment not yet placed in the map has a frame of its own). The snapshot keeps each anchor's
+component (`connectivity.MapConnectivity`, read incrementally from the links); a query from a
+robot's keyframe (`nearest(..., joined_to=)`, `path`) answers only from objects joined to it.
 """
 from __future__ import annotations
 
@@ -35,6 +40,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from .connectivity import MapConnectivity
 
 log = logging.getLogger("mnemoslam.semantics.queries")
 
@@ -121,15 +128,17 @@ class _Snapshot:
     confidence: np.ndarray
     observations: np.ndarray
     node_id: np.ndarray
+    root: np.ndarray | None = None  # (N,) the anchor's component when the index was built (connectivity)
     by_label: dict[str, np.ndarray] = field(default_factory=dict)  # label -> rows (ascending ids)
     label_positions: dict[str, np.ndarray] = field(default_factory=dict)  # label -> (n, 3) contiguous positions
     label_blocks: dict[str, "_Blocks"] = field(default_factory=dict)  # labels with many objects: spatial blocks
+    label_roots: dict[str, tuple] = field(default_factory=dict)  # label -> (its rows' distinct roots, row -> which)
     version: object = None
     built_at: float = 0.0
     build_s: float = 0.0
 
     @classmethod
-    def from_arrays(cls, a: dict, version=None) -> "_Snapshot":
+    def from_arrays(cls, a: dict, version=None, root_of: Callable[[np.ndarray], np.ndarray] | None = None) -> "_Snapshot":
         t = time.perf_counter()
         ids = np.asarray(a["id"], np.int64).reshape(-1)
         n = len(ids)
@@ -140,6 +149,8 @@ class _Snapshot:
                    position=col("position", np.float64, (n, 3)), extent=col("extent", np.float64, (n, 3)),
                    confidence=col("confidence", np.float64), observations=col("observations", np.int64),
                    node_id=col("node_id", np.int64), version=version, built_at=time.monotonic())
+        if root_of is not None:
+            object.__setattr__(snap, "root", root_of(snap.node_id))
         if n:
             names, inverse = np.unique(labels.astype(str), return_inverse=True)
             rows = np.argsort(inverse, kind="stable")
@@ -150,6 +161,8 @@ class _Snapshot:
                 snap.label_positions[str(name)] = np.ascontiguousarray(snap.position[r])
                 if len(r) > 2 * _Blocks.SIZE:
                     snap.label_blocks[str(name)] = _Blocks.build(r, snap.position[r])
+                if snap.root is not None:
+                    snap.label_roots[str(name)] = np.unique(snap.root[r], return_inverse=True)
         object.__setattr__(snap, "build_s", time.perf_counter() - t)
         return snap
 
@@ -303,6 +316,9 @@ class ObjectIndex:
         self.min_rebuild_interval = min_rebuild_interval
         self._snap: _Snapshot | None = None
         self._graph: tuple[object, _Graph, float] | None = None  # (version it was built at, graph, when)
+        # which anchors share a frame with a robot's keyframe (None: a store without links_after)
+        self._links = MapConnectivity() if hasattr(store, "links_after") else None
+        self._links_lock = threading.Lock()
         self._build_lock = threading.Lock()
         self._state_lock = threading.Lock()
         self._last_check = 0.0
@@ -336,7 +352,7 @@ class ObjectIndex:
                 arrays = self.store.object_arrays()
             except Exception as e:  # the store is closed
                 raise Unavailable(f"cannot read the map's objects: {e}") from e
-        self._snap = _Snapshot.from_arrays(arrays, v)
+        self._snap = _Snapshot.from_arrays(arrays, v, self._roots if self._links is not None else None)
         with self._state_lock:
             self._seen_version = v
             self.rebuilds += 1
@@ -373,6 +389,30 @@ class ObjectIndex:
         threading.Thread(target=self._background_refresh, name="object-index", daemon=True).start()
         return snap
 
+    # -- frames ---------------------------------------------------------------------------
+    def _roots(self, nodes: np.ndarray) -> np.ndarray:
+        """The current component of each node (after reading the links stored since the last look)."""
+        with self._links_lock:
+            self._links.refresh(self.store)
+            u, inv = np.unique(nodes, return_inverse=True)
+            return np.array([self._links.find(int(n)) for n in u], np.int64)[inv].reshape(-1)
+
+    def _joined(self, snap: _Snapshot, rows: np.ndarray, node_id: int | None,
+                label: str | None = None) -> np.ndarray | None:
+        """Mask of `rows` (all of `label`'s when given) whose anchors a chain of links joins to
+        keyframe `node_id` (positions in one frame), or None when every row qualifies (no node,
+        or no links to tell)."""
+        if node_id is None or snap.root is None:
+            return None
+        u, inv = snap.label_roots[label] if label is not None else np.unique(snap.root[rows], return_inverse=True)
+        with self._links_lock:
+            if not self._links.knows(node_id):  # a keyframe newer than the last look
+                self._links.refresh(self.store)
+            root = self._links.find(int(node_id))
+            now = np.array([self._links.find(int(r)) for r in u], np.int64)  # components only merge: re-find
+        same = now == root
+        return None if same.all() else same[inv].reshape(-1)
+
     def close(self) -> None:
         close = getattr(self._version, "close", None)
         if close is not None:
@@ -394,8 +434,10 @@ class ObjectIndex:
             raise NotFound(f"no object {object_id}")
         return snap.view(row)
 
-    def nearest(self, label: str, point) -> Nearest:
-        """The object labelled `label` nearest to `point` (ties: the lowest id)."""
+    def nearest(self, label: str, point, joined_to: int | None = None) -> Nearest:
+        """The object labelled `label` nearest to `point` (ties: the lowest id); with
+        `joined_to` (a robot's keyframe), only among objects whose anchors links join to that
+        keyframe: a robot not yet placed in the map is in a frame of its own."""
         p = _finite_point(point)
         snap = self.snapshot()
         rows = snap.by_label.get(label)
@@ -404,12 +446,18 @@ class ObjectIndex:
                 raise NotFound("the map has no objects")
             known = ", ".join(k for k, _ in self.labels()[:10])
             raise NotFound(f"no object labelled {label!r} in the map (labels: {known})")
+        joined = self._joined(snap, rows, joined_to, label)
+        if joined is not None and not joined.any():
+            raise NotFound(f"no object labelled {label!r} in the robot's part of the map: no link joins its "
+                           f"keyframe {joined_to} to the {len(rows)} such object(s) yet (it is not localized in the map)")
         blocks = snap.label_blocks.get(label)
-        if blocks is not None:
+        if blocks is not None and joined is None:
             row, best = blocks.nearest(p)
         else:
             d = snap.label_positions[label] - p
             d2 = np.einsum("ij,ij->i", d, d)
+            if joined is not None:
+                d2[~joined] = np.inf
             i = int(np.argmin(d2))
             row, best = int(rows[i]), float(d2[i])
         return Nearest(snap.view(row), float(math.sqrt(best)), int(snap.node_id[row]))
@@ -484,6 +532,12 @@ class ObjectIndex:
         if not len(g.ids):
             raise NotFound("the map has no nodes")
         start_row = self._start_row(g, start)
+        snap = self.snapshot()
+        row = snap.row_of(obj.id)
+        joined = None if row is None else self._joined(snap, np.array([row]), int(g.ids[start_row]))
+        if joined is not None and not joined[0]:
+            raise NotFound(f"object {obj.id} is in another part of the map: no link joins the robot's node "
+                           f"{int(g.ids[start_row])} to its keyframe {obj.node_id} yet")
         dist, prev = g.distances_from(start_row)
         reach = np.flatnonzero(np.isfinite(dist))
         d = g.position[reach] - np.asarray(obj.position)
