@@ -10,6 +10,7 @@ import time
 
 import cv2
 import numpy as np
+import pytest
 import requests
 
 from client.datasets import open_dataset
@@ -241,4 +242,88 @@ def test_feed_sends_what_changed(tmp_path):
         assert feed.next()["sessions"] == []  # nothing changed in it
     finally:
         index.close()
+        store.close()
+
+
+def _extent_x(page, canvas: str) -> tuple[int, int]:
+    """Leftmost and rightmost pixel columns of the first session's colour on a canvas."""
+    box = page.locator(f"#{canvas}").bounding_box()
+    png = page.screenshot(clip=box)
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    cols = np.flatnonzero(np.all(np.abs(image.astype(int) - SESSION_BGR) <= 12, axis=2).any(axis=0))
+    assert len(cols), f"no trajectory on the {canvas} canvas"
+    return int(cols[0]), int(cols[-1])
+
+
+def test_viewer_pans_and_zooms_in_chromium(tmp_path):
+    """The top-down view: the wheel zooms about the cursor, a drag pans, a double-click fits
+    the map again; the 3D view: shift-drag pans its target, a double-click resets it. Checked
+    on the view state the page exposes and on the drawn trajectory (x = 0..9 m)."""
+    chromium = require_chromium()
+    from playwright.sync_api import sync_playwright
+    from test_api_objects import make_map
+
+    store, sid, ids, _ = make_map(tmp_path / "map.db")
+    service = _Service(store, [])
+    service.config = load_config()
+    server = ApiThread(create_app(service)).start()
+    view = lambda page, name: json.loads(page.get_attribute(f"#{name}", "data-view"))  # noqa: E731
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(chromium), args=CHROMIUM_ARGS, headless=True)
+            try:
+                page = browser.new_page(viewport={"width": 1280, "height": 860})
+                page.goto(server.url + "/viewer")
+                page.wait_for_function("+document.getElementById('traj-count').dataset.count >= 2", timeout=20_000)
+                page.wait_for_timeout(300)
+                fitted = view(page, "top")
+                assert fitted["fitted"] is True
+                left, right = _extent_x(page, "top")
+                box = page.locator("#top").bounding_box()
+                centre = (box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+                # zoom out about the canvas centre: the same metres now span fewer pixels
+                page.mouse.move(*centre)
+                page.mouse.wheel(0, 500)
+                page.wait_for_timeout(300)
+                zoomed = view(page, "top")
+                assert zoomed["fitted"] is False and zoomed["k"] == pytest.approx(fitted["k"] * np.exp(-0.5), rel=1e-6)
+                assert zoomed["cx"] == pytest.approx(fitted["cx"], abs=1e-6)  # the cursor's point stays
+                l2, r2 = _extent_x(page, "top")
+                assert (r2 - l2) / (right - left) == pytest.approx(np.exp(-0.5), abs=0.05)
+                # drag 120 px to the right: the map moves with the pointer
+                page.mouse.move(*centre)
+                page.mouse.down()
+                page.mouse.move(centre[0] + 60, centre[1], steps=3)
+                page.mouse.move(centre[0] + 120, centre[1], steps=3)
+                page.mouse.up()
+                page.wait_for_timeout(300)
+                panned = view(page, "top")
+                assert panned["cx"] == pytest.approx(zoomed["cx"] - 120 / zoomed["k"], rel=1e-3, abs=1e-3)
+                l3, r3 = _extent_x(page, "top")
+                assert abs((l3 - l2) - 120) <= 3 and abs((r3 - r2) - 120) <= 3
+                # a double-click fits the map again
+                page.mouse.dblclick(*centre)
+                page.wait_for_timeout(300)
+                assert view(page, "top") == fitted and _extent_x(page, "top") == (left, right)
+                # 3D: shift-drag moves the orbit's target, a double-click resets the view
+                before = view(page, "orbit")
+                obox = page.locator("#orbit").bounding_box()
+                ocentre = (obox["x"] + obox["width"] / 2, obox["y"] + obox["height"] / 2)
+                page.keyboard.down("Shift")
+                page.mouse.move(*ocentre)
+                page.mouse.down()
+                page.mouse.move(ocentre[0] + 80, ocentre[1] + 40, steps=4)
+                page.mouse.up()
+                page.keyboard.up("Shift")
+                page.wait_for_timeout(300)
+                moved = view(page, "orbit")
+                assert moved["yaw"] == before["yaw"] and moved["pitch"] == before["pitch"]  # panned, not orbited
+                assert np.linalg.norm(np.subtract(moved["target"], before["target"])) > 0.1
+                page.mouse.dblclick(*ocentre)
+                page.wait_for_timeout(300)
+                assert view(page, "orbit") == before
+            finally:
+                browser.close()
+    finally:
+        server.stop()
         store.close()

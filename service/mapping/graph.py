@@ -84,7 +84,8 @@ def _as_information(m, what: str) -> np.ndarray:
     return a
 
 
-def _pose3(m: np.ndarray) -> gtsam.Pose3:
+def to_pose3(m: np.ndarray) -> gtsam.Pose3:
+    """A 4×4 rigid transform as a GTSAM Pose3 (the graph's and local BA's)."""
     # re-orthonormalise: GTSAM's Rot3 from a slightly non-orthogonal matrix is not a rotation
     u, _, vt = np.linalg.svd(m[:3, :3])
     r = u @ vt
@@ -226,7 +227,7 @@ class PoseGraph:
                 if transform is not None or information is not None:
                     raise ValueError("transform/information need odom_from")
                 sigmas = FIRST_PRIOR_SIGMAS if not self._nodes else SEGMENT_PRIOR_SIGMAS
-                graph.add(gtsam.PriorFactorPose3(nid, _pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+                graph.add(gtsam.PriorFactorPose3(nid, to_pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
                 new_prior = (pose.copy(), sigmas, self._n_factors)
                 new_link = None
                 initial = pose
@@ -237,10 +238,10 @@ class PoseGraph:
                 t = invert(self._raw[src]) @ pose if transform is None else _as_pose(transform, "transform")
                 info = (np.diag(1.0 / DEFAULT_ODOMETRY_SIGMAS**2) if information is None
                         else _as_information(information, "information"))
-                graph.add(gtsam.BetweenFactorPose3(src, nid, _pose3(t), gtsam.noiseModel.Gaussian.Information(info)))
+                graph.add(gtsam.BetweenFactorPose3(src, nid, to_pose3(t), gtsam.noiseModel.Gaussian.Information(info)))
                 new_link, new_prior = _Link(src, nid, t.copy(), info, False, self._n_factors), None
                 initial = self._pose_locked(src) @ t
-            values.insert(nid, _pose3(initial))
+            values.insert(nid, to_pose3(initial))
             self._isam.update(graph, values)
             self._n_factors += 1
             if new_link is not None:
@@ -289,21 +290,21 @@ class PoseGraph:
             graph = gtsam.NonlinearFactorGraph()
             values = gtsam.Values()
             for k, (nid, pose) in enumerate(poses.items()):
-                values.insert(nid, _pose3(pose))
+                values.insert(nid, to_pose3(pose))
                 link = incoming.get(nid)
                 if link is None:
                     sigmas = FIRST_PRIOR_SIGMAS if k == 0 else SEGMENT_PRIOR_SIGMAS
-                    graph.add(gtsam.PriorFactorPose3(nid, _pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+                    graph.add(gtsam.PriorFactorPose3(nid, to_pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
                     self._priors[nid] = (pose.copy(), sigmas, self._n_factors)
                 else:
                     a, b, t, info = link
-                    graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), gtsam.noiseModel.Gaussian.Information(info)))
+                    graph.add(gtsam.BetweenFactorPose3(a, b, to_pose3(t), gtsam.noiseModel.Gaussian.Information(info)))
                     self._links.append(_Link(a, b, t.copy(), info, False, self._n_factors))
                 self._n_factors += 1
                 self._nodes.append(nid)
                 self._raw[nid] = pose.copy()
             for a, b, t, info in loops:
-                graph.add(gtsam.BetweenFactorPose3(a, b, _pose3(t), self._loop_noise(info, self.robust)))
+                graph.add(gtsam.BetweenFactorPose3(a, b, to_pose3(t), self._loop_noise(info, self.robust)))
                 self._links.append(_Link(a, b, t.copy(), info, True, self._n_factors))
                 self._n_factors += 1
             if not poses:
@@ -333,8 +334,8 @@ class PoseGraph:
             values = gtsam.Values()
             noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
             for nid, pose in poses.items():
-                values.insert(nid, _pose3(pose))
-                graph.add(gtsam.PriorFactorPose3(nid, _pose3(pose), noise))
+                values.insert(nid, to_pose3(pose))
+                graph.add(gtsam.PriorFactorPose3(nid, to_pose3(pose), noise))
                 self._priors[nid] = (pose.copy(), sig, self._n_factors)
                 self._n_factors += 1
                 self._nodes.append(nid)
@@ -475,7 +476,7 @@ class PoseGraph:
         new ones last. Returns the new links. The estimate cache is left to the caller."""
         graph = gtsam.NonlinearFactorGraph()
         for l, noise in new:
-            graph.add(gtsam.BetweenFactorPose3(l.from_id, l.to_id, _pose3(l.transform), noise))
+            graph.add(gtsam.BetweenFactorPose3(l.from_id, l.to_id, to_pose3(l.transform), noise))
         self._isam.update(graph, gtsam.Values(), [l.factor_index for l in gone])
         added = [dataclasses.replace(l, factor_index=self._n_factors + k) for k, (l, _) in enumerate(new)]
         self._n_factors += len(added)

@@ -38,8 +38,8 @@ import numpy as np
 
 from client.frames import PinholeCamera
 
-from .graph import _pose3
-from .vocabulary import _as_u64, hamming_matrix
+from .graph import to_pose3
+from .vocabulary import as_u64, hamming_matrix
 
 VIRTUAL_BASELINE = 0.1  # m, of the virtual stereo measurement (any value: σ_d scales with it)
 HUBER_2 = float(np.sqrt(5.991))  # χ² 95 %, 2 dof (pixels)
@@ -196,7 +196,7 @@ class LocalBundleAdjustment:
         cand = np.nonzero(keep)[0]
         if len(cand) < 2:
             return 0
-        dist = hamming_matrix(_as_u64(desc[free]), _as_u64(lm_desc[cand]))
+        dist = hamming_matrix(as_u64(desc[free]), as_u64(lm_desc[cand]))
         px = np.linalg.norm(uv[free][:, None, :] - proj[cand][None], axis=2)
         dist = np.where(px <= self.search_radius, dist, 256.0)
         best = np.argmin(dist, axis=1)
@@ -269,7 +269,7 @@ class LocalBundleAdjustment:
         t1 = time.perf_counter()
         values = gtsam.Values()
         for i in range(n_kf):
-            values.insert(_X(i), _pose3(poses[i]))
+            values.insert(_X(i), to_pose3(poses[i]))
         for j in lm_ids.tolist():
             values.insert(_L(j), X0[j])
         result_values, scale, e0, e1, t_build = self._optimise(values, n_kf, sel, kf, inv, uv, pc, spx, sigma_d,

@@ -52,7 +52,8 @@ import numpy as np
 _NONE_DIST = 257  # larger than any 256-bit Hamming distance
 
 
-def _as_u64(desc: np.ndarray) -> np.ndarray:
+def as_u64(desc: np.ndarray) -> np.ndarray:
+    """N×32 uint8 ORB descriptors viewed as N×4 uint64 (for `hamming_matrix`)."""
     d = np.ascontiguousarray(desc, dtype=np.uint8)
     if d.ndim != 2 or d.shape[1] != 32:
         raise ValueError(f"descriptors must be N×32 uint8, got {d.shape}")
@@ -400,7 +401,7 @@ class Vocabulary:
     def query(self, descriptors: np.ndarray) -> np.ndarray:
         """Word of each descriptor without inserting anything: (N,) int64, -1 when the
         descriptor matches no word (it would make a new one)."""
-        q64 = _as_u64(descriptors)
+        q64 = as_u64(descriptors)
         w1, d1, d2 = self._search(q64)
         return np.where(self._accept(d1, d2), w1, -1)
 
@@ -413,7 +414,7 @@ class Vocabulary:
         fails, the node and its new words are taken back out and the error propagates, so
         the vocabulary never holds words the map does not."""
         with self.lock:
-            q64 = _as_u64(descriptors)
+            q64 = as_u64(descriptors)
             first_new = self._next_id
             w1, d1, d2 = self._search(q64)
             words = np.where(self._accept(d1, d2), w1, -1)
@@ -685,11 +686,11 @@ class Vocabulary:
         if isinstance(descriptors, tuple):
             ids, desc = descriptors
             ids = np.asarray(ids, np.int64).ravel()
-            d64 = _as_u64(desc)
+            d64 = as_u64(desc)
             if len(ids) != len(d64):
                 raise ValueError(f"{len(d64)} descriptors for {len(ids)} word ids")
         else:
-            ids, d64 = uw, _as_u64(descriptors)
+            ids, d64 = uw, as_u64(descriptors)
             if len(d64) != len(uw):
                 raise ValueError(f"{len(d64)} descriptors for the node's {len(uw)} distinct word ids "
                                  "(pass the (ids, descriptors) pair of MapStore.load_words instead)")
@@ -752,7 +753,7 @@ class Vocabulary:
         v = cls(**kw)
         v._ensure(next_id)
         v._next_id = next_id
-        d64 = _as_u64(st["descriptors"])
+        d64 = as_u64(st["descriptors"])
         dormant = np.asarray(st.get("dormant", np.zeros(len(ids), bool)), bool)
         pw = np.asarray(st.get("post_word", np.zeros(0)), np.int64)
         if dormant.any():  # a word a node in RAM has is searchable
