@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import selectors
 import signal
 import socket
@@ -69,6 +70,9 @@ def test_run_prints_no_progress_when_stderr_is_not_a_terminal(tmp_path, capsys):
     assert "no loop links" in out and "no true revisits" in out and "nan" not in out and "0/0" not in out
     # the graph's links against ground truth, per type, printed and written (links.csv, links.json)
     assert "links        odometry" in out and " beyond 5 cm or 3 deg" in out
+    # the ATE aligned with scale too: exact synthetic depth, so the sizes agree
+    sim3 = re.search(r"ATE RMSE ([0-9.]+) cm aligned with scale \(Sim\(3\)\): the ground truth is ([0-9.]+)x", out)
+    assert sim3 and abs(float(sim3.group(2)) - 1.0) < 0.01, out
     rows = (tmp_path / "o" / "links.csv").read_text().splitlines()
     assert rows[0] == "from_id,to_id,type,error_cm,error_deg" and any(",odometry," in r for r in rows[1:])
     assert (tmp_path / "o" / "links.json").exists()
