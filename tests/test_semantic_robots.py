@@ -82,6 +82,7 @@ def test_objects_of_unjoined_frames_stay_apart(tmp_path):
         seen = _sessions_seen(store, objects)
         conn = MapConnectivity()
         conn.refresh(store)
+        same = lambda a, b: conn.find(a) == conn.find(b)  # noqa: E731
         b_last = store.nodes(session_id=sessions["b"], limit=None)[-1]
         c_last = store.nodes(session_id=sessions["c"], limit=None)[-1]
         # the planner's "nearest door to robot C" answers from C's frame only, however near B's doors are
@@ -96,7 +97,7 @@ def test_objects_of_unjoined_frames_stay_apart(tmp_path):
         with pytest.raises(NotFound, match="another part of the map"):
             index.path(other.id, RobotLocation("c", tuple(c_last.position), c_last.id, "keyframe"))
         index.close()
-    assert not conn.same(b_last.id, c_last.id)
+    assert not same(b_last.id, c_last.id)
     assert all(len(s) == 1 for s in seen.values()), seen  # no object mixes the two frames
     assert _twins(objects)  # the same things, twice, where the two unrelated frames nearly coincide
 
@@ -133,12 +134,15 @@ def test_connectivity_follows_the_links_as_they_are_stored(tmp_path):
                      points=np.zeros((0, 3), np.float32))
         ids = [store.add_keyframe(KeyframeRecord(sid, float(i), np.eye(4), **empty)) for i in range(5)]
         conn = MapConnectivity()
+        same = lambda a, b: conn.find(a) == conn.find(b)  # noqa: E731
         store.add_link(ids[0], ids[1], LinkType.NEIGHBOR, np.eye(4), np.eye(6))
         store.add_link(ids[3], ids[4], LinkType.NEIGHBOR, np.eye(4), np.eye(6))
         assert conn.refresh(store) == 2
-        assert conn.same(ids[0], ids[1]) and conn.same(ids[3], ids[4]) and not conn.same(ids[1], ids[3])
-        assert not conn.same(ids[2], ids[0]) and conn.same(ids[2], ids[2])  # a node without links: alone
+        assert same(ids[0], ids[1]) and same(ids[3], ids[4]) and not same(ids[1], ids[3])
+        assert not same(ids[2], ids[0]) and same(ids[2], ids[2])  # a node without links: alone
         store.add_link(ids[4], ids[1], LinkType.GLOBAL_CLOSURE, np.eye(4), np.eye(6))
         assert conn.refresh(store) == 1  # only the new row is read
-        assert conn.same(ids[0], ids[3]) and not conn.same(ids[0], ids[2])
+        assert same(ids[0], ids[3]) and not same(ids[0], ids[2])
+        r = conn.roots([ids[4], ids[2], ids[0], ids[4]])
+        assert r[0] == r[2] == r[3] == conn.find(ids[0]) and r[1] == ids[2]
         assert conn.refresh(store) == 0

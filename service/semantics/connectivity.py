@@ -6,7 +6,7 @@ same robot tomorrow) or a new segment after tracking was lost starts in a frame 
 and only a link to the old nodes places it in theirs. Before that, two robots that both
 started "at the origin" have objects at the same coordinates that have nothing to do with
 each other. The semantic fusion therefore associates a keyframe's segments only with objects
-anchored in the keyframe's component (`MapConnectivity.same`).
+anchored in the keyframe's component (`MapConnectivity.roots`).
 
 Components are kept by union–find over node ids, fed incrementally from the links table
 (`MapStore.links_after`: only the rows written since the last look). Links are only ever
@@ -14,6 +14,9 @@ added in effect: a link deleted and rewritten (an interrupted map update redone,
 relink) joins the same nodes again, so components never split here.
 """
 from __future__ import annotations
+
+import numpy as np
+
 
 class MapConnectivity:
     """Union–find over the map's node ids, joined by every link stored so far."""
@@ -48,6 +51,8 @@ class MapConnectivity:
         """Whether a link read so far touches `node` (else it is alone, or newer than the last look)."""
         return node in self._parent
 
-    def same(self, a: int, b: int) -> bool:
-        return self.find(a) == self.find(b)
+    def roots(self, nodes) -> np.ndarray:
+        """The component (root id) of each node, int64, in order (found once per distinct node)."""
+        u, inv = np.unique(np.asarray(nodes, np.int64), return_inverse=True)
+        return np.array([self.find(int(n)) for n in u], np.int64)[inv].reshape(-1)
 

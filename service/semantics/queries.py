@@ -394,8 +394,7 @@ class ObjectIndex:
         """The current component of each node (after reading the links stored since the last look)."""
         with self._links_lock:
             self._links.refresh(self.store)
-            u, inv = np.unique(nodes, return_inverse=True)
-            return np.array([self._links.find(int(n)) for n in u], np.int64)[inv].reshape(-1)
+            return self._links.roots(nodes)
 
     def _joined(self, snap: _Snapshot, rows: np.ndarray, node_id: int | None,
                 label: str | None = None) -> np.ndarray | None:
@@ -409,7 +408,7 @@ class ObjectIndex:
             if not self._links.knows(node_id):  # a keyframe newer than the last look
                 self._links.refresh(self.store)
             root = self._links.find(int(node_id))
-            now = np.array([self._links.find(int(r)) for r in u], np.int64)  # components only merge: re-find
+            now = self._links.roots(u)  # components only merge: re-find the snapshot's roots
         same = now == root
         return None if same.all() else same[inv].reshape(-1)
 

@@ -6,14 +6,14 @@ the camera's labels or None, camera) to `SemanticWorker.submit`, which only enqu
 segments it when the source is a model, fuses it (`objects.ObjectFusion`) with the anchors'
 current poses read from the map database, and writes the confirmed objects that changed
 (`MapStore.save_objects`). Errors are logged and counted, never raised into tracking.
+Without `background` (offline runs) `submit` does the work at once, so runs are
+reproducible.
 
 One worker serves one map: the service hands every robot's keyframes to the same worker, so
 the robots' objects are one set (a door two robots see is one door). A keyframe is compared
 only with objects anchored in its own connected part of the map
 (`connectivity.MapConnectivity`): robots, sessions and segments not yet joined by a link have
-unrelated frames.
-Without `background` (offline runs) `submit` does the work at once, so runs are
-reproducible."""
+unrelated frames."""
 from __future__ import annotations
 
 import collections
@@ -139,7 +139,8 @@ class SemanticWorker:
                 return
             with self._lock:
                 self.connectivity.refresh(self.store)  # the links stored since the last keyframe
-                anchors = [a for a in self.fusion.anchors() if self.connectivity.same(a, kf.node_id)]
+                anchors = np.array(sorted(self.fusion.anchors()), np.int64)
+                anchors = anchors[self.connectivity.roots(anchors) == self.connectivity.find(kf.node_id)].tolist()
                 poses = {n.id: n.pose for n in self.store.get_nodes(anchors)} if anchors else {}
                 self.fusion.fuse(kf.node_id, kf.pose, labels, kf.depth, kf.camera, poses)
             self.flush()
