@@ -688,14 +688,25 @@ def label_node(node_id: DbId, store: StoreDep, body: Annotated[LabelIn, Body()])
 
 @write_routes.delete("/objects/{object_id}", response_model=DeletedOut, responses=_errors(404, 409))
 def delete_object(object_id: DbId, objects: ObjectsDep):
-    """Drop a wrong object from the map. Refused (409) while the service fuses objects
-    (semantics on): its semantic workers hold the objects they track and write them again."""
-    if objects.semantics.get("enabled"):
-        raise HTTPException(409, "objects are being fused live (semantics on): the semantic worker would write this "
-                                 "object again; delete it with semantics off (semantics.enabled: false)",
-                            headers=objects.errors().headers)
+    """Drop a wrong or stale object from the map (a chair moved away). While the service fuses
+    objects (semantics on) the deletion goes through its semantic worker, which holds the
+    objects it tracks; a thing still in view then comes back as a new object. Refused (409)
+    by a service that fuses objects but cannot delete through its worker."""
+    live = objects.semantics.get("enabled")
+    delete = getattr(objects.service, "delete_object", None)
+    if live and delete is None:
+        raise HTTPException(409, "objects are being fused live (semantics on) and this service cannot delete through "
+                                 "its semantic worker, which would write the object again; delete it with semantics "
+                                 "off (semantics.enabled: false)", headers=objects.errors().headers)
     with objects.errors():
-        return {"deleted": objects.index.delete(object_id)}
+        if not live:
+            return {"deleted": objects.index.delete(object_id)}
+        objects.index.get(object_id)  # NotFound when it is not in the map
+        n = delete(int(object_id))
+        objects.index.refresh()
+        if not n:
+            raise NotFound(f"no object {object_id}")
+        return {"deleted": int(n)}
 
 
 # -- the live viewer (service/viewer.py) -------------------------------------------------------------

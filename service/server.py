@@ -360,6 +360,14 @@ class SlamService:
             "config": to_dict(self.config),
         }
 
+    def delete_object(self, object_id: int) -> int:
+        """Delete a stored object while semantics run: through the map's semantic worker, which
+        would otherwise write the object it holds again. Returns the rows deleted."""
+        worker = self.semantics[0]
+        if worker is None:
+            return self.store.delete_objects([int(object_id)])
+        return worker.delete(object_id)
+
     def semantics_status(self) -> dict:
         """{"enabled", "source", "model", "reason" (why off, or None), "classes"} of the
         semantic map, plus "worker": the map's semantic worker's counts (keyframes processed,

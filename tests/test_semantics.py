@@ -255,18 +255,22 @@ def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
         assert worker.stats()["processed"] == 0 and store.count_objects() == 0
 
 
-def test_service_fuses_streamed_labels_into_stored_objects(tmp_path):
+def test_service_fuses_streamed_labels_into_stored_objects(tmp_path, monkeypatch):
     """Through the service: frames streamed with labels (`stream ... --labels`) become objects
     in the map database, fused on the semantic worker's thread; the status says on."""
     from client.streamer import stream_dataset
     from client.transport import ZenohSettings
+    from client.planner import PlannerClient
+    from service.api import TOKEN_ENV, ApiThread, create_app
     from service.server import SlamService
+    from tests.test_api_objects import _status as _api_status
     from tests.test_streamer import endpoint, free_port
 
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
     port = free_port()
     config = load_config(overrides={
         "zenoh": {"listen": [endpoint(port)]}, "storage": {"path": str(tmp_path / "map.db")},
-        "loop": {"process": False}, "service": {"queue_size": 1000},
+        "loop": {"process": False}, "service": {"queue_size": 1000}, "api": {"token": "t"},
         "semantics": {"enabled": True, "source": "camera", "min_observations": 2}})
     svc = SlamService(config).start()
     try:
@@ -283,8 +287,24 @@ def test_service_fuses_streamed_labels_into_stored_objects(tmp_path):
             time.sleep(0.1)
         assert processed() == 30
         assert svc.semantics_status()["workers"]["r1"]["errors"] == 0
+        # an operator deletes an object while semantics run: through the worker, which then no
+        # longer holds it (stopping writes the objects again: it stays deleted)
+        worker = svc.semantics[0]
+        end = time.monotonic() + 60
+        done = lambda st: st["processed"] + st["skipped"] + st["dropped"] + st["errors"]  # noqa: E731
+        while time.monotonic() < end and (done(worker.stats()) < svc.robots()[0]["keyframes"]
+                                          or not svc.store.count_objects()):
+            time.sleep(0.1)
+        chair = next(o for o in svc.store.objects() if o.label == "chair")
+        held = worker.stats()["objects"]
+        with ApiThread(create_app(svc)) as url:
+            assert PlannerClient(url, token="t").delete_object(chair.id) == {"deleted": 1}
+            assert PlannerClient(url).get("/semantics")["worker"]["objects"] == held - 1
+            status, _ = _api_status(PlannerClient(url, token="t").delete_object, chair.id)
+            assert status == 404
     finally:
         svc.stop()  # ends the session: the worker finishes its queue and writes the objects
     with MapStore(tmp_path / "map.db", create=False) as store:
         labels = {o.label for o in store.objects()}
+        assert store.get_object(chair.id) is None
     assert {"door", "chair"} <= labels, labels  # synthetic:loop's first second shows door_2 and the office chairs

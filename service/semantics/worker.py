@@ -99,6 +99,14 @@ class SemanticWorker:
             self._thread = None
         self.flush()
 
+    def delete(self, object_id: int) -> int:
+        """Drop a stored object from the fusion and the map at once (an operator's correction:
+        a chair moved away, a wrong label). A thing still in view comes back as a new object.
+        Returns the rows deleted (0: no such object)."""
+        with self._lock:
+            self.fusion.forget(int(object_id))
+            return self.store.delete_objects([int(object_id)])
+
     def stats(self, robot: str | None = None) -> dict:
         """Keyframes processed, dropped, failed and skipped (of `robot`'s keyframes when given,
         else of all), and the map's objects."""
