@@ -15,7 +15,9 @@ update carries only what changed since the previous one:
                            `Limits.max_links`); false: "points" are new nodes to append, no links,
                    "points": [x, y, z, x, y, z, ...] (m, map frame, by node id),
                    "links": [[type, x1, y1, z1, x2, y2, z2], ...] (type: loop, proximity, ...),
-                   "memory": {"stm", "wm", "ltm", "words"} after the latest map update}],
+                   "memory": {"stm", "wm", "ltm", "words"} after the latest map update,
+                   "frame": the map id of the oldest session links join it to (its own until a
+                            link places it in another's frame; when it changed)}],
      "objects": {"total", "items": [{"id", "label", "confidence", "position", "extent",
                                      "observations"}], "labels": [[label, count], ...]}
                  (only when the object index changed; the first `Limits.max_objects` by id)}
@@ -85,6 +87,8 @@ class _Sent:
     live: bool | None = None
     memory_after: int = 0  # the map updates read so far (node id)
     memory: dict | None = None
+    first_id: int | None = None  # its first keyframe (merged or not): its frame's representative
+    frame: int | None = None  # the frame (map id) last sent
 
 
 def _xyz(rows: np.ndarray) -> list[float]:
@@ -149,19 +153,51 @@ class ViewerFeed:
         out = []
         sessions = self._shown(store, live, now)
         live_maps = {s.map_id for s in sessions if s.id in live}
+        frames = self._frames(store, sessions)
         for s in sessions:
             sent = self._sent.setdefault(s.id, _Sent())
             is_live = s.id in live
             entry = self._trajectory_update(store, s, sent, is_live, s.map_id in live_maps, now)
             memory = self._memory_update(store, s.id, sent, is_live)
-            if memory is not None or sent.live != is_live:
+            frame = frames.get(s.id)
+            if memory is not None or sent.live != is_live or (frame is not None and frame != sent.frame):
                 entry = entry or {}
                 if memory is not None:
                     entry["memory"] = memory
+                if frame is not None and frame != sent.frame:
+                    entry["frame"] = sent.frame = frame
             if entry is not None:
                 out.append({"id": s.id, "robot": s.robot, "map_id": s.map_id, "live": is_live, **entry})
             sent.live = is_live
         return out
+
+    def _frames(self, store, sessions) -> dict[int, int]:
+        """{session id: the map id of the oldest shown session that links join it to}: sessions
+        with the same frame share coordinates (service.semantics.connectivity)."""
+        if self.objects is None:
+            return {}
+        firsts = {}
+        for s in sessions:
+            sent = self._sent.setdefault(s.id, _Sent())
+            if sent.first_id is None:
+                first = store.nodes(session_id=s.id, limit=1, merged=None)
+                sent.first_id = first[0].id if first else None
+            if sent.first_id is not None:
+                firsts[s.id] = sent.first_id
+        if not firsts:
+            return {}
+        try:
+            roots = self.objects(store).components(list(firsts.values()))
+        except (Unavailable, QueryError) as e:
+            log.debug("viewer: frames not read: %s", e)
+            return {}
+        if roots is None:
+            return {}
+        map_of = {s.id: s.map_id for s in sessions}
+        oldest: dict[int, int] = {}
+        for sid, root in zip(firsts, roots.tolist()):
+            oldest[root] = min(oldest.get(root, map_of[sid]), map_of[sid])
+        return {sid: oldest[root] for sid, root in zip(firsts, roots.tolist())}
 
     def _trajectory_update(self, store, s, sent: _Sent, is_live: bool, map_is_live: bool, now: float) -> dict | None:
         due = now - sent.full_at >= self.limits.full_every

@@ -276,6 +276,9 @@ def test_viewer_pans_and_zooms_in_chromium(tmp_path):
                 page.goto(server.url + "/viewer")
                 page.wait_for_function("+document.getElementById('traj-count').dataset.count >= 2", timeout=20_000)
                 page.wait_for_timeout(300)
+                # the sessions table lists the session under its frame's map (its own here)
+                assert page.get_attribute(f'#sessions tr[data-session="{sid}"]', "data-map") == str(
+                    store.sessions()[0].map_id)
                 fitted = view(page, "top")
                 assert fitted["fitted"] is True
                 left, right = _extent_x(page, "top")
@@ -326,4 +329,33 @@ def test_viewer_pans_and_zooms_in_chromium(tmp_path):
                 browser.close()
     finally:
         server.stop()
+        store.close()
+
+
+def test_feed_tells_which_sessions_share_a_frame(tmp_path):
+    """Each session's "frame" is the map id of the oldest session links join it to: a second
+    robot's session has its own until a loop link places it in the first one's frame, then
+    that frame is sent once (the page lists the session under that map)."""
+    from client.frames import Calibration, PinholeCamera
+    from service.semantics.queries import ObjectIndex
+    from service.viewer import ViewerFeed
+    from storage.records import LinkType
+    from test_api_objects import make_map
+
+    store, sid, ids, _ = make_map(tmp_path / "map.db")
+    s2 = store.begin_session("r2", Calibration(PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)))
+    second = [_keyframe(store, s2, 20.0), _keyframe(store, s2, 21.0)]
+    store.add_link(second[0], second[1], LinkType.NEIGHBOR, np.eye(4))
+    maps = {s.id: s.map_id for s in store.sessions()}
+    index = ObjectIndex(store)
+    feed = ViewerFeed(_Service(store, []), objects=lambda s: index)
+    try:
+        first = {e["id"]: e for e in feed.next()["sessions"]}
+        assert first[sid]["frame"] == maps[sid] and first[s2]["frame"] == maps[s2] != maps[sid]
+        assert all("frame" not in e for e in feed.next()["sessions"])  # sent when it changes
+        store.add_link(ids[-1], second[1], LinkType.GLOBAL_CLOSURE, np.eye(4))  # r2 relocalizes on r1's map
+        update = {e["id"]: e for e in feed.next()["sessions"]}
+        assert update[s2]["frame"] == maps[sid] and "frame" not in update.get(sid, {})
+    finally:
+        index.close()
         store.close()

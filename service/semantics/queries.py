@@ -396,6 +396,12 @@ class ObjectIndex:
             self._links.refresh(self.store)
             return self._links.roots(nodes)
 
+    def components(self, nodes) -> np.ndarray | None:
+        """The connected component (a root node id) of each node, after reading the links
+        stored since the last look: nodes with the same one share a frame. None when the store
+        has no links view."""
+        return None if self._links is None else self._roots(np.asarray(nodes, np.int64))
+
     def _joined(self, snap: _Snapshot, rows: np.ndarray, node_id: int | None,
                 label: str | None = None) -> np.ndarray | None:
         """Mask of `rows` (all of `label`'s when given) whose anchors a chain of links joins to
