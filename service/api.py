@@ -101,6 +101,8 @@ class RobotStatus(Open):
     node_id: int | None = Field(None, description="its latest keyframe")
     keyframes_mapped: int
     map_backlog: int
+    map: int | None = Field(None, description="(GET /robots/{robot}) the map id of the oldest session that links "
+                            "join its latest keyframe to: its own session's until it relocalizes in an older map")
 
 
 class CalibrationOut(BaseModel):
@@ -527,10 +529,15 @@ def robots(service: ServiceDep):
 
 
 @read_routes.get("/robots/{robot}", response_model=RobotStatus, responses=_errors(404))
-def robot(robot: RobotId, service: ServiceDep):
+def robot(robot: RobotId, service: ServiceDep, request: Request):
+    """A robot's status, with `map`: the map id of the oldest session that links join its
+    latest keyframe to (its own session's until it relocalizes in an older map)."""
     for r in service.robots():
         if r["robot"] == robot:
-            return r
+            maps = None
+            if r.get("node_id") is not None and service.store is not None:
+                maps = request.app.state.objects.get(service.store).maps([r["node_id"]])
+            return {**r, "map": maps[0] if maps else None}
     raise HTTPException(404, f"unknown robot {robot!r}")
 
 

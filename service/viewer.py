@@ -172,8 +172,8 @@ class ViewerFeed:
         return out
 
     def _frames(self, store, sessions) -> dict[int, int]:
-        """{session id: the map id of the oldest shown session that links join it to}: sessions
-        with the same frame share coordinates (service.semantics.connectivity)."""
+        """{session id: the map id of the oldest session that links join it to}: sessions with
+        the same one share coordinates (ObjectIndex.maps, service.semantics.connectivity)."""
         if self.objects is None:
             return {}
         firsts = {}
@@ -187,17 +187,11 @@ class ViewerFeed:
         if not firsts:
             return {}
         try:
-            roots = self.objects(store).components(list(firsts.values()))
+            maps = self.objects(store).maps(list(firsts.values()))
         except (Unavailable, QueryError) as e:
             log.debug("viewer: frames not read: %s", e)
             return {}
-        if roots is None:
-            return {}
-        map_of = {s.id: s.map_id for s in sessions}
-        oldest: dict[int, int] = {}
-        for sid, root in zip(firsts, roots.tolist()):
-            oldest[root] = min(oldest.get(root, map_of[sid]), map_of[sid])
-        return {sid: oldest[root] for sid, root in zip(firsts, roots.tolist())}
+        return {} if maps is None else {sid: m for sid, m in zip(firsts, maps) if m is not None}
 
     def _trajectory_update(self, store, s, sent: _Sent, is_live: bool, map_is_live: bool, now: float) -> dict | None:
         due = now - sent.full_at >= self.limits.full_every

@@ -255,3 +255,29 @@ def test_openapi_documents_every_response(world):
                  "RobotStatus", "SessionOut", "StatsOut", "Health", "Config"):
         assert name in spec["components"]["schemas"], name
     assert spec["paths"]["/nodes/{node_id}/label"]["post"]["security"] == [{"HTTPBearer": []}]
+
+
+def test_robot_status_says_which_map_it_is_localized_in(tmp_path):
+    """GET /robots/{robot} `map`: the map id of the oldest session links join the robot's latest
+    keyframe to. A second robot has its own session's until a loop link places it in the first
+    map; then its nearest-door query answers from the first map's objects too."""
+    store, sid, ids, oids = make_map(tmp_path / "map.db")
+    cal = Calibration(PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480), None, 1000.0)
+    s2 = store.begin_session("r2", cal, {})
+    n2 = store.add_keyframe(KeyframeRecord(session_id=s2, stamp=20.0, pose=np.eye(4),
+                                           keypoints=np.zeros((0, 2), np.float32),
+                                           descriptors=np.zeros((0, 32), np.uint8), points=np.zeros((0, 3), np.float32)))
+    maps = {s.id: s.map_id for s in store.sessions()}
+    robots = [_robot("r1", [9.0, 0.0, 0.0], ids[-1], sid), _robot("r2", [0.0, 0.0, 0.0], n2, s2),
+              _robot("r3", None, None, None)]
+    with ApiThread(create_app(FakeService(store, Config(), robots))) as url:
+        api = PlannerClient(url)
+        assert api.robot("r1")["map"] == maps[sid]
+        assert api.robot("r2")["map"] == maps[s2] != maps[sid]  # not localized: its own map
+        assert api.robot("r3")["map"] is None  # no keyframe yet
+        status, detail = _status(api.nearest_object, "door", robot="r2")
+        assert status == 404 and "not localized" in detail
+        store.add_link(ids[0], n2, LinkType.GLOBAL_CLOSURE, np.eye(4))  # r2 relocalizes on r1's map
+        assert api.robot("r2")["map"] == maps[sid]
+        assert api.nearest_object("door", robot="r2")["object"]["label"] == "door"
+    store.close()

@@ -396,11 +396,18 @@ class ObjectIndex:
             self._links.refresh(self.store)
             return self._links.roots(nodes)
 
-    def components(self, nodes) -> np.ndarray | None:
-        """The connected component (a root node id) of each node, after reading the links
-        stored since the last look: nodes with the same one share a frame. None when the store
-        has no links view."""
-        return None if self._links is None else self._roots(np.asarray(nodes, np.int64))
+    def maps(self, nodes) -> list[int | None] | None:
+        """For each keyframe, the map id of the oldest session that links join it to (after
+        reading the links stored since the last look): keyframes with the same one share a
+        frame, and a robot's keyframe shows which map it is localized in (its own session's
+        until a link places it in an older one). None when the store has no links view; None
+        for a node not in the map."""
+        if self._links is None:
+            return None
+        roots = self._roots(np.asarray(nodes, np.int64))  # a component's root is its oldest node
+        session = {n.id: n.session_id for n in self.store.get_nodes(set(roots.tolist()))}
+        map_id = {s.id: s.map_id for s in self.store.sessions()}
+        return [map_id.get(session.get(r)) for r in roots.tolist()]
 
     def _joined(self, snap: _Snapshot, rows: np.ndarray, node_id: int | None,
                 label: str | None = None) -> np.ndarray | None:
