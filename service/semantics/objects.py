@@ -177,12 +177,9 @@ class ObjectFusion:
     def anchors(self) -> set[int]:
         return {o.node_id for o in self.objects}
 
-    def forget(self, object_id: int) -> bool:
-        """Drop the stored object `object_id` (an operator deleted it); True when it was held."""
-        kept = [o for o in self.objects if o.id != object_id]
-        found = len(kept) < len(self.objects)
-        self.objects = kept
-        return found
+    def forget(self, object_id: int) -> None:
+        """Drop the stored object `object_id` (an operator deleted it), if held."""
+        self.objects = [o for o in self.objects if o.id != object_id]
 
     # -- fusion ------------------------------------------------------------------------------
     def fuse(self, node_id: int, pose: np.ndarray, labels: np.ndarray, depth: np.ndarray, camera: PinholeCamera,
