@@ -319,6 +319,7 @@ class ObjectIndex:
         # which anchors share a frame with a robot's keyframe (None: a store without links_after)
         self._links = MapConnectivity() if hasattr(store, "links_after") else None
         self._links_lock = threading.Lock()
+        self._map_of_root: dict[int, int | None] = {}  # a component's root node -> its session's map id (fixed)
         self._build_lock = threading.Lock()
         self._state_lock = threading.Lock()
         self._last_check = 0.0
@@ -404,10 +405,13 @@ class ObjectIndex:
         for a node not in the map."""
         if self._links is None:
             return None
-        roots = self._roots(np.asarray(nodes, np.int64))  # a component's root is its oldest node
-        session = {n.id: n.session_id for n in self.store.get_nodes(set(roots.tolist()))}
-        map_id = {s.id: s.map_id for s in self.store.sessions()}
-        return [map_id.get(session.get(r)) for r in roots.tolist()]
+        roots = self._roots(np.asarray(nodes, np.int64)).tolist()  # a component's root is its oldest node
+        new = set(roots) - self._map_of_root.keys()  # (a root's map never changes: read each once)
+        if new:
+            session = {n.id: n.session_id for n in self.store.get_nodes(new)}
+            map_id = {s.id: s.map_id for s in self.store.sessions()}
+            self._map_of_root.update({r: map_id.get(session.get(r)) for r in new})
+        return [self._map_of_root[r] for r in roots]
 
     def _joined(self, snap: _Snapshot, rows: np.ndarray, node_id: int | None,
                 label: str | None = None) -> np.ndarray | None:

@@ -97,15 +97,6 @@ def _depth_terms(depth: np.ndarray, depth_sigma: np.ndarray):
     return np.where(has, z, 0.0), weight, chi, has
 
 
-def _depth_residuals(n: int, depth: np.ndarray | None, depth_sigma: np.ndarray | None):
-    """(measured depths, their weights, Huber thresholds) of `refine_pose`'s problem: no depth
-    term (None, None, the 2-dof threshold) without `depth`."""
-    if depth is None:
-        return None, None, np.full(n, HUBER_CHI)
-    z_meas, zw, chi, _ = _depth_terms(depth, depth_sigma)
-    return z_meas, zw, chi
-
-
 def mahalanobis2(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
                  rays: np.ndarray, sigma_ray: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distances (n,) of the pixel observations under the pose T_cw."""
@@ -141,7 +132,10 @@ def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.n
     H = None
     if len(X) < 4:
         return (T, H) if hessian else T
-    z_meas, zw, chi = _depth_residuals(len(X), depth, depth_sigma)
+    z_meas = zw = None
+    chi = np.full(len(X), HUBER_CHI)
+    if depth is not None:
+        z_meas, zw, chi, _ = _depth_terms(depth, depth_sigma)
     for _ in range(iterations):
         obs = _Observations(T, K, X, px, sigma_px, rays, sigma_ray, z_meas, zw)
         H, b = obs.normal_equations(obs.weights(chi))
