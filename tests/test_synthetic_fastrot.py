@@ -124,7 +124,7 @@ def test_kinect_depth_noise_grows_with_z_squared_in_disparity_steps():
 def test_fastrot_tracked_without_loss(tmp_path):
     """The first 5 s (150 frames at 30 Hz, 640×480, blur and Kinect noise as the path has
     them): every frame tracked in one segment. Measured 0.35 cm ATE (odometry alone 0.35 cm;
-    without the motion model, unguided matching, 0.32 cm); the whole 30 s: see README."""
+    without the motion model, unguided matching, 0.32 cm); the whole 30 s: see docs/benchmarks.md."""
     ds = open_dataset("synthetic:fastrot", max_frames=150)
     assert ds.noise == "kinect" and ds.exposure == pytest.approx(0.02)
     R = ds.ground_truth.poses[:, :3, :3]
