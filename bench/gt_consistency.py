@@ -30,10 +30,10 @@ sys.path.insert(0, str(ROOT))
 
 from client.datasets import open_dataset  # noqa: E402
 from client.geometry import rotation_angle  # noqa: E402
-from service.evaluation import LINK_KINDS, associate_stamps, invert  # noqa: E402
+from service.evaluation import associate_stamps, invert  # noqa: E402
 from service.mapping.verification import DenseView  # noqa: E402
 from service.tracking import icp  # noqa: E402
-from storage import MapStore  # noqa: E402
+from storage import MapStore, link_name  # noqa: E402
 
 
 def explained(frame_a, frame_b, K: np.ndarray, T_ab_list, orb, px: float) -> tuple[int, list[int]]:
@@ -98,7 +98,7 @@ def main() -> int:
     orb = cv2.ORB_create(2000)
     rows = []
     for link in links:
-        kind = LINK_KINDS.get(int(link.type), str(int(link.type)))
+        kind = link_name(link.type)
         if kind not in kinds:
             continue
         ia, ib = (int(np.argmin(np.abs(ds.stamps - stamp[i]))) for i in (link.from_id, link.to_id))

@@ -185,9 +185,10 @@ session_started     ``session_id``: the map database's session of this robot
 keyframe_added      ``node_id``, ``seq``, ``stamp`` of the frame that became a keyframe
 tracking_lost       ``seq``, ``stamp`` of the first lost frame
 loop_closed         ``from``, ``to`` (node ids: the older keyframe, the new one), ``inliers``
-                    (verified correspondences), ``link``: "appearance" (bag-of-words loop),
-                    "proximity" (a keyframe the graph placed near the new one) or "rehearsal"
-                    (``to`` was merged into the older node ``from``)
+                    (verified correspondences), ``link``: the new link's type, by its name
+                    in ``storage.LINK_NAMES``: "loop" (bag-of-words, by appearance),
+                    "proximity" (a keyframe the graph placed near the new one) or "merged"
+                    (rehearsal: ``to`` was merged into the older node ``from``)
 map_corrected       ``nodes``: how many keyframe poses the map update moved
 ==================  ==========================================================================
 """

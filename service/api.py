@@ -43,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from client.protocol import ROBOT_PATTERN
 from client.trajectory import format_tum
-from storage import MapRepository, SessionRecord, StoreError, UnknownIdError
+from storage import MapRepository, SessionRecord, StoreError, UnknownIdError, link_name
 
 from .config import Config
 from .metrics import Metrics, RequestTimer
@@ -51,7 +51,6 @@ from .semantics.queries import NotFound, ObjectIndex, ObjectView, QueryError, Un
 from .server import SlamService
 from .viewer import Viewer
 
-LINK_TYPES = {0: "odometry", 1: "loop", 2: "proximity", 3: "local_time", 4: "user", 5: "virtual", 10: "merged"}
 TOKEN_ENV = "MNEMOSLAM_API_TOKEN"
 
 # The largest SQLite INTEGER (signed 64-bit): a bigger id or offset cannot be bound to a query.
@@ -571,7 +570,7 @@ def graph(session: SessionDep, store: StoreDep):
     nodes = store.nodes(session_id=session.id, limit=10**9, offset=0)
     links = store.links(session_id=session.id)
     return {"nodes": [_node_json(n) for n in nodes],
-            "links": [{"from": l.from_id, "to": l.to_id, "type": LINK_TYPES.get(l.type, str(l.type)),
+            "links": [{"from": l.from_id, "to": l.to_id, "type": link_name(l.type),
                        "transform": _pose_list(l.transform)} for l in links]}
 
 

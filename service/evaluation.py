@@ -21,6 +21,7 @@ import numpy as np
 
 from client.geometry import invert
 from client.trajectory import Trajectory, read_kitti_poses, read_tum
+from storage import LINK_NAMES, link_name
 
 ALIGN_MODES = ("se3", "sim3", "none")
 
@@ -327,11 +328,9 @@ def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.
 
 # -- link accuracy ------------------------------------------------------------------------------
 
-LINK_KINDS = {0: "odometry", 1: "loop", 2: "proximity", 3: "path", 4: "user", 5: "virtual",
-              6: "odometry_merged", 7: "pose_prior", 8: "landmark", 10: "merged"}
-"""Report names of the graph's link types (storage.LinkType values): NEIGHBOR is odometry,
-GLOBAL_CLOSURE an appearance loop, LOCAL_SPACE proximity by space, LOCAL_TIME a link along
-the own path (proximity by time), MERGED rehearsal's survivor → merged keyframe."""
+LINK_KINDS = LINK_NAMES
+"""Report names of the graph's link types: the one table, `storage.LINK_NAMES` (by LinkType,
+which looks up by its int value too; `storage.link_name` names an unknown type by its number)."""
 
 LINK_CSV_COLUMNS = ("from_id", "to_id", "type", "error_cm", "error_deg")
 
@@ -395,7 +394,7 @@ class LinkReport:
 def evaluate_links(gt: Trajectory, node_ids, node_stamps, links, max_dt: float = 0.02,
                    bounds: tuple[float, float] = (5.0, 3.0)) -> LinkReport:
     """Accuracy of graph links `links` = [(from_id, to_id, type, T_from_to)] between keyframes
-    (`node_ids`, `node_stamps`) against ground truth, per type (`LINK_KINDS` names; an
+    (`node_ids`, `node_stamps`) against ground truth, per type (`storage.LINK_NAMES` names; an
     unknown type by its number): the error of a link is the rigid transform between its
     measured T_from_to and the true relative pose of the two keyframes' stamps; count,
     median and worst (cm, degrees), and how many are beyond `bounds` (cm, degrees).
@@ -408,7 +407,7 @@ def evaluate_links(gt: Trajectory, node_ids, node_stamps, links, max_dt: float =
                                                 np.stack([np.asarray(x[3], np.float64) for x in links])
                                                 if links else np.zeros((0, 4, 4)))
     err_cm = err * 100.0
-    kinds = [LINK_KINDS.get(int(t), str(int(t))) for t in types]
+    kinds = [link_name(t) for t in types]
     ids = np.asarray(node_ids, np.int64)
     kept_types = types[kept]
     out = []
@@ -417,7 +416,7 @@ def evaluate_links(gt: Trajectory, node_ids, node_stamps, links, max_dt: float =
         e, d = err_cm[sel], err_deg[sel]
         n = int(sel.sum())
         out.append(LinkTypeAccuracy(
-            LINK_KINDS.get(t, str(t)), n, float(np.median(e)) if n else float("nan"),
+            link_name(t), n, float(np.median(e)) if n else float("nan"),
             float(e.max()) if n else float("nan"), float(np.median(d)) if n else float("nan"),
             float(d.max()) if n else float("nan"), int(((e > bounds[0]) | (d > bounds[1])).sum()),
             int((types == t).sum()) - n))

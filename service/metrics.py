@@ -25,7 +25,8 @@ Metric names (prefix `mnemoslam_`; counters end in `_total`):
   `queue_depth`, `queue_bytes`, `frames_per_second`, `frame_processing_seconds` (moving
   mean), `map_backlog`, `robot_state{state}` (1 for the current one);
 - per robot, from the map: `map_update_seconds` (histogram), `memory_nodes{memory="stm|wm|ltm"}`,
-  `vocabulary_words` (after its latest map update), `loop_closures_total{link="appearance|proximity"}`;
+  `vocabulary_words` (after its latest map update), `loop_closures_total{link="loop|proximity"}`
+  (the link types' names, `storage.LINK_NAMES`);
 - REST: `http_request_duration_seconds{method, route, status}` (histogram);
 - the process (prometheus_client's): `process_resident_memory_bytes`, `process_cpu_seconds_total`, ...
 """
@@ -53,7 +54,7 @@ UPDATE_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
 REQUEST_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 10.0)
 STATES = ("waiting_for_frames", "tracking", "lost", "stopped")
 MEMORIES = ("stm", "wm", "ltm")
-LOOP_LINKS = {LinkType.GLOBAL_CLOSURE: "appearance", LinkType.LOCAL_SPACE: "proximity"}  # as `loop_closed` names them
+LOOP_LINKS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)  # counted by their `label`, as `loop_closed` names them
 METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 
 # (snapshot key, metric name, help) of each robot's counters and gauges
@@ -212,8 +213,8 @@ class ServiceCollector(Collector):
                             if _num(u.latest[3]) is not None:
                                 words.add_metric([robot], float(u.latest[3]))
                         counts = store.count_links(LOOP_LINKS, session_id=sid)
-                        for kind, name in LOOP_LINKS.items():
-                            loops.add_metric([robot, name], counts.get(kind, 0))
+                        for kind in LOOP_LINKS:
+                            loops.add_metric([robot, kind.label], counts.get(kind, 0))
             except StoreError as e:  # the store closed under the scrape (service stopping)
                 log.debug("metrics: map statistics not read: %s", e)
         yield from (update, memory, words, loops)

@@ -14,7 +14,7 @@ update carries only what changed since the previous one:
                            `Limits.max_points`) and "links" every shown link (the newest
                            `Limits.max_links`); false: "points" are new nodes to append, no links,
                    "points": [x, y, z, x, y, z, ...] (m, map frame, by node id),
-                   "links": [[type, x1, y1, z1, x2, y2, z2], ...] (type: loop, proximity, ...),
+                   "links": [[type, x1, y1, z1, x2, y2, z2], ...] (type named by storage.LINK_NAMES: loop, proximity, ...),
                    "memory": {"stm", "wm", "ltm", "words"} after the latest map update,
                    "frame": the map id of the oldest session links join it to (its own until a
                             link places it in another's frame; when it changed)}],
@@ -57,10 +57,10 @@ log = logging.getLogger("mnemoslam.viewer")
 
 PAGE = Path(__file__).resolve().with_name("static") / "viewer.html"
 
-# the links drawn, by the names of GET /graph: odometry links are the trajectory's polyline, and
-# local-time links (between keyframes close in time, hundreds per loop) would only hide it
-LINKS = {LinkType.GLOBAL_CLOSURE: "loop", LinkType.LOCAL_SPACE: "proximity", LinkType.USER: "user",
-         LinkType.VIRTUAL: "virtual", LinkType.MERGED: "merged"}
+# the link types drawn, sent by their `label` (storage.LINK_NAMES, as GET /graph names them):
+# odometry links are the trajectory's polyline, and path links (between keyframes close in time
+# along the own path, hundreds per loop) would only hide it
+LINKS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.USER, LinkType.VIRTUAL, LinkType.MERGED)
 ROBOT_KEYS = ("robot", "state", "session_id", "position", "node_id", "keyframes", "frames_processed", "fps",
               "map_backlog")
 
@@ -209,7 +209,7 @@ class ViewerFeed:
             sent.nodes, sent.links, sent.full_at = len(rows), links, now
             sent.last_id = int(rows[-1, 0]) if len(rows) else 0
             return {"full": True, "nodes": len(rows), "points": _xyz(rows[keep, 1:4]),
-                    "links": [[LINKS[LinkType(t)], *np.round(np.array(p, float), 3).tolist()]
+                    "links": [[LinkType(t).label, *np.round(np.array(p, float), 3).tolist()]
                               for _, _, t, *p in segments if all(v is not None and math.isfinite(v) for v in p)]}
         if not is_live:
             if due:

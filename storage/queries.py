@@ -23,7 +23,7 @@ from .records import (
     _bbox,
     _jsonable,
     _link,
-    _link_name,
+    link_name,
     _node,
     _session,
     _unpack,
@@ -281,7 +281,7 @@ class Queries(Connection):
         """Counts (one consistent snapshot) and file sizes; JSON-encodable."""
         with self._read(snapshot=True) as c:
             one = lambda sql: c.execute(sql).fetchone()[0]  # noqa: E731
-            by_type = {_link_name(t): n for t, n in c.execute("SELECT type, COUNT(*) FROM links GROUP BY type ORDER BY type")}
+            by_type = {link_name(t): n for t, n in c.execute("SELECT type, COUNT(*) FROM links GROUP BY type ORDER BY type")}
             out = {
                 "schema_version": one("PRAGMA user_version"),
                 "sessions": one("SELECT COUNT(*) FROM sessions"),

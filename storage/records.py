@@ -1,7 +1,8 @@
 """Records and validation of the long-term memory: what goes in and comes out of the
 database and how it is encoded. Owns the errors (`StoreError`, `UnknownIdError`),
-`LinkType`, the record dataclasses, the array / JSON / calibration encodings, the checks
-every write makes before touching the database, and the row decoders of the read side.
+`LinkType` and its names (`LINK_NAMES`, `link_name`), the record dataclasses, the array /
+JSON / calibration encodings, the checks every write makes before touching the database,
+and the row decoders of the read side.
 The underscore helpers are the storage package's own (its other modules use them); nothing
 outside `storage` should.
 
@@ -10,7 +11,8 @@ Encodings:
 - poses: 4×4 float64 camera-to-world, row-major, little-endian (128 bytes); the node's
   position is also in the `x, y, z` columns for spatial queries (R*Tree when available).
 - links: `transform` = T_from_to 4×4 float64 (pose_to = pose_from @ T), `information` 6×6
-  float64; `type` uses RTAB-Map's values (`LinkType`).
+  float64; `type` uses RTAB-Map's values (`LinkType`); outside the database a type goes by
+  its name in `LINK_NAMES` (the one table of link-type names).
 - features: `count` = N, `keypoints` N×2 float32 pixels, `descriptors` N×32 uint8 (ORB),
   `points` N×3 float32 camera frame (NaN rows = no depth), `word_ids` N int32 or NULL
   (-1 = no word).
@@ -53,18 +55,58 @@ class UnknownIdError(StoreError, KeyError):
 
 
 class LinkType(IntEnum):
-    """RTAB-Map's Link.type values."""
+    """RTAB-Map's Link.type values. Outside the database a type goes by its `label`
+    (`LINK_NAMES`): REST, metrics, events, the viewer and the evaluation reports all use it."""
 
     NEIGHBOR = 0  # odometry between consecutive nodes
     GLOBAL_CLOSURE = 1  # appearance-based loop closure
     LOCAL_SPACE = 2  # proximity by space
-    LOCAL_TIME = 3  # proximity by time
+    LOCAL_TIME = 3  # proximity by time: along the own path
     USER = 4  # user-added
     VIRTUAL = 5
-    NEIGHBOR_MERGED = 6
+    NEIGHBOR_MERGED = 6  # odometry across a node removed from the graph
     POSE_PRIOR = 7
     LANDMARK = 8
     MERGED = 10  # rehearsal: T_survivor_merged, from the node a keyframe was merged into (not RTAB-Map's)
+
+    @property
+    def label(self) -> str:
+        """The type's public name (`LINK_NAMES`)."""
+        return LINK_NAMES[self]
+
+    @classmethod
+    def from_label(cls, label: str) -> LinkType:
+        """The type named `label` (`LINK_NAMES`); ValueError for an unknown name."""
+        for t, name in LINK_NAMES.items():
+            if name == label:
+                return t
+        raise ValueError(f"unknown link type {label!r} (one of {', '.join(LINK_NAMES.values())})")
+
+
+# The one table of link-type names, one name per type: REST (graph links, database
+# links_by_type), metrics (loop_closures_total{link}), the `loop_closed` event's `link`, the
+# viewer and the evaluation reports (links.csv / links.json) all name a type by it.
+LINK_NAMES: dict[LinkType, str] = {
+    LinkType.NEIGHBOR: "odometry",  # between consecutive keyframes
+    LinkType.GLOBAL_CLOSURE: "loop",  # loop closure by appearance
+    LinkType.LOCAL_SPACE: "proximity",  # proximity by space
+    LinkType.LOCAL_TIME: "path",  # proximity by time, along the own path
+    LinkType.USER: "user",
+    LinkType.VIRTUAL: "virtual",
+    LinkType.NEIGHBOR_MERGED: "odometry_merged",
+    LinkType.POSE_PRIOR: "pose_prior",
+    LinkType.LANDMARK: "landmark",
+    LinkType.MERGED: "merged",  # rehearsal's survivor -> merged keyframe
+}
+assert set(LINK_NAMES) == set(LinkType) and len(set(LINK_NAMES.values())) == len(LINK_NAMES)
+
+
+def link_name(t: int) -> str:
+    """The public name of link type `t` (`LINK_NAMES`); a type not in `LinkType` by its number."""
+    try:
+        return LINK_NAMES[LinkType(t)]
+    except ValueError:
+        return str(int(t))
 
 
 # -- records --------------------------------------------------------------------------------
@@ -387,13 +429,6 @@ def _link(row) -> LinkRecord:
     except ValueError:
         pass
     return LinkRecord(row[0], row[1], t, _unpack(row[3], np.float64, (4, 4)), _unpack(row[4], np.float64, (6, 6)))
-
-
-def _link_name(t: int) -> str:
-    try:
-        return LinkType(t).name.lower()
-    except ValueError:
-        return str(t)
 
 
 def _end_reason(reason) -> str:

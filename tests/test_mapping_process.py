@@ -66,11 +66,11 @@ def test_child_closes_the_same_loops_as_the_inprocess_mapper(mapped):
     links = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)
     # rehearsal: a merge that came back to an older part of the map is a loop closure too,
     # (survivor, previous keyframe), with a `merged` link in the database instead of a loop link
-    merges = [(d["from"], d["to"]) for d in closed if d["link"] == "rehearsal"]
-    assert {(a.from_id, a.to_id) for a in links} == {(d["from"], d["to"]) for d in closed if d["link"] != "rehearsal"}
+    merges = [(d["from"], d["to"]) for d in closed if d["link"] == "merged"]
+    assert {(a.from_id, a.to_id) for a in links} == {(d["from"], d["to"]) for d in closed if d["link"] != "merged"}
     assert sorted((a.from_id, a.to_id) for a in links) == sorted(reference["loops"])  # identical to the offline run
     assert len(merges) == len(reference["merges"])
-    assert {d["link"] for d in closed} <= {"appearance", "proximity", "rehearsal"}
+    assert {d["link"] for d in closed} <= {"loop", "proximity", "merged"}
     # the child wrote words, statistics and corrected poses into the service's database
     nodes = store.nodes(limit=None)
     assert mapped["stats"]["mapped"] == mapped["stats"]["submitted"] == len(nodes)

@@ -75,7 +75,7 @@ def test_a_stream_shows_in_the_scraped_metrics(svc):
     sizes = {m: _value(samples, "mnemoslam_memory_nodes", robot="m1", memory=m) for m in ("stm", "wm", "ltm")}
     assert sum(sizes.values()) > 0 and sizes["ltm"] == 0  # the default WM is unbounded
     assert _value(samples, "mnemoslam_vocabulary_words", **m1) > 0
-    for link in ("appearance", "proximity"):
+    for link in ("loop", "proximity"):
         assert _value(samples, "mnemoslam_loop_closures_total", robot="m1", link=link) >= 0
     # REST latency by route template (wait_processed polled /robots/{robot})
     http = "mnemoslam_http_request_duration_seconds"

@@ -105,16 +105,16 @@ def test_loop_closed_and_map_corrected_events_are_published(service):
     assert closed, f"no loop_closed among {sorted(set(kinds))}"
     keyframes = {e["node_id"] for e in events if e.kind == "keyframe_added"}
     for e in closed:
-        assert e["robot"] == "ev" and e["link"] in ("appearance", "proximity", "rehearsal")
+        assert e["robot"] == "ev" and e["link"] in ("loop", "proximity", "merged")
         assert e["from"] in keyframes and e["to"] in keyframes and e["from"] < e["to"]
         assert isinstance(e["inliers"], int) and e["inliers"] > 0
     corrected = [e for e in events if e.kind == "map_corrected"]
     assert corrected and all(isinstance(e["nodes"], int) and e["nodes"] > 0 for e in corrected)
     graph = service.api.get(f"/sessions/{service.session_of('ev')}/graph")
     loops = {(l["from"], l["to"]) for l in graph["links"] if l["type"] in ("loop", "proximity")}
-    assert loops == {(e["from"], e["to"]) for e in closed if e["link"] != "rehearsal"}
+    assert loops == {(e["from"], e["to"]) for e in closed if e["link"] != "merged"}
     merged = {(l["from"], l["to"]) for l in graph["links"] if l["type"] == "merged"}
-    assert {(e["from"], e["to"]) for e in closed if e["link"] == "rehearsal"} <= merged
+    assert {(e["from"], e["to"]) for e in closed if e["link"] == "merged"} <= merged
 
 
 def test_three_robots_three_sessions_no_cross_talk(service):

@@ -429,7 +429,7 @@ def test_links_by_type(store, rng):
     assert len(store.links(session_id=s1, type=LinkType.NEIGHBOR)) == 3
     loop = store.links(type=1, node_ids=[a[3]])[0]
     assert np.array_equal(loop.transform, pose(0.1)) and np.array_equal(loop.information, np.eye(6) * 50)
-    assert store.stats()["links_by_type"] == {"neighbor": 3, "global_closure": 2, "local_space": 1}
+    assert store.stats()["links_by_type"] == {"odometry": 3, "loop": 2, "proximity": 1}
 
     with pytest.raises(StoreError, match="already exists"):
         store.add_link(a[3], a[0], LinkType.GLOBAL_CLOSURE, pose(0.5))
@@ -873,7 +873,7 @@ def test_db_info_and_export_text(tmp_path, rng):
         s.add_link(prev, prev - 6, LinkType.GLOBAL_CLOSURE, np.eye(4))
         s.begin_session("robot_b", STEREO)
     text = db_info(path)
-    for needle in (f"schema    v{V}", "sessions  2", "robot_a", "robot_b", "nodes     7", "links     7 (neighbor 6, global_closure 1)",
+    for needle in (f"schema    v{V}", "sessions  2", "robot_a", "robot_b", "nodes     7", "links     7 (odometry 6, loop 1)",
                    "features  7 (77 keypoints)", "images    7", "words     0", "integrity ok", "10.000000", "16.000000", "MB"):
         assert needle in text, (needle, text)
     out = db_export(path, tmp_path / "exp", session=s1)

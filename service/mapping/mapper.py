@@ -372,7 +372,8 @@ class Mapper:
         r["loop"] = entering = self.memory.merge(u.node_id, c, p, v.transform, v.information)  # came back to c's part of the map
         if entering:
             self.loops.append((c, p))
-            self.on_event("loop_closed", {"from": c, "to": u.node_id, "inliers": v.inliers, "link": "rehearsal"})
+            self.on_event("loop_closed", {"from": c, "to": u.node_id, "inliers": v.inliers,
+                                          "link": LinkType.MERGED.label})
         return Rehearsal(c)
 
     def _rehearsal_candidate(self, u: KeyframeUpdate) -> int | None:
@@ -514,7 +515,7 @@ class Mapper:
             self.store.add_link(candidate, u.node_id, kind, v.transform, v.information)
         if kind != LinkType.LOCAL_TIME:
             self.on_event("loop_closed", {"from": candidate, "to": u.node_id, "inliers": v.inliers,
-                                          "link": "proximity" if kind == LinkType.LOCAL_SPACE else "appearance"})
+                                          "link": kind.label})
         return "accepted"
 
     def _publish(self, stats: LoopStatistics) -> None:
