@@ -37,6 +37,7 @@ from service.runner import run_dataset  # noqa: E402
 def sequences(data: Path, synthetic_frames: int):
     yield "tum fr3/cabinet keyframes", data / "rgbd_dataset_freiburg3_cabinet_keyframes", {}
     yield "7-scenes redkitchen", data / "7scenes_redkitchen", {}
+    yield "tum fr1/desk", data / "rgbd_dataset_freiburg1_desk", {}  # motion capture, fast handheld
     yield "kitti a (stereo)", data / "kitti_odometry_snippets/sequences/a", {}
     yield "kitti b (stereo)", data / "kitti_odometry_snippets/sequences/b", {}
     yield "euroc v101 head (stereo)", data / "euroc_v101_head", {}

@@ -117,15 +117,24 @@ class LoopConfig:
     refine_max_rotation: float = 5.0  # deg; ... nor one that turns it more
     # Accurate loop / proximity links, or none (issue 12): a verified link with features is
     # re-estimated by a two-view reprojection refinement over both keyframes' matched features
-    # (service/mapping/link_refinement.py); its covariance (Hessian at the solution × the
-    # residual's variance factor) gives the link's information, and a link whose σ is beyond
-    # these bounds is dropped (counted: `run`'s "inaccurate link(s) dropped").
+    # (service/mapping/link_refinement.py); a link whose σ (Hessian at the solution × the
+    # residual's variance factor) is beyond these bounds is dropped (counted: `run`'s
+    # "inaccurate link(s) dropped"). Its information is the verification's noise model (PnP's
+    # or the dense registration's), its σ × link_refine_sigma_factor where it takes the
+    # refined transform (on TUM fr1/desk's motion capture the refined transforms are 1.4-1.8x
+    # closer to the truth: bench/bench_links.py), and loosened where the refinement's
+    # covariance is larger. Never the refinement's own σ alone: it sees the matched points'
+    # noise, not calibration, distortion or depth bias, and is 5-20x below real links'
+    # errors (issue 29: as the information it made 7-Scenes 3.20 -> 4.71 cm).
     link_refine: bool = True  # refine loop / proximity links by two-view reprojection and check their σ
     link_max_sigma_translation: float = 0.01  # m; a link whose largest translation σ is beyond this is dropped ...
     link_max_sigma_rotation: float = 0.5  # deg; ... as one whose largest rotation σ is beyond this
-    link_min_sigma_translation: float = 0.003  # m; the link's information claims no σ below this ...
-    link_min_sigma_rotation: float = 0.15  # deg; ... nor below this (model errors the σ cannot see: calibration, depth bias)
     link_depth_noise: float = 0.003  # each point's depth σ = this × z² (m), along its viewing ray
+    # the refinement's three parts, each switchable alone (bench/bench_links.py studies them):
+    link_refine_transform: bool = True  # the link takes the refined transform (a densely refined link keeps its own)
+    link_refine_information: bool = True  # loosen the link's information where the refinement's covariance is larger
+    link_refine_sigma_factor: float = 0.667  # a link that takes the refined transform claims the verification's σ × this
+    link_refine_drop: bool = True  # a link whose σ is beyond link_max_sigma_* (or that cannot be refined) is dropped
     process: bool = True  # service: every robot's map update in one child process (its own GIL), so a slow update never slows tracking; false = a thread of the service (offline runs are always inline)
     process_nice: int = 10  # that child's nice increment (lower CPU priority than tracking); 0 = same priority
     # Local bundle adjustment (service/mapping/local_ba.py): each keyframe's odometry link

@@ -6,6 +6,7 @@ import pytest
 from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rodrigues, rotation_angle
 from service.mapping.link_refinement import refine_link
+from service.mapping.verification import dense_information, loop_information
 from service.tracking.features import FrameFeatures
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
@@ -52,12 +53,30 @@ def test_refined_link_recovers_the_true_pose_with_a_small_sigma():
     assert 0 < e.sigma_translation < 0.005 and 0 < e.sigma_rotation < 0.1
     # the σ it claims is of the order of its real error (not a constant)
     assert dt < 5 * e.sigma_translation and dr < 5 * e.sigma_rotation
-    info = e.information((0.003, 0.15))
+    # the link's information is the verification's (here 1 cm / 0.6 deg), never more confident
+    # in any direction: the refinement's σ is far below the real errors of real links (issue 29)
+    verified = loop_information(100)
+    info = e.information(verified)
     assert np.allclose(info, info.T) and np.all(np.linalg.eigvalsh(info) > 0)
-    # the floors cap what the information claims: no σ below 3 mm / 0.15 deg
+    assert np.allclose(info, verified)  # the refinement is more confident everywhere: the floor
+    assert np.all(np.linalg.eigvalsh(verified - info) >= -1e-6 * np.abs(verified).max())
+
+
+def test_a_refinement_less_confident_than_the_verification_loosens_the_information():
+    rng = np.random.default_rng(1)
+    pts, desc = _scene(25, rng, spread=0.05)  # 25 points in a 10 cm patch 2-4 m away: a large σ
+    T_w_new = make_pose(rodrigues([0.0, 0.05, 0.0]), [0.2, 0.0, 0.0])
+    cand = _view(pts, np.eye(4), desc, rng, 1.0, 0.02)
+    new = _view(pts, T_w_new, desc, rng, 1.0, 0.02)
+    e = refine_link(CAM, new, cand, T_w_new, min_inliers=20, max_sigma=(10.0, 90.0))
+    verified = dense_information(0.005, 0.25)  # a dense registration's 5 mm / 0.25 deg
+    info = e.information(verified)
+    # never above the verification's information; below it along the directions the few
+    # clustered points cannot see: there the refinement's σ (2.4 cm) is the link's
+    assert np.all(np.linalg.eigvalsh(verified - info) >= -1e-6 * np.abs(verified).max())
     C = np.linalg.inv(info)
-    assert np.sqrt(np.linalg.eigvalsh(C[3:, 3:])[0]) >= 0.003 - 1e-9
-    assert np.degrees(np.sqrt(np.linalg.eigvalsh(C[:3, :3])[0])) >= 0.15 - 1e-9
+    assert e.sigma_translation > 0.01
+    assert np.sqrt(np.linalg.eigvalsh(C[3:, 3:])[-1]) >= 0.99 * e.sigma_translation
 
 
 def test_few_clustered_points_give_a_large_sigma_and_no_link():

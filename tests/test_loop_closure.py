@@ -110,6 +110,18 @@ def test_ate_after_loop_closure_at_most_half_of_odometry(mapped):
     assert ate_slam <= 0.55 * ate_odom, (ate_slam, ate_odom)  # issue target 0.5x
 
 
+def test_link_refinement_never_makes_the_map_worse(figure8_run, tmp_path):
+    """Issue 29's guard on the noisy synthetic figure-8 (its second lap revisits the first):
+    the default run's ATE with loops is below odometry alone and no worse than with
+    loop.link_refine=false by more than 2 %."""
+    ds, out, _, _ = figure8_run
+    _, off, _ = _run(tmp_path, "figure8", dataset=FIGURE8, rendered_once=True, link_refine=False)
+    ate = evaluate(ds.ground_truth, out.keyframes).ate_rmse
+    ate_off = evaluate(ds.ground_truth, off.keyframes).ate_rmse
+    ate_odometry = evaluate(ds.ground_truth, odometry_keyframes(out)).ate_rmse
+    assert ate < ate_odometry and ate <= 1.02 * ate_off, (ate, ate_off, ate_odometry)
+
+
 def test_repeated_texture_walk_makes_no_false_link(tmp_path):
     # at 10 Hz: 74 keyframes, 44 of them with a loop hypothesis (look-alike posters) that
     # verification rejects (15 Hz: 82 and 48)

@@ -15,8 +15,13 @@ rest). Using both directions, each keyframe's depth errors pull against the othe
 The link's covariance is the inverse of the Gauss–Newton Hessian at the solution, scaled by
 the residual (the a-posteriori variance factor χ² / (observations − 6)); a link whose
 translation or rotation standard deviation (largest eigenvalue) is beyond the configured
-bounds is dropped; otherwise its information matrix is that covariance's inverse (floored at
-`min_sigma`, so that no link claims more than the model can know).
+bounds is dropped. That covariance sees the matched points' noise only, not what is common to
+all of them (calibration, lens distortion, depth bias, timing): on real sequences the links'
+errors against motion capture are 5–20× its σ (issue 29, bench/bench_links.py). So a kept
+link's information is the verification's noise model (scaled by the measured gain of the
+refined transform, `loop.link_refine_sigma_factor`), loosened only where this covariance is
+larger (`LinkEstimate.information`): the covariance may say a link is worse than that model
+claims, never better.
 """
 from __future__ import annotations
 
@@ -46,16 +51,16 @@ class LinkEstimate:
     inliers: int = 0  # reprojections within χ² 95 % at the solution (both directions)
     rms_px: float = float("nan")  # whitened rms of the inlier residuals (the variance factor's root)
 
-    def information(self, min_sigma: tuple[float, float]) -> np.ndarray:
-        """6×6 information (rotation first) of the link: the inverse covariance with its
-        eigenvalues floored at `min_sigma` (m, deg) squared, translation and rotation blocks
-        each by its own floor."""
+    def information(self, floor: np.ndarray) -> np.ndarray:
+        """6×6 information (rotation first) of the link: the inverse of its covariance, no
+        more confident in any direction than `floor` (a 6×6 information, e.g. the verified
+        link's own): the covariance's eigenvalues in the floor's units are floored at 1."""
         C = 0.5 * (self.covariance + self.covariance.T)
-        d = np.array([np.radians(min_sigma[1])] * 3 + [min_sigma[0]] * 3)
-        Cn = C / np.outer(d, d)  # in units of the floors: floor each eigenvalue at 1
-        vals, vecs = np.linalg.eigh(Cn)
+        L = np.linalg.cholesky(np.linalg.inv(floor))  # floor covariance = L Lᵀ
+        Li = np.linalg.inv(L)
+        vals, vecs = np.linalg.eigh(Li @ C @ Li.T)  # in units of the floor: floor each eigenvalue at 1
         Cn = (vecs * np.maximum(vals, 1.0)) @ vecs.T
-        return np.linalg.inv(Cn * np.outer(d, d))
+        return np.linalg.inv(L @ Cn @ L.T)
 
 
 def _adjoint(T: np.ndarray) -> np.ndarray:

@@ -481,24 +481,33 @@ class Mapper:
     def _accurate(self, u: KeyframeUpdate, candidate: int, v: Verification) -> tuple[str, Verification]:
         """A loop / proximity link as accurate as both keyframes' features make it, or none:
         two-view reprojection refinement from the verified transform (`link_refinement`);
-        the link takes its information from the refinement's covariance, and is refused
-        ("rejected: inaccurate …", counted in `links_dropped`) when its σ is beyond
-        loop.link_max_sigma_*. A dense refinement that passed its check keeps its transform
+        the link is refused ("rejected: inaccurate …", counted in `links_dropped`) when its
+        σ is beyond loop.link_max_sigma_*. Its information is the verification's noise model
+        (σ × link_refine_sigma_factor where it takes the refined transform, as much more
+        accurate as it measured), loosened where the refinement's covariance is larger: the
+        refinement's own σ is 5-20x below real links' errors, so it never makes a link more
+        confident (issue 29). A dense refinement that passed its check keeps its transform
         (it explains the PnP inliers and uses thousands of points). Links registered densely
-        without features (no inliers) keep their dense estimate."""
+        without features (no inliers) keep their dense estimate. Each part switches alone
+        (loop.link_refine_transform / _information / _drop)."""
         c = self.config
         if not c.link_refine or not v.inliers:
             return "ok", v
         e = refine_link(self.camera, u.features, self.memory.features[candidate], v.transform,
                         depth_noise=c.link_depth_noise, min_inliers=c.min_inliers,
                         max_sigma=(c.link_max_sigma_translation, c.link_max_sigma_rotation))
-        if not e.ok:
+        if not e.ok and c.link_refine_drop:
             self.links_dropped += 1
             why = e.reason if e.covariance is None else \
                 f"σ {e.sigma_translation * 100:.2f} cm / {e.sigma_rotation:.2f} deg"
             return f"rejected: inaccurate ({why})", v
-        T = v.transform if v.refined else e.transform
-        info = e.information((c.link_min_sigma_translation, c.link_min_sigma_rotation))
+        if e.covariance is None:  # not refined, not dropped: the verified link as it is
+            return "ok", v
+        refined = c.link_refine_transform and not v.refined
+        T = e.transform if refined else v.transform
+        info = v.information / c.link_refine_sigma_factor ** 2 if refined else v.information
+        if c.link_refine_information:
+            info = e.information(info)
         return "ok", dataclasses.replace(v, transform=T, information=info, sigma=(e.sigma_translation, e.sigma_rotation))
 
     def _add_link(self, u: KeyframeUpdate, candidate: int, kind: LinkType, v: Verification) -> str:
