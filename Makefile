@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test venv browser bench clean
+.PHONY: demo test lint venv browser bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -21,6 +21,10 @@ demo: $(STAMP)
 ## The test suite (real-data tests read MNEMOSLAM_DATA, default ../shared/data).
 test: $(STAMP) browser
 	$(BIN)/python -m pytest -q
+
+## The linter (ruff, pinned in the test extras; its rules in pyproject.toml). CI runs it before the tests.
+lint: $(STAMP)
+	$(BIN)/ruff check .
 
 ## Chromium for the viewer's browser test (tests/test_viewer.py): the Debian package, installed
 ## with apt-get when it is missing and apt-get can (root, or sudo without a password). Not fatal:

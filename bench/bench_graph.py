@@ -76,7 +76,8 @@ def main() -> int:
             for name, other in (("lap", k - args.lap), ("full", 0)):
                 if other < 0 or (name == "full" and other == k - args.lap):
                     continue
-                rel = np.linalg.inv(truth[k]) @ truth[other] @ gtsam.Pose3.Expmap(rng.normal(size=6) * SIGMAS * 0.3).matrix()
+                noise = gtsam.Pose3.Expmap(rng.normal(size=6) * SIGMAS * 0.3).matrix()
+                rel = np.linalg.inv(truth[k]) @ truth[other] @ noise
                 g.changed_poses()  # reference: everything published so far
                 c0, t0 = time.thread_time(), time.perf_counter()
                 out = g.add_loop(k, other, rel, INFO)
@@ -104,8 +105,8 @@ def main() -> int:
                   f"{np.percentile(t, 99):7.3f} {t.max():7.3f} {np.percentile(c, 50):8.3f} {np.percentile(c, 99):8.3f}")
     print()
     print("add_loop (iSAM2 update + iterations + error check over all links)")
-    print(f"{'nodes':>6} {'loop':>5} {'to':>6} {'ms':>8} {'CPU ms':>8} {'iters':>5} {'accepted':>8} {'err before σ':>12} "
-          f"{'max err σ':>9} {'moved':>6} {'changed_poses ms':>16}")
+    print(f"{'nodes':>6} {'loop':>5} {'to':>6} {'ms':>8} {'CPU ms':>8} {'iters':>5} {'accepted':>8} "
+          f"{'err before σ':>12} {'max err σ':>9} {'moved':>6} {'changed_poses ms':>16}")
     for r in loop_rows:
         print(f"{r[0]:>6} {r[1]:>5} {r[2]:>6} {r[3]:8.1f} {r[4]:8.1f} {r[5]:>5} {str(r[6]):>8} {r[7]:12.1f} "
               f"{r[8]:9.2f} {r[9]:>6} {r[10]:16.1f}")

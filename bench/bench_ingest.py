@@ -161,7 +161,8 @@ def main() -> int:
                          np.percentile(lat_p, 99), n == args.frames and len(lat_p) == args.paced))
             r = rows[-1]
             print(f"  {r[0]:<9} {r[1]:7.0f} kB/frame  {r[2]:7.1f} frames/s  {r[3]:7.1f} MB/s  "
-                  f"loaded p50 {r[4]:6.1f} ms p99 {r[5]:6.1f} ms | {args.rate:g} Hz p50 {r[6]:5.2f} ms p99 {r[7]:5.2f} ms"
+                  f"loaded p50 {r[4]:6.1f} ms p99 {r[5]:6.1f} ms | "
+                  f"{args.rate:g} Hz p50 {r[6]:5.2f} ms p99 {r[7]:5.2f} ms"
                   + ("" if r[8] else "  (frames missing!)"), flush=True)
     finally:
         parent.send(None)

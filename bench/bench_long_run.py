@@ -14,7 +14,8 @@ few numbers (RSS must not grow because of the bench) and the run can stop at exa
 `updates.csv`); every `--rss-every` frames: RSS (/proc/self/statm).
 
 "on" runs with `memory.rehearsal=true memory.max_wm_nodes=100` plus `--set`; "off" with
-`memory.rehearsal=false memory.max_wm_nodes=0` plus `--off-set`. The off run stops at `--off-keyframes` (default 2000): it only has
+`memory.rehearsal=false memory.max_wm_nodes=0` plus `--off-set`. The off run stops at
+`--off-keyframes` (default 2000): it only has
 to show that without memory management the update is measurably slower at the end, so its
 last window is compared with the on run's update times at the same keyframe indices (and with
 the on run's own end). Each run is its own child process (its RSS is its own), writing
@@ -172,14 +173,15 @@ def report(r: dict, ref: dict | None = None) -> None:
           f"median last {last:,} {np.median(late):.1f} ms{goal[1]}{note}")
     rss = np.asarray(r["rss"], dtype=float)  # frame, keyframes, MB
     warm = rss[rss[:, 1] >= e1]
-    slope = np.polyfit(warm[:, 1], warm[:, 2], 1)[0] * 1000 if len(warm) >= 3 and np.ptp(warm[:, 1]) > 0 else float("nan")
+    slope = (np.polyfit(warm[:, 1], warm[:, 2], 1)[0] * 1000 if len(warm) >= 3 and np.ptp(warm[:, 1]) > 0
+             else float("nan"))
     at_warm = warm[0, 2] if len(warm) else float("nan")
     step = max(1, math.ceil(len(rss) / 16))
     shown = rss[::step].tolist() + ([rss[-1].tolist()] if (len(rss) - 1) % step else [])
     line = " ".join(f"{k / 1000:.1f}k:{mb:.0f}" if k >= 1000 else f"{k:.0f}:{mb:.0f}" for _, k, mb in shown)
     print(f"  RSS MB by keyframe: {line}")
-    print(f"  RSS at warm-up (keyframe {e1:,}) {at_warm:.0f} MB, end {rss[-1, 2]:.0f} MB, peak {rss[:, 2].max():.0f} MB; "
-          f"slope after warm-up {slope:+.2f} MB per 1,000 keyframes")
+    print(f"  RSS at warm-up (keyframe {e1:,}) {at_warm:.0f} MB, end {rss[-1, 2]:.0f} MB, "
+          f"peak {rss[:, 2].max():.0f} MB; slope after warm-up {slope:+.2f} MB per 1,000 keyframes")
     if r["name"] == "off" and ref is not None:  # the off run against the on run at the same keyframe indices
         on = np.asarray(ref["update_ms"], dtype=float)
         if len(on) >= n:
@@ -206,7 +208,8 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--no-noise", action="store_true", help="clean depth and RGB")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--rss-every", type=int, metavar="FRAMES", help="RSS sample interval (default 500, less on short runs)")
+    ap.add_argument("--rss-every", type=int, metavar="FRAMES",
+                    help="RSS sample interval (default 500, less on short runs)")
     ap.add_argument("--out", default="out/bench_long_run")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help=f"config override of the on run, after {' '.join(ON_DEFAULTS)} (repeatable)")

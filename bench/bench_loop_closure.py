@@ -17,14 +17,12 @@ import sys
 import tempfile
 from pathlib import Path
 
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from client.datasets import open_dataset  # noqa: E402
 from service.config import load_config  # noqa: E402
 from service.evaluation import evaluate, evaluate_map_loops  # noqa: E402
 from service.runner import run_dataset  # noqa: E402
-
 
 
 def loop_report(ds, db: Path, min_age: float) -> dict:

@@ -64,19 +64,19 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import gtsam
+import gtsam  # noqa: E402
 
-from client.synthetic import SyntheticDataset
-from service.config import Config, load_config
-from service.mapping.graph import PoseGraph
-from service.mapping.mapper import Mapper
-from service.mapping.process import MappingProcess
-from service.mapping.verification import verify
-from service.mapping.vocabulary import Vocabulary
-from service.memory.long_term import Memory
-from service.pipeline import Pipeline
-from service.tracking.matching import match_descriptors as _match
-from storage import LinkType, MapStore
+from client.synthetic import SyntheticDataset  # noqa: E402
+from service.config import Config, load_config  # noqa: E402
+from service.mapping.graph import PoseGraph  # noqa: E402
+from service.mapping.mapper import Mapper  # noqa: E402
+from service.mapping.process import MappingProcess  # noqa: E402
+from service.mapping.verification import verify  # noqa: E402
+from service.mapping.vocabulary import Vocabulary  # noqa: E402
+from service.memory.long_term import Memory  # noqa: E402
+from service.pipeline import Pipeline  # noqa: E402
+from service.tracking.matching import match_descriptors as _match  # noqa: E402
+from storage import LinkType, MapStore  # noqa: E402
 
 PREFILL_NODE = 10_000_000  # ids of the pre-filled vocabulary nodes / graph nodes: never the store's
 PREFILL_GRAPH = 20_000_000
@@ -507,16 +507,17 @@ def summarize(runs: list[Run]) -> dict:
 def print_scenarios(title: str, rows: list[tuple[str, dict]], pace: bool) -> list[str]:
     base = rows[0][1]
     print(f"\n{title}")
-    head = (f"{'scenario':<38} {'p50':>6} {'p95':>6} {'p99':>6} {'max':>6} {'cpu50':>6} {'runq':>5} {'blkd':>5} {'blkd99':>6} "
-            f"{'fps':>6} | {'x p50':>5} {'x p99':>5} {'x max':>5} {'x fps':>5} | {'kf':>4} {'mapped':>6} {'loops':>5} "
-            f"{'busy':>5} {'map p50':>7} {'map max':>7} {'drain':>6}" + (f" {'late':>4}" if pace else ""))
+    head = (f"{'scenario':<38} {'p50':>6} {'p95':>6} {'p99':>6} {'max':>6} {'cpu50':>6} {'runq':>5} {'blkd':>5} "
+            f"{'blkd99':>6} {'fps':>6} | {'x p50':>5} {'x p99':>5} {'x max':>5} {'x fps':>5} | {'kf':>4} {'mapped':>6} "
+            f"{'loops':>5} {'busy':>5} {'map p50':>7} {'map max':>7} {'drain':>6}" + (f" {'late':>4}" if pace else ""))
     print(head)
     print("-" * len(head))
     flags = []
     for name, s in rows:
         line = (f"{name:<38} {s['p50']:6.1f} {s['p95']:6.1f} {s['p99']:6.1f} {s['max']:6.1f} {s['cpu_p50']:6.1f} "
-                f"{s['runq']:5.1f} {s['blocked']:5.1f} {s['blocked_p99']:6.1f} {s['fps']:6.1f} | {s['p50'] / base['p50']:5.2f} "
-                f"{s['p99'] / base['p99']:5.2f} {s['max'] / base['max']:5.2f} {s['fps'] / base['fps']:5.2f} | "
+                f"{s['runq']:5.1f} {s['blocked']:5.1f} {s['blocked_p99']:6.1f} {s['fps']:6.1f} | "
+                f"{s['p50'] / base['p50']:5.2f} {s['p99'] / base['p99']:5.2f} {s['max'] / base['max']:5.2f} "
+                f"{s['fps'] / base['fps']:5.2f} | "
                 f"{s['kf']:>4} {s['mapped']:>6.0f} {s['loops']:>5.0f} {100 * s['busy']:4.0f}% {s['map_p50']:7.1f} "
                 f"{s['map_max']:7.0f} {s['drain']:5.1f}s" + (f" {s['late']:>4.0f}" if pace else ""))
         print(line)

@@ -47,8 +47,9 @@ def run(dataset, passes: int, max_wm: int, out: Path, overrides: dict) -> dict:
     first_pass_end = ds.stamps[len(dataset) - 1]
     with MapStore(out / "map.db") as store:
         stats = {n.id: store.statistics(n.id) for n in store.nodes(limit=None)}
-        loops = [(l.from_id, l.to_id) for l in store.links() if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)]
-        merges = [(l.from_id, l.to_id) for l in store.links(type=LinkType.MERGED)]  # (survivor, merged keyframe)
+        loops = [(lk.from_id, lk.to_id) for lk in store.links()
+                 if lk.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)]
+        merges = [(lk.from_id, lk.to_id) for lk in store.links(type=LinkType.MERGED)]  # (survivor, merged keyframe)
     out_at, back_at = {}, {}
     for node, st in sorted(stats.items()):
         for n in st["memory"]["transferred"]:
@@ -92,8 +93,9 @@ def main() -> int:
         e, last = r["early"], r["last"]
         print(f"{name} (memory.max_wm_nodes={limit}): {r['frames']} frames in {r['seconds']:.0f} s, map nodes "
               f"{r['keyframes_first_pass']} after pass 1, {r['keyframes']} after {args.passes} "
-              f"({r['keyframes'] / max(r['keyframes_first_pass'], 1):.2f}x; {r['merged']} keyframes merged); WM max {r['wm_max']}, LTM at the end "
-              f"{r['ltm_end']}; {r['transferred']} transferred, {r['retrieved']} retrieved")
+              f"({r['keyframes'] / max(r['keyframes_first_pass'], 1):.2f}x; {r['merged']} keyframes merged); "
+              f"WM max {r['wm_max']}, LTM at the end {r['ltm_end']}; {r['transferred']} transferred, "
+              f"{r['retrieved']} retrieved")
         print(f"  map update median / p99: keyframes 100-300 {np.median(e):.0f} / {np.percentile(e, 99):.0f} ms, "
               f"last 200 {np.median(last):.0f} / {np.percentile(last, 99):.0f} ms "
               f"(p99 ratio {np.percentile(last, 99) / np.percentile(e, 99):.2f})")

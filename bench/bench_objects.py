@@ -112,16 +112,16 @@ def query_layer(path: Path, clients: int, per_client: int, labels: list[str]) ->
         qs = rng.uniform(-55, 55, (20_000, 3))
         lab = [labels[i] for i in rng.integers(0, len(labels), len(qs))]
         lat = np.empty(len(qs))
-        for i, (q, l) in enumerate(zip(qs, lab)):
+        for i, (q, label) in enumerate(zip(qs, lab)):
             t = time.perf_counter()
-            index.nearest(l, q)
+            index.nearest(label, q)
             lat[i] = time.perf_counter() - t
         print(f"  1 thread:  nearest p50 {pct(lat, 50):.3f} ms, p99 {pct(lat, 99):.3f} ms ({len(lat)} queries)")
         nodes = store.node_ids()
         at = nodes[rng.integers(0, len(nodes), len(qs))]
-        for i, (q, l) in enumerate(zip(qs, lab)):  # a robot's query: only objects links join to its keyframe
+        for i, (q, label) in enumerate(zip(qs, lab)):  # a robot's query: only objects links join to its keyframe
             t = time.perf_counter()
-            index.nearest(l, q, joined_to=int(at[i]))
+            index.nearest(label, q, joined_to=int(at[i]))
             lat[i] = time.perf_counter() - t
         print(f"  1 thread:  nearest to a robot's keyframe (joined_to) p50 {pct(lat, 50):.3f} ms, "
               f"p99 {pct(lat, 99):.3f} ms")

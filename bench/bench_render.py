@@ -44,7 +44,8 @@ def main() -> int:
     SyntheticScene(1)
     build2 = time.perf_counter() - t0
     print(f"scene build: {build * 1000:.0f} ms (first, incl. OpenCV warm-up), {build2 * 1000:.0f} ms (second seed); "
-          f"{len(scene.quads)} quads, atlas {scene.atlas.shape[1]}x{scene.atlas.shape[0]}, {len(scene.objects)} objects")
+          f"{len(scene.quads)} quads, atlas {scene.atlas.shape[1]}x{scene.atlas.shape[0]}, "
+          f"{len(scene.objects)} objects")
     print(f"cpu: {'all cores' if args.all_cores else 'pinned to 1 core, cv2 1 thread'}; "
           f"load average {os.getloadavg()[0]:.2f} (other processes slow the numbers down)")
 
@@ -72,8 +73,8 @@ def main() -> int:
             ds.frame(i)
             times.append(time.perf_counter() - t0)
         ms = np.array(times) * 1000
-        print(f"dataset frame 640x480 noise=True: p50 {np.percentile(ms, 50):6.2f} ms  p90 {np.percentile(ms, 90):6.2f} ms"
-              f"  -> {1000 / ms.mean():6.1f} frames/s")
+        print(f"dataset frame 640x480 noise=True: p50 {np.percentile(ms, 50):6.2f} ms  "
+              f"p90 {np.percentile(ms, 90):6.2f} ms  -> {1000 / ms.mean():6.1f} frames/s")
     if args.png:
         out = Path(args.png)
         out.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,8 @@ worker's thread) vs off, on a real sequence: does segmenting keyframes slow trac
 DATASET defaults to $MNEMOSLAM_DATA/7scenes_redkitchen. The frames are decoded first (not
 timed); each configuration then runs the same frames through a pipeline built as the
 service builds it (semantic worker on its own thread; the map update in a child process as
-the service's `loop.process: true` runs it, or on a thread with `--mapping thread`), timing `Pipeline.process` only (tracking; the worker and the map
+the service's `loop.process: true` runs it, or on a thread with `--mapping thread`), timing
+`Pipeline.process` only (tracking; the worker and the map
 update run concurrently), then waits for the worker and the map update to finish (not
 timed). After a warm-up run, off and on alternate (off, on, off, ..., `--rounds` on runs).
 Prints frames/s off and on, the ratio of their medians (issue 14: on within 10 % of off), the
@@ -16,12 +17,12 @@ from __future__ import annotations
 
 import argparse
 import os
-
-import numpy as np
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -84,10 +85,12 @@ def main() -> None:
         stats = st or stats
     med = {k: float(np.median(v)) for k, v in fps.items()}
     print(f"tracking frames/s: off {' / '.join(f'{x:.1f}' for x in fps['off'])} (median {med['off']:.1f}), "
-          f"on {' / '.join(f'{x:.1f}' for x in fps['on'])} (median {med['on']:.1f}); on/off = {med['on'] / med['off']:.3f}")
-    print(f"semantic worker: {stats['processed']} keyframes segmented + fused, {stats['dropped']} dropped (queue full), "
-          f"{stats['errors']} errors, {stats['ms_per_keyframe'] or 0:.0f} ms per keyframe, "
-          f"{stats['objects_stored']} objects stored; load average {os.getloadavg()[0]:.1f}")
+          f"on {' / '.join(f'{x:.1f}' for x in fps['on'])} (median {med['on']:.1f}); "
+          f"on/off = {med['on'] / med['off']:.3f}")
+    print(f"semantic worker: {stats['processed']} keyframes segmented + fused, "
+          f"{stats['dropped']} dropped (queue full), {stats['errors']} errors, "
+          f"{stats['ms_per_keyframe'] or 0:.0f} ms per keyframe, {stats['objects_stored']} objects stored; "
+          f"load average {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

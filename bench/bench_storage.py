@@ -28,8 +28,10 @@ def main() -> int:
     ap.add_argument("--keyframes", type=int, default=5000)
     ap.add_argument("--features", type=int, default=500)
     ap.add_argument("--loads", type=int, default=2000, help="random load_features calls")
-    ap.add_argument("--images", action="store_true", help="also store a ~40 kB JPEG-sized blob and a ~200 kB PNG-sized blob per keyframe")
-    ap.add_argument("--rate", type=float, default=0.0, help="pace the writes at this many keyframes/s (default: as fast as possible)")
+    ap.add_argument("--images", action="store_true",
+                    help="also store a ~40 kB JPEG-sized blob and a ~200 kB PNG-sized blob per keyframe")
+    ap.add_argument("--rate", type=float, default=0.0,
+                    help="pace the writes at this many keyframes/s (default: as fast as possible)")
     ap.add_argument("--db", help="database file (default: a temporary one, deleted afterwards)")
     args = ap.parse_args()
 
@@ -95,14 +97,17 @@ def main() -> int:
 
     ms = times * 1e3
     paced = f", paced at {args.rate:g}/s" if args.rate > 0 else ""
-    print(f"storage bench: {k} keyframes x {n} features{' + image blobs' if args.images else ''}{paced}, SQLite WAL, synchronous=NORMAL")
+    print(f"storage bench: {k} keyframes x {n} features{' + image blobs' if args.images else ''}{paced}, "
+          "SQLite WAL, synchronous=NORMAL")
     print(f"  add_keyframe    {k / total:8.0f} keyframes/s   p50 {np.percentile(ms, 50):.3f} ms   "
           f"p99 {np.percentile(ms, 99):.3f} ms   max {ms.max():.1f} ms")
-    print(f"  load_features   p50 {np.percentile(lt * 1e3, 50):.3f} ms   p99 {np.percentile(lt * 1e3, 99):.3f} ms  ({len(ids)} random nodes)")
+    print(f"  load_features   p50 {np.percentile(lt * 1e3, 50):.3f} ms   p99 {np.percentile(lt * 1e3, 99):.3f} ms  "
+          f"({len(ids)} random nodes)")
     print(f"  bbox query      {found} nodes in box, count + first page {bbox_ms:.2f} ms ({len(page)} returned)")
     print(f"  trajectory      {len(traj)} poses in {traj_ms:.1f} ms")
-    print(f"  database        {st['file_bytes'] / 1e6:.1f} MB incl. WAL while open, {size_after_close / 1e6:.1f} MB after close "
-          f"({size_after_close / k / 1e3:.1f} kB per keyframe); integrity {ok}")
+    print(f"  database        {st['file_bytes'] / 1e6:.1f} MB incl. WAL while open, "
+          f"{size_after_close / 1e6:.1f} MB after close ({size_after_close / k / 1e3:.1f} kB per keyframe); "
+          f"integrity {ok}")
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -89,7 +89,8 @@ def wm_bench(sizes, rng, reps: int = 30) -> None:
             v.reload_node(n, w, c)
         bulk_back = time.perf_counter() - t0
         assert v.dormant == 0 and np.array_equal(v.query(probe), before)
-        ms = (lambda a: f"{1e3 * np.median(a):5.1f} ms (max {1e3 * max(a):5.1f})")
+        def ms(a):
+            return f"{1e3 * np.median(a):5.1f} ms (max {1e3 * max(a):5.1f})"
         print(f"  {n_words:>8} words, {n_nodes} nodes (from_state {build:.1f} s): unload {ms(tu)}, "
               f"reload {ms(tr)}; words made dormant per node: median {int(np.median(dormant))}")
         print(f"  {'':>8} with {len(out)} nodes in LTM ({searchable} searchable, {n_dormant} dormant): "
@@ -130,7 +131,8 @@ def main(argv=None) -> int:
     total = time.perf_counter() - t_start
     arr = np.array(times)
     print(f"grew to {len(v)} words over {node} nodes in {total:.1f} s")
-    print(f"{'words':>9} {'nodes':>6} {'add+query p50':>14} {'p99':>9} {'max':>9} {'add p50':>9} {'query p50':>10} {'cand/query':>11}")
+    print(f"{'words':>9} {'nodes':>6} {'add+query p50':>14} {'p99':>9} {'max':>9} {'add p50':>9} {'query p50':>10} "
+          f"{'cand/query':>11}")
     for c in checkpoints:
         # the nodes added while the vocabulary was in [c/2, c]: (lower edge at 10k: [0, 10k])
         lo = c // 2 if c > 10_000 else 0
@@ -144,8 +146,8 @@ def main(argv=None) -> int:
     tot = (arr[:, 1] + arr[:, 2]) * 1e3
     worst = np.argsort(-tot)[:5]
     print("slowest nodes: " + ", ".join(f"{tot[i]:.0f} ms at {int(arr[i, 0])} words" for i in worst))
-    print(f"all nodes: p50 {np.percentile(tot, 50):.1f} ms, p99 {np.percentile(tot, 99):.1f} ms, max {tot.max():.1f} ms "
-          f"(max/p50 {tot.max() / np.percentile(tot, 50):.1f})")
+    print(f"all nodes: p50 {np.percentile(tot, 50):.1f} ms, p99 {np.percentile(tot, 99):.1f} ms, "
+          f"max {tot.max():.1f} ms (max/p50 {tot.max() / np.percentile(tot, 50):.1f})")
     t0 = time.perf_counter()
     st = v.state()
     t1 = time.perf_counter()

@@ -59,7 +59,8 @@ def explained(frame_a, frame_b, K: np.ndarray, T_ab_list, orb, px: float) -> tup
     return len(z), counts
 
 
-def dense_from_truth(frame_a, frame_b, camera, T_true: np.ndarray, T_link: np.ndarray) -> tuple[float, float, float, float]:
+def dense_from_truth(frame_a, frame_b, camera, T_true: np.ndarray,
+                     T_link: np.ndarray) -> tuple[float, float, float, float]:
     """Dense registration of b onto a started at the true T_a_b: (cm, deg) of the result from
     the ground truth, then from the link (NaN when it does not converge)."""
     a, b = (DenseView(f.depth, f.grey, camera) for f in (frame_a, frame_b))
@@ -77,7 +78,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run_dir", type=Path)
     ap.add_argument("dataset")
-    ap.add_argument("--types", default="loop,proximity", help="link kinds to check (odometry, loop, proximity, path, merged)")
+    ap.add_argument("--types", default="loop,proximity",
+                    help="link kinds to check (odometry, loop, proximity, path, merged)")
     ap.add_argument("--px", type=float, default=3.0, help="a match is explained within this many pixels")
     ap.add_argument("--worst", type=int, default=10, help="list this many links where ground truth explains least")
     ap.add_argument("--dense", action="store_true", help="also register each pair densely from the ground truth's pose")
@@ -107,7 +109,8 @@ def main() -> int:
         T_true = invert(truth[ia]) @ truth[ib]
         fa, fb = ds.frame(ia), ds.frame(ib)
         n, (by_link, by_truth) = explained(fa, fb, K, [np.asarray(link.transform), T_true], orb, args.px)
-        dense = dense_from_truth(fa, fb, ds.calibration.camera, T_true, np.asarray(link.transform)) if args.dense else ()
+        dense = (dense_from_truth(fa, fb, ds.calibration.camera, T_true, np.asarray(link.transform))
+                 if args.dense else ())
         rows.append((link.from_id, link.to_id, kind, ia, ib, n, by_link, by_truth, dense))
     if not rows:
         print("no links of those kinds with ground truth")
@@ -123,16 +126,19 @@ def main() -> int:
     truth_share = np.array([r[7] / max(r[5], 1) for r in rows])
     worse = sum(r[7] < 0.5 * r[6] for r in rows)
     better = sum(r[7] > r[6] for r in rows)
-    print(f"median share explained: by the links {np.median(link_share):.2f}, by ground truth {np.median(truth_share):.2f}")
-    print(f"ground truth explains fewer than half the link's matches on {worse} of {len(rows)} links; more than the link on {better}")
+    print(f"median share explained: by the links {np.median(link_share):.2f}, "
+          f"by ground truth {np.median(truth_share):.2f}")
+    print(f"ground truth explains fewer than half the link's matches on {worse} of {len(rows)} links; "
+          f"more than the link on {better}")
     if args.dense:
         d = np.array([r[8] for r in rows])
         ok = np.isfinite(d[:, 0])
         if ok.any():
             nearer = int((d[ok, 2] < d[ok, 0]).sum())
-            print(f"dense registration from the ground truth's pose converged on {int(ok.sum())} of {len(rows)}: median "
-                  f"{np.median(d[ok, 0]):.2f} cm / {np.median(d[ok, 1]):.2f} deg from the ground truth, {np.median(d[ok, 2]):.2f} cm / "
-                  f"{np.median(d[ok, 3]):.2f} deg from the link; nearer the link on {nearer}")
+            print(f"dense registration from the ground truth's pose converged on {int(ok.sum())} of {len(rows)}: "
+                  f"median {np.median(d[ok, 0]):.2f} cm / {np.median(d[ok, 1]):.2f} deg from the ground truth, "
+                  f"{np.median(d[ok, 2]):.2f} cm / {np.median(d[ok, 3]):.2f} deg from the link; "
+                  f"nearer the link on {nearer}")
     return 0
 
 

@@ -159,7 +159,8 @@ class CaptureSource(Dataset):
         self._pending = None
         if i != self._next:
             if self.device is not None:
-                raise DatasetError(f"{self.source}: a live camera delivers frames in order (asked {i}, next {self._next})")
+                raise DatasetError(f"{self.source}: a live camera delivers frames in order "
+                                   f"(asked {i}, next {self._next})")
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, i)
             self._next = i
         item = self._read()

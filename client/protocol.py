@@ -294,7 +294,8 @@ class KeySpace:
     def __init__(self, prefix: str = DEFAULT_PREFIX):
         chunks = prefix.split("/") if isinstance(prefix, str) else None
         if not chunks or not all(_PREFIX_CHUNK.fullmatch(c) for c in chunks):
-            raise ProtocolError("bad_field", f"key prefix must be '/'-separated chunks of [A-Za-z0-9_.-], got {prefix!r}")
+            raise ProtocolError("bad_field",
+                                f"key prefix must be '/'-separated chunks of [A-Za-z0-9_.-], got {prefix!r}")
         self.prefix = prefix
         self._depth = len(chunks)
 

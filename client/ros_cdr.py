@@ -43,8 +43,7 @@ from typing import Any
 import numpy as np
 
 from .frames import Calibration, PinholeCamera
-from .protocol import (ProtocolError, imdecode, jpeg_header, png_header, PNG_SIGNATURE, dequantize_depth,
-                       quantize_depth)
+from .protocol import PNG_SIGNATURE, ProtocolError, dequantize_depth, imdecode, jpeg_header, png_header, quantize_depth
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -213,7 +212,8 @@ def compressed_depth(msg, size: tuple[int, int] | None = None, max_side: int = 6
     original = fmt.split(";")[0].strip()
     low = fmt.lower()
     if "rvl" in low:
-        raise ProtocolError("bad_encoding", f"compressed depth format {fmt!r:.60}: the RVL codec is not supported (use png)")
+        raise ProtocolError("bad_encoding",
+                            f"compressed depth format {fmt!r:.60}: the RVL codec is not supported (use png)")
     if original not in DEPTH_ENCODINGS:
         raise ProtocolError("bad_encoding", f"compressed depth format {fmt!r:.60}; expected 16UC1 or 32FC1 "
                                             f"compressedDepth png")

@@ -28,8 +28,8 @@ host for payloads above 3 KiB (zenoh's default).
 from __future__ import annotations
 
 import atexit
-import logging
 import json
+import logging
 import re
 import threading
 from dataclasses import dataclass, field

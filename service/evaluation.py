@@ -371,8 +371,9 @@ class LinkReport:
             if not t.count:
                 lines.append(f"links        {t.kind:<10} {t.unmatched} without ground truth")
                 continue
-            lines.append(f"links        {t.kind:<10} {t.count:4d}: median {t.median_cm:.2f} cm / {t.median_deg:.2f} deg, "
-                         f"worst {t.max_cm:.2f} cm / {t.max_deg:.2f} deg, {t.beyond} beyond {cm:g} cm or {deg:g} deg"
+            lines.append(f"links        {t.kind:<10} {t.count:4d}: median {t.median_cm:.2f} cm / "
+                         f"{t.median_deg:.2f} deg, worst {t.max_cm:.2f} cm / {t.max_deg:.2f} deg, "
+                         f"{t.beyond} beyond {cm:g} cm or {deg:g} deg"
                          + (f" ({t.unmatched} without ground truth)" if t.unmatched else ""))
         return "\n".join(lines)
 

@@ -13,9 +13,9 @@ from client.frames import Calibration, Frame
 
 from .config import Config
 from .mapping.mapper import KeyframeUpdate
+from .semantics.worker import SemanticKeyframe
 from .tracking.features import FeatureExtractor
 from .tracking.keyframes import KeyframePolicy
-from .semantics.worker import SemanticKeyframe
 from .tracking.odometry import Odometry
 
 log = logging.getLogger("mnemoslam.pipeline")
@@ -77,7 +77,8 @@ class Pipeline:
         poses), then the session is closed in the database with `reason`."""
         if self.mapper is not None:
             self.mapper.close()
-        if self.semantics is not None and self._owns_semantics:  # after the final poses: objects are written against them
+        # after the final poses: objects are written against them
+        if self.semantics is not None and self._owns_semantics:
             self.semantics.close()
         if self.memory is not None:
             self.memory.close(reason)
@@ -95,7 +96,8 @@ class Pipeline:
         t2 = time.perf_counter()
         keyframe = self.keyframes.decide(tracked)
         node_id = self._remember(frame, features, tracked) if keyframe else None
-        pose = self.mapper.to_map(tracked.pose) if self.mapper is not None and tracked.pose is not None else tracked.pose
+        pose = (self.mapper.to_map(tracked.pose) if self.mapper is not None and tracked.pose is not None
+                else tracked.pose)
         if node_id is not None:
             self._fuse_semantics(frame, node_id, pose)
         t3 = time.perf_counter()

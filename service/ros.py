@@ -38,8 +38,9 @@ unpaired image of the other stream whose stamp is nearest, within `ros.sync_tole
 pair's older unpaired images are dropped and counted ``unpaired``, as are images that waited in
 vain: once their own stream is `ros.sync_window` (0.5 s) past them, or pushed out of a stream's
 buffer (`ros.sync_queue`, a memory cap). The window is in stamp time, not a count: the two keys'
-callbacks can run several images apart when frames come in bursts. Each pair becomes one frame (seq counting pairs from 0,
-stamp = the colour image's) that takes the native path from there: held while the robot has
+callbacks can run several images apart when frames come in bursts. Each pair becomes one frame
+(seq counting pairs from 0, stamp = the colour image's) that takes the native path from there:
+held while the robot has
 no slot (`service.hold_frames`), checked against the calibration (``size_mismatch``), stamp
 order, the robot's queue and its drops. CDR that does not decode is counted ``bad_cdr`` (per
 robot too once it has a slot), never a crash. The native JSON pose is published on
@@ -88,7 +89,8 @@ def _check_key(key, where: str, wildcards: bool = True) -> str:
     try:
         zenoh.KeyExpr(key)
     except Exception:
-        raise ConfigError(f"{where}: {key!r} is not a Zenoh key expression (no leading, trailing or double '/')") from None
+        raise ConfigError(f"{where}: {key!r} is not a Zenoh key expression "
+                          "(no leading, trailing or double '/')") from None
     return key
 
 
@@ -123,7 +125,8 @@ def parse_robots(config: RosConfig) -> list[RosRobot]:
             raise ConfigError(f"{where}.intrinsics: expected k or p, got {intrinsics!r}")
         out.append(RosRobot(
             robot, _check_key(entry["color"], f"{where}.color"), _check_key(entry["depth"], f"{where}.depth"),
-            _check_key(entry["info"], f"{where}.info"), None if entry.get("pose") is None else _check_key(entry["pose"], f"{where}.pose", wildcards=False),
+            _check_key(entry["info"], f"{where}.info"),
+            None if entry.get("pose") is None else _check_key(entry["pose"], f"{where}.pose", wildcards=False),
             intrinsics))
     return out
 
@@ -158,12 +161,14 @@ class RosPair:
 @dataclass
 class _Stream:
     robot: RosRobot
-    lock: threading.Lock = field(default_factory=threading.Lock)  # pairing; taken before the service's lock, never after
+    # pairing; taken before the service's lock, never after
+    lock: threading.Lock = field(default_factory=threading.Lock)
     colors: deque = field(default_factory=deque)  # (ns, msg, bytes), unpaired, in arrival order
     depths: deque = field(default_factory=deque)
     seq: int = 0
     stamps: OrderedDict = field(default_factory=OrderedDict)  # frame stamp (s) -> ns, for the pose's header
-    stamps_lock: threading.Lock = field(default_factory=threading.Lock)  # (a leaf lock: decode runs under the service's)
+    # (a leaf lock: decode runs under the service's)
+    stamps_lock: threading.Lock = field(default_factory=threading.Lock)
 
 
 class RosIngest:
@@ -180,8 +185,10 @@ class RosIngest:
         for st in self.robots.values():
             r = st.robot
             self._subscribers.append(zenoh_session.declare_subscriber(r.info, lambda s, st=st: self._on_info(st, s)))
-            self._subscribers.append(zenoh_session.declare_subscriber(r.color, lambda s, st=st: self._on_image(st, s, False)))
-            self._subscribers.append(zenoh_session.declare_subscriber(r.depth, lambda s, st=st: self._on_image(st, s, True)))
+            self._subscribers.append(zenoh_session.declare_subscriber(
+                r.color, lambda s, st=st: self._on_image(st, s, False)))
+            self._subscribers.append(zenoh_session.declare_subscriber(
+                r.depth, lambda s, st=st: self._on_image(st, s, True)))
             log.info("ROS robot robot=%s color=%s depth=%s info=%s pose=%s", r.robot, r.color, r.depth, r.info, r.pose)
 
     def stop(self) -> None:
@@ -198,7 +205,8 @@ class RosIngest:
     def _on_info(self, st: _Stream, sample) -> None:
         key = str(sample.key_expr)
         try:
-            msg = ros_cdr.deserialize(sample.payload.to_bytes(), ros_cdr.CAMERA_INFO, self.service.limits.max_message_bytes)
+            msg = ros_cdr.deserialize(sample.payload.to_bytes(), ros_cdr.CAMERA_INFO,
+                                      self.service.limits.max_message_bytes)
             cal = ros_cdr.calibration(msg, st.robot.intrinsics, self.service.config.service.max_image_side)
         except ProtocolError as e:
             self.service.count_reject(e.reason if e.reason == "bad_cdr" else "bad_info", key, e)

@@ -19,7 +19,6 @@ from client.datasets import Dataset
 from client.frames import DatasetError
 from client.geometry import invert
 from client.trajectory import Trajectory, write_tum
-
 from storage import MapStore
 
 from .builder import build_pipeline
@@ -61,7 +60,8 @@ class RunOutput:
     keyframes: Trajectory  # keyframes at their final (optimized) poses
     results: list[FrameResult]
     online: Trajectory | None = None  # every tracked frame as published while running (map at that time)
-    instance_frames: np.ndarray | None = None  # synthetic + semantics: frames in which ≥ 200 px of each instance id were visible
+    # synthetic + semantics: frames in which ≥ 200 px of each instance id were visible
+    instance_frames: np.ndarray | None = None
     links: "LinkReport | None" = None  # the map's links against ground truth, per type (datasets with ground truth)
 
     def __post_init__(self):
@@ -151,8 +151,8 @@ VISIBLE_PIXELS = 200  # an object counts as seen in a frame with at least this m
 
 
 UPDATE_COLUMNS = ("keyframe", "stamp", "update_ms", "stm", "wm", "ltm", "transferred", "retrieved", "merged", "words")
-UPDATE_STEPS = ("local_ba", "rehearsal", "graph", "vocabulary", "detection", "verification_optimization", "proximity", "path",
-                "memory")
+UPDATE_STEPS = ("local_ba", "rehearsal", "graph", "vocabulary", "detection", "verification_optimization", "proximity",
+                "path", "memory")
 
 
 def write_updates(path: Path, statistics) -> None:

@@ -14,7 +14,8 @@ update carries only what changed since the previous one:
                            `Limits.max_points`) and "links" every shown link (the newest
                            `Limits.max_links`); false: "points" are new nodes to append, no links,
                    "points": [x, y, z, x, y, z, ...] (m, map frame, by node id),
-                   "links": [[type, x1, y1, z1, x2, y2, z2], ...] (type named by storage.LINK_NAMES: loop, proximity, ...),
+                   "links": [[type, x1, y1, z1, x2, y2, z2], ...] (type named by storage.LINK_NAMES:
+                             loop, proximity, ...),
                    "memory": {"stm", "wm", "ltm", "words"} after the latest map update,
                    "frame": the map id of the oldest session links join it to (its own until a
                             link places it in another's frame; when it changed)}],
@@ -263,7 +264,8 @@ class Viewer:
 
     def __init__(self, service, objects: Callable | None = None, interval: float = 0.5, max_age: float = 600.0,
                  limits: Limits = Limits()):
-        self.service, self.objects, self.interval, self.max_age, self.limits = service, objects, interval, max_age, limits
+        self.service, self.objects, self.interval = service, objects, interval
+        self.max_age, self.limits = max_age, limits
         self.closed = False
         self._page: str | None = None
 

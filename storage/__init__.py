@@ -3,8 +3,18 @@ words, images and statistics in one file. See `storage.store` for how `MapStore`
 concern, `storage.records` for the encodings, `storage.connection` for the durability /
 threading guarantees, `storage.schema` for the tables and migrations and
 `storage.repository` for the interface the service uses."""
-from .records import (LINK_NAMES, KeyframeRecord, LinkRecord, LinkType, NodeRecord, ObjectRecord, SessionRecord,
-                      StoreError, UnknownIdError, link_name)
+from .records import (
+    LINK_NAMES,
+    KeyframeRecord,
+    LinkRecord,
+    LinkType,
+    NodeRecord,
+    ObjectRecord,
+    SessionRecord,
+    StoreError,
+    UnknownIdError,
+    link_name,
+)
 from .repository import MapRepository
 from .store import MapStore
 

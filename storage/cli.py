@@ -43,9 +43,9 @@ def db_info(path: str | Path) -> str:
             ps = per_session.get(s.id, {})
             n, first, last = ps.get("nodes", 0), ps.get("first_stamp"), ps.get("last_stamp")
             f = "-" if first is None else f"{first:.6f}"
-            l = "-" if last is None else f"{last:.6f}"
+            la = "-" if last is None else f"{last:.6f}"
             how = f" ({s.end_reason})" if s.end_reason else ""
-            lines.append(f"  {s.id:>4}  {s.robot:<16} {s.map_id:>4} {n:>7}  {f:>17}  {l:>17}  "
+            lines.append(f"  {s.id:>4}  {s.robot:<16} {s.map_id:>4} {n:>7}  {f:>17}  {la:>17}  "
                          f"{_when(s.started_at):<19}  {_when(s.ended_at)}{how}")
     by_type = ", ".join(f"{k} {v}" for k, v in st["links_by_type"].items())
     lines += [

@@ -287,8 +287,8 @@ class Connection:
             raise StoreError(self._newer_message(version))
         if version == 0:
             if tables:
-                raise StoreError(f"{self.path} is not a mnemoslam database (it has tables {', '.join(sorted(tables)[:5])} "
-                                 "but no mnemoslam schema version)")
+                raise StoreError(f"{self.path} is not a mnemoslam database "
+                                 f"(it has tables {', '.join(sorted(tables)[:5])} but no mnemoslam schema version)")
             if not create:
                 raise StoreError(f"{self.path} is not a mnemoslam database (no schema)")
         while True:

@@ -81,7 +81,8 @@ class Nodes(Connection):
                           "(SELECT MAX(n.time_enter) FROM nodes n WHERE n.session_id = sessions.id), started_at) "
                           "WHERE ended_at IS NULL", (why,))
                 q = ",".join("?" * len(ids))
-                rows = c.execute(f"SELECT {_SESSION_COLUMNS} FROM sessions WHERE id IN ({q}) ORDER BY id", ids).fetchall()
+                rows = c.execute(f"SELECT {_SESSION_COLUMNS} FROM sessions WHERE id IN ({q}) ORDER BY id",
+                                 ids).fetchall()
             else:
                 rows = []
         return [_session(r) for r in rows]
@@ -168,7 +169,8 @@ class Nodes(Connection):
         try:
             t = LinkType(_as_int(type, "link type"))
         except ValueError as e:
-            raise ValueError(f"unknown link type {type!r} (known: {', '.join(f'{x.value} {x.name.lower()}' for x in LinkType)})") from e
+            known = ", ".join(f"{x.value} {x.name.lower()}" for x in LinkType)
+            raise ValueError(f"unknown link type {type!r} (known: {known})") from e
         T = _pack(_rigid(transform, "transform"), np.float64)
         info = _pack(np.eye(6) if information is None else _matrix(information, (6, 6), "information"), np.float64)
         verb = "INSERT OR REPLACE" if replace else "INSERT"
@@ -178,7 +180,8 @@ class Nodes(Connection):
                           (a, b, int(t), T, info))
             except sqlite3.IntegrityError as e:
                 if "FOREIGN KEY" in str(e):
-                    missing = [i for i in (a, b) if c.execute("SELECT 1 FROM nodes WHERE id = ?", (i,)).fetchone() is None]
+                    missing = [i for i in (a, b)
+                               if c.execute("SELECT 1 FROM nodes WHERE id = ?", (i,)).fetchone() is None]
                     raise UnknownIdError(f"link {a} -> {b}: no node {', '.join(map(str, missing))}") from e
                 raise StoreError(f"link {a} -> {b} of type {t.name.lower()} already exists (pass replace=True)") from e
 
@@ -200,10 +203,11 @@ class Nodes(Connection):
                 raise UnknownIdError(f"merge {a} into {b}: no node {', '.join(map(str, missing))}")
             if rows[a] is not None or rows[b] is not None:
                 raise StoreError(f"merge {a} into {b}: node {a if rows[a] is not None else b} is merged already")
-            c.execute("UPDATE nodes SET weight = weight + (SELECT weight + 1 FROM nodes WHERE id = ?) WHERE id = ?", (a, b))
+            c.execute("UPDATE nodes SET weight = weight + (SELECT weight + 1 FROM nodes WHERE id = ?) WHERE id = ?",
+                      (a, b))
             c.execute("UPDATE nodes SET merged_into = ? WHERE id = ?", (b, a))
-            c.execute("INSERT OR REPLACE INTO links (from_id, to_id, type, transform, information) VALUES (?, ?, ?, ?, ?)",
-                      (b, a, int(LinkType.MERGED), T, info))
+            c.execute("INSERT OR REPLACE INTO links (from_id, to_id, type, transform, information) "
+                      "VALUES (?, ?, ?, ?, ?)", (b, a, int(LinkType.MERGED), T, info))
             c.execute("DELETE FROM features WHERE node_id = ?", (a,))
             c.execute("DELETE FROM images WHERE node_id = ?", (a,))
             return c.execute("SELECT weight FROM nodes WHERE id = ?", (b,)).fetchone()[0]
@@ -232,7 +236,8 @@ class Nodes(Connection):
         with self._write("update_poses") as c:
             cur = c.executemany("UPDATE nodes SET pose = ?, x = ?, y = ?, z = ? WHERE id = ?", rows)
             if cur.rowcount != len(rows):
-                missing = [r[4] for r in rows if c.execute("SELECT 1 FROM nodes WHERE id = ?", (r[4],)).fetchone() is None]
+                missing = [r[4] for r in rows
+                           if c.execute("SELECT 1 FROM nodes WHERE id = ?", (r[4],)).fetchone() is None]
                 raise UnknownIdError(f"update_poses: no node {', '.join(map(str, missing[:10]))}"
                                      f"{' …' if len(missing) > 10 else ''}; nothing updated")
         return len(rows)

@@ -23,10 +23,10 @@ from .records import (
     _bbox,
     _jsonable,
     _link,
-    link_name,
     _node,
     _session,
     _unpack,
+    link_name,
 )
 
 
@@ -154,7 +154,8 @@ class Queries(Connection):
         with id > `after_id`, by id: the viewer's trajectory without decoding poses."""
         with self._read() as c:
             rows = c.execute("SELECT id, x, y, z FROM nodes WHERE session_id = ? AND id > ? AND merged_into IS NULL "
-                             "ORDER BY id", (_as_int(session_id, "session_id"), _as_int(after_id, "after_id"))).fetchall()
+                             "ORDER BY id",
+                             (_as_int(session_id, "session_id"), _as_int(after_id, "after_id"))).fetchall()
         return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
     def link_segments(self, types: Iterable[int], session_id: int, limit: int | None = None) -> list[tuple]:
@@ -281,7 +282,8 @@ class Queries(Connection):
         """Counts (one consistent snapshot) and file sizes; JSON-encodable."""
         with self._read(snapshot=True) as c:
             one = lambda sql: c.execute(sql).fetchone()[0]  # noqa: E731
-            by_type = {link_name(t): n for t, n in c.execute("SELECT type, COUNT(*) FROM links GROUP BY type ORDER BY type")}
+            by_type = {link_name(t): n
+                       for t, n in c.execute("SELECT type, COUNT(*) FROM links GROUP BY type ORDER BY type")}
             out = {
                 "schema_version": one("PRAGMA user_version"),
                 "sessions": one("SELECT COUNT(*) FROM sessions"),
@@ -357,9 +359,9 @@ class Queries(Connection):
             "nodes": [{"id": r[0], "session": r[1], "stamp": r[2],
                        "pose": _unpack(r[3], np.float64, (4, 4)).reshape(-1).tolist(),
                        "weight": r[4], "label": r[5]} for r in nodes],
-            "links": [{"from": l.from_id, "to": l.to_id, "type": int(l.type),
-                       "transform": l.transform.reshape(-1).tolist(),
-                       "information": l.information.reshape(-1).tolist()} for l in links],
+            "links": [{"from": lk.from_id, "to": lk.to_id, "type": int(lk.type),
+                       "transform": lk.transform.reshape(-1).tolist(),
+                       "information": lk.information.reshape(-1).tolist()} for lk in links],
         }
         p = out / "graph.json"
         p.write_text(json.dumps(_jsonable(graph, "graph"), indent=1))

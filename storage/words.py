@@ -71,7 +71,8 @@ class Words(Connection):
                               (desc, time.time(), ids))
                 except sqlite3.IntegrityError as e:
                     dup = [r[0] for r in c.execute(
-                        "SELECT id FROM words WHERE id IN (SELECT value FROM json_each(?)) ORDER BY id LIMIT 10", (ids,))]
+                        "SELECT id FROM words WHERE id IN (SELECT value FROM json_each(?)) ORDER BY id LIMIT 10",
+                        (ids,))]
                     raise StoreError(f"word id(s) {', '.join(map(str, dup))} already stored: word ids are never "
                                      "reused (two vocabularies writing to one map?); nothing written") from e
                 c.execute("INSERT INTO admin (key, value) VALUES ('next_word_id', ?1) ON CONFLICT(key) DO UPDATE "

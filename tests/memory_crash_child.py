@@ -5,7 +5,8 @@ map with a small working memory, killed by the test with SIGKILL.
 
 Once its imports are done it prints IMPORTED and waits for a line on stdin before it reads
 the frames and opens the database (so the test can start it while it still renders the
-frames or recovers the previous child's map); then it plays the pre-rendered frames of FRAMES.npz (`save_frames`) through the pipeline
+frames or recovers the previous child's map); then it plays the pre-rendered frames of
+FRAMES.npz (`save_frames`) through the pipeline
 `service.builder.build_pipeline` assembles, the map update on its own thread (tracking keeps
 committing keyframes while the map update runs, as in the service), and writes one line per
 event to stdout, flushed at once so the test sees it before the kill:

@@ -199,7 +199,7 @@ def test_decoded_size_bomb_is_refused_before_decoding(svc, z, dataset):
         n = protocol.FIXED_HEADER_BYTES + len(robot)
         wire[n:n + 8] = len(colour).to_bytes(4, "little") + len(depth).to_bytes(4, "little")
         pub = _publisher(z, robot)
-        for seq in range(8):
+        for _ in range(8):
             pub.put(bytes(wire) + colour + depth)
         pub.undeclare()
     after = _until(lambda: (lambda r: r if r.get("size_mismatch", 0) - before.get("size_mismatch", 0) == 8

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import requests
 
+from client.frames import Calibration, PinholeCamera
 from client.planner import ApiError, PlannerClient
 from service.api import TOKEN_ENV, ApiThread, create_app
 from service.config import Config, load_config, to_dict
 from storage import MapStore
 from storage.records import KeyframeRecord, LinkType, ObjectRecord
-from client.frames import Calibration, PinholeCamera
 
 TOKEN = "s3cret-token"
 # objects: (label, world position); anchors are the nearest keyframe (keyframes at x = 0..9, y = z = 0)
@@ -266,7 +266,8 @@ def test_robot_status_says_which_map_it_is_localized_in(tmp_path):
     s2 = store.begin_session("r2", cal, {})
     n2 = store.add_keyframe(KeyframeRecord(session_id=s2, stamp=20.0, pose=np.eye(4),
                                            keypoints=np.zeros((0, 2), np.float32),
-                                           descriptors=np.zeros((0, 32), np.uint8), points=np.zeros((0, 3), np.float32)))
+                                           descriptors=np.zeros((0, 32), np.uint8),
+                                           points=np.zeros((0, 3), np.float32)))
     maps = {s.id: s.map_id for s in store.sessions()}
     robots = [_robot("r1", [9.0, 0.0, 0.0], ids[-1], sid), _robot("r2", [0.0, 0.0, 0.0], n2, s2),
               _robot("r3", None, None, None)]

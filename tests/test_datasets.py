@@ -15,6 +15,7 @@ from client.datasets.euroc import read_sensor_yaml
 from client.datasets.kitti import read_calib
 from client.datasets.tum import associate
 from client.frames import DatasetError
+
 from conftest import require
 
 RNG = np.random.default_rng(0)

@@ -34,7 +34,8 @@ def compose() -> dict:
 
 def _instructions(path: Path) -> list[tuple[str, str]]:
     """(INSTRUCTION, arguments) of a Dockerfile, continuation lines joined, comments dropped."""
-    text = re.sub(r"\\\n", " ", "\n".join(l for l in path.read_text().splitlines() if not l.lstrip().startswith("#")))
+    text = re.sub(r"\\\n", " ",
+                  "\n".join(ln for ln in path.read_text().splitlines() if not ln.lstrip().startswith("#")))
     out = []
     for line in text.splitlines():
         if line.strip():

@@ -23,7 +23,7 @@ def inv(t):
     return np.linalg.inv(t)
 
 
-def square(side: int = 10, step: float = 0.5, origin=np.eye(4)) -> list[np.ndarray]:
+def square(side: int = 10, step: float = 0.5, origin=np.eye(4)) -> list[np.ndarray]:  # noqa: B008 - only copied
     """Camera-to-world poses around a square (4·side steps; the last pose is back at the start)."""
     poses = [origin.copy()]
     fwd, turn = exp([0, 0, 0, step, 0, 0]), exp([0, 0, np.pi / 2, 0, 0, 0])
@@ -35,7 +35,7 @@ def square(side: int = 10, step: float = 0.5, origin=np.eye(4)) -> list[np.ndarr
     return poses
 
 
-def noisy_odometry(truth, rng, bias_yaw=np.deg2rad(0.4), noise=0.3):
+def noisy_odometry(truth, rng, bias_yaw=np.deg2rad(0.4), noise=0.3):  # noqa: B008 - a float
     """Relative motions with a constant yaw bias (a drifting gyro) plus noise of noise·σ."""
     out = []
     for a, b in zip(truth[:-1], truth[1:]):
@@ -352,7 +352,7 @@ def test_replace_odometry_takes_the_new_measurements(scene):
     g.add_loop(0, 5, loop_measurement(truth, 0, 5, rng), LOOP_INFO)
     exact = {(i, i + 1): inv(truth[i]) @ truth[i + 1] for i in range(5, 10)}
     replaced = g.replace_odometry({**exact, (0, 5): np.eye(4), (2, 9): np.eye(4)})
-    assert sorted((l.from_id, l.to_id) for l in replaced) == sorted(exact)
+    assert sorted((lk.from_id, lk.to_id) for lk in replaced) == sorted(exact)
     est = g.poses()
     for (a, b), t in exact.items():  # the links after the loop's end are now exact
         assert np.abs(inv(est[a]) @ est[b] - t).max() < 1e-4

@@ -7,8 +7,8 @@ import pytest
 from client.frames import PinholeCamera
 from client.geometry import invert
 from service.mapping.local_ba import LocalBundleAdjustment
-from service.tracking.odometry import LocalMap
 from service.tracking.features import FrameFeatures
+from service.tracking.odometry import LocalMap
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 
@@ -179,7 +179,8 @@ def test_local_map_ids_are_stable_across_trimming():
     ids1 = m.update(2, f2, np.eye(4), idx)
     assert list(ids1[:10]) == list(range(30, 40)) and list(ids1[10:]) == list(range(40, 70))
     assert len(m) == 50  # trimmed: the 20 least recently seen went, ids moved with their points
-    assert m.ids.tolist() == list(range(10)) + list(range(30, 70))  # of the first frame's unseen points, the first 10 stay
+    # of the first frame's unseen points, the first 10 stay
+    assert m.ids.tolist() == list(range(10)) + list(range(30, 70))
     row = int(np.nonzero(m.ids == 35)[0][0])
     np.testing.assert_allclose(m.points[row], f.points[35])
     m.clear()
@@ -260,10 +261,10 @@ def test_the_database_holds_the_links_local_ba_refined(tmp_path):
         relinked = sum(store.statistics(n.id).get("local_ba", {}).get("relinked", 0) for n in nodes)
     assert relinked > 0
     ids = {n.id for n in nodes}
-    odometry = [(l.from_id, l.to_id, l.transform, l.information) for l in links
-                if l.type == LinkType.NEIGHBOR and l.from_id in ids and l.to_id in ids]
-    loops = [(l.from_id, l.to_id, l.transform, l.information) for l in links
-             if l.type not in (LinkType.NEIGHBOR, LinkType.MERGED) and l.from_id in ids and l.to_id in ids]
+    odometry = [(lk.from_id, lk.to_id, lk.transform, lk.information) for lk in links
+                if lk.type == LinkType.NEIGHBOR and lk.from_id in ids and lk.to_id in ids]
+    loops = [(lk.from_id, lk.to_id, lk.transform, lk.information) for lk in links
+             if lk.type not in (LinkType.NEIGHBOR, LinkType.MERGED) and lk.from_id in ids and lk.to_id in ids]
     g = PoseGraph()
     g.restore({n.id: n.pose for n in nodes}, odometry, loops)
     restored = g.poses()

@@ -65,7 +65,7 @@ def test_revisit_accepted_and_no_false_accepts():
         h = wd.step(wd.new_place())
         assert not h.accepted, h
     accepted = []
-    for k, i in enumerate(range(30, 40)):  # nodes 60..69 revisit places 30..39 (30 nodes earlier)
+    for i in range(30, 40):  # nodes 60..69 revisit places 30..39 (30 nodes earlier)
         h = wd.step(wd.revisit(i))
         if h.accepted:
             accepted.append((i, h.best_id))

@@ -52,7 +52,8 @@ def mapped(tmp_path_factory, figure8_run):
         loops = [(a.from_id, a.to_id) for a in s.links() if a.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)]
         merges = [n.id for n in s.nodes(limit=None)  # rehearsal's loop closures (merges back into the map)
                   if (((s.statistics(n.id) or {}).get("rehearsal") or {}).get("loop"))]
-    reference = dict(loops=loops, merges=merges, poses={r.node_id: p for r, p in zip(keyframes, offline.keyframes.poses)})
+    reference = dict(loops=loops, merges=merges,
+                     poses={r.node_id: p for r, p in zip(keyframes, offline.keyframes.poses)})
     yield dict(ds=ds, db=db, store=store, events=events, reference=reference, results=results,
                correction=correction, stats=stats, pid=mp.pid)
     store.close()

@@ -30,10 +30,11 @@ from pathlib import Path
 
 from client.datasets import open_dataset
 from client.datasets.passes import Passes
-from map_check import check_map
-from memory_crash_child import save_frames
 from service.config import load_config
 from service.recovery import recover
+
+from map_check import check_map
+from memory_crash_child import save_frames
 
 CHILD = Path(__file__).with_name("memory_crash_child.py")
 # WM of 2 nodes, STM of 1, only nodes within 0.3 m immune: from the 5th keyframe on, every
@@ -172,7 +173,8 @@ def test_kill_9_during_transfers_and_retrievals_loses_no_node(tmp_path):
             known = after.nodes
             rows.append(dict(kind=kind, hold=hold, delay=round(delay, 3), last=" ".join(last), session=sid,
                              nodes=len(session_nodes), reported=len(reported), backlog=len(backlog),
-                             recovery_s=round(report.seconds, 2), moves_announced=(len(child.ids("T")), len(child.ids("R"))),
+                             recovery_s=round(report.seconds, 2),
+                             moves_announced=(len(child.ids("T")), len(child.ids("R"))),
                              moves_stored=(transfers, retrievals)))
     finally:
         for c in children:

@@ -31,7 +31,7 @@ def test_repeated_merges_refine_one_link_and_skip_what_moves_nothing():
     rng = np.random.default_rng(3)
     true = np.linalg.inv(poses[5]) @ poses[1]
     reasons = []
-    for k in range(12):  # the same place merged again and again: measurements 20 µm apart
+    for _ in range(12):  # the same place merged again and again: measurements 20 µm apart
         t = true @ exp(np.r_[rng.normal(0, 2e-6, 3), rng.normal(0, 2e-5, 3)])
         out = m.link_merge(5, 1, t, INFO)
         assert out.accepted, out.reason

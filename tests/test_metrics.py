@@ -38,8 +38,8 @@ def _value(samples, name: str, **labels) -> float:
 
 
 def test_a_stream_shows_in_the_scraped_metrics(svc):
-    stats = stream_dataset(open_dataset("synthetic:loop", max_frames=FRAMES), "m1", ZenohSettings(connect=[svc.endpoint]),
-                           rate=None, progress=False, wait_for_subscriber=10.0)
+    stats = stream_dataset(open_dataset("synthetic:loop", max_frames=FRAMES), "m1",
+                           ZenohSettings(connect=[svc.endpoint]), rate=None, progress=False, wait_for_subscriber=10.0)
     assert stats.frames == FRAMES
     svc.wait_processed("m1", FRAMES)
     r = svc.wait_mapped("m1")  # every keyframe's map update done: its statistics are in the database

@@ -12,9 +12,24 @@ import numpy as np
 import pytest
 
 from client.frames import Calibration, Frame, PinholeCamera
-from client.protocol import (EVENT_KINDS, FIXED_HEADER_BYTES, PROTOCOL_VERSION, KeySpace, Limits, ProtocolError,
-                             decode_event, decode_frame, decode_info, decode_info_message, decode_pose,
-                             encode_event, encode_frame, encode_info, encode_pose, quantize_depth)
+from client.protocol import (
+    EVENT_KINDS,
+    FIXED_HEADER_BYTES,
+    PROTOCOL_VERSION,
+    KeySpace,
+    Limits,
+    ProtocolError,
+    decode_event,
+    decode_frame,
+    decode_info,
+    decode_info_message,
+    decode_pose,
+    encode_event,
+    encode_frame,
+    encode_info,
+    encode_pose,
+    quantize_depth,
+)
 
 # the layout as documented in client/protocol.py, written out independently here
 FIXED = struct.Struct("<4sHHHQdBBBHHBfB")
@@ -134,7 +149,8 @@ def test_encode_rejects_what_cannot_be_sent():
         (dict(robot="bad robot"), "bad_robot"), (dict(robot=""), "bad_robot"), (dict(robot="x" * 65), "bad_robot"),
         (dict(seq=-1), "bad_seq"), (dict(seq=2**64), "bad_seq"), (dict(seq=1.5), "bad_seq"),
         (dict(color="webp"), "bad_header"), (dict(depth="jpeg"), "bad_header"), (dict(depth_scale=0.0), "bad_header"),
-        (dict(depth_scale=float("nan")), "bad_header"), (dict(kind="lidar"), "bad_kind"), (dict(kind="stereo"), "bad_frame"),
+        (dict(depth_scale=float("nan")), "bad_header"), (dict(kind="lidar"), "bad_kind"),
+        (dict(kind="stereo"), "bad_frame"),
     ]
     for kw, reason in cases:
         args = dict(robot="r", seq=0)
@@ -193,7 +209,8 @@ def test_crafted_messages_have_their_reason():
         "bad_version": [(_craft(version=0), None), (_craft(version=3), None), (_craft(version=0xFFFF), None),
                         (b"MSLF\x03\x00", None)],
         "bad_header": [(_craft(header_len=10), None),
-                       (_craft(version=2), None),  # a version 1 layout is too short for version 2 (_craft(header_len=2000, p1=bytes(2000)), None),
+                       (_craft(version=2), None),  # a version 1 layout is too short for version 2
+                       # (_craft(header_len=2000, p1=bytes(2000)), None),
                        (_craft(kind=3), None), (_craft(cenc=3), None), (_craft(senc=3, kind=0), None),
                        (_craft(c=2), None), (_craft(c=0), None), (_craft(c=4), None),
                        (_craft(kind=2, senc=1, p2=bytes(12)), None),  # mono with a second image
@@ -213,7 +230,8 @@ def test_crafted_messages_have_their_reason():
                      (_craft(cenc=1, p1=b""), None), (_craft(cenc=2, p1=b""), None),
                      (_craft(kind=0, senc=2, p2=b""), None)],
         "bad_robot": [(_craft(robot=b"a b"), None), (_craft(robot=b""), None), (_craft(robot=b"\xff\xfe"), None),
-                      (_craft(robot=b"x" * 65), None), (_craft(robot="é".encode()), None), (_craft(robot=b"a/b"), None)],
+                      (_craft(robot=b"x" * 65), None), (_craft(robot="é".encode()), None),
+                      (_craft(robot=b"a/b"), None)],
         "bad_stamp": [(_craft(stamp=float("nan")), None), (_craft(stamp=float("inf")), None),
                       (_craft(stamp=float("-inf")), None), (_craft(stamp=-0.001), None)],
         "decode_failed": [(_craft(cenc=1, p1=b"not a png at all" * 3), None),
@@ -352,7 +370,7 @@ def test_fuzz_frames_raise_only_protocol_errors():
         m[pos] = int(rng.integers(0, 256))
         count(_outcome(bytes(m)))
     # 5. NaN / inf / negative stamps, wrong versions, oversize
-    for k, m in enumerate(valid):
+    for m in valid:
         for stamp in (float("nan"), float("inf"), -float("inf"), -1e-9, -5.0):
             b = bytearray(m)
             struct.pack_into("<d", b, 18, stamp)
@@ -446,7 +464,8 @@ def test_pose_round_trip_and_validation():
                            ({"stamp": None}, "bad_json"), ({"pose": [[1, 2], [3, 4]]}, "bad_field"),
                            ({"pose": "eye"}, "bad_json"), ({"pose": [[1, 0, 0, 0]] * 3 + [["a", 0, 0, 1]]}, "bad_json"),
                            ({"keyframe": 1}, "bad_json"), ({"segment": 1.5}, "bad_json"),
-                           ({"node_id": -1}, "bad_field"), ({"status": ""}, "bad_field"), ({"version": 0}, "bad_version")]:
+                           ({"node_id": -1}, "bad_field"), ({"status": ""}, "bad_field"),
+                           ({"version": 0}, "bad_version")]:
         with pytest.raises(ProtocolError) as e:
             decode_pose(json.dumps(dict(base, **change)).encode())
         assert e.value.reason == reason, change
@@ -605,7 +624,8 @@ def test_label_layout_is_as_documented():
     assert (lenc, lbytes) == (2, 2)
     p3 = png[55 + clen + slen:]
     assert len(p3) == llen and p3[:8] == b"\x89PNG\r\n\x1a\n"
-    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(p3, np.uint8), cv2.IMREAD_UNCHANGED), lab.astype(np.uint16) + 1000)
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(p3, np.uint8), cv2.IMREAD_UNCHANGED),
+                                  lab.astype(np.uint16) + 1000)
 
 
 def test_old_format_without_labels_is_unchanged():
@@ -720,7 +740,8 @@ def test_info_class_table():
     assert decode_info_message(encode_info("bot", CAL, classes=big)).class_count == MAX_CLASSES
     base = json.loads(encode_info("bot", CAL))
     cases = [("door", "bad_json"), ({"0": "door"}, "bad_json"), (3, "bad_json"), ([], "bad_field"),
-             (["a", 1], "bad_json"), (["a", None], "bad_json"), (["a", ""], "bad_field"), (["a", "x" * 65], "bad_field"),
+             (["a", 1], "bad_json"), (["a", None], "bad_json"), (["a", ""], "bad_field"),
+             (["a", "x" * 65], "bad_field"),
              (["a", "b\n"], "bad_field"), (["a", "b", "a"], "bad_field"), (big + ["one more"], "bad_field")]
     for classes, why in cases:
         with pytest.raises(ProtocolError) as e:

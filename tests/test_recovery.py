@@ -39,7 +39,7 @@ NO_REHEARSAL = {"memory": {"rehearsal": False}}
 
 
 def _loops(store: MapStore, session_id: int) -> set[tuple[int, int]]:
-    return {(l.from_id, l.to_id) for l in store.links(session_id=session_id) if l.type in LOOPS}
+    return {(lk.from_id, lk.to_id) for lk in store.links(session_id=session_id) if lk.type in LOOPS}
 
 
 class _DiesMidUpdate(MapStore):
@@ -87,7 +87,8 @@ class _AsStreamed:
 
     def frame(self, i):
         i += self.skip
-        return protocol.decode_frame(protocol.encode_frame(self.dataset.frame(i), "x", i, color="raw", depth="raw")).frame
+        return protocol.decode_frame(protocol.encode_frame(self.dataset.frame(i), "x", i, color="raw",
+                                                           depth="raw")).frame
 
 
 def _loops_by_stamp(db: Path) -> tuple[list[float], set[tuple[float, float]]]:
@@ -130,7 +131,7 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, u
     sid = memory.session_id
     backlog = store.unmapped_nodes()[sid]
     assert backlog == ids[cut:]  # the interrupted keyframe and every later one
-    half_done = [l for l in store.links(node_ids=[ids[cut]]) if l.to_id == ids[cut] and l.type in LOOPS]
+    half_done = [lk for lk in store.links(node_ids=[ids[cut]]) if lk.to_id == ids[cut] and lk.type in LOOPS]
     assert half_done, "the interrupted update had written loop links (they are redone)"
 
     # Mapper.resume: the mapped part as the interrupted mapper held it, from the database alone
@@ -141,12 +142,13 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, u
     assert set(poses) == set(ids[:cut])
     assert max(np.abs(poses[i] - stored_poses[i]).max() for i in ids[:cut]) < 1e-3  # at their stored poses
     assert set(resumed.loops) == {(a, b) for a, b in _loops(store, sid) if b != ids[cut]} and resumed.loops
-    assert len(resumed.graph.loops()) == len([l for l in store.links(session_id=sid)
-                                              if l.type in (*LOOPS, LinkType.LOCAL_TIME) and l.to_id != ids[cut]])
+    assert len(resumed.graph.loops()) == len([lk for lk in store.links(session_id=sid)
+                                              if lk.type in (*LOOPS, LinkType.LOCAL_TIME) and lk.to_id != ids[cut]])
     assert ids[cut - 1] in resumed.vocabulary and ids[cut + 1] not in resumed.vocabulary
     u = KeyframeUpdate.from_store(store, ids[cut + 1])
     assert (u.odom_from, u.node_id) == (ids[cut], ids[cut + 1]) and u.features.depth is not None
-    assert u.features.depth.shape == u.features.grey.shape == (ds.calibration.camera.height, ds.calibration.camera.width)
+    assert (u.features.depth.shape == u.features.grey.shape
+            == (ds.calibration.camera.height, ds.calibration.camera.width))
     store.close()
 
     t0 = time.perf_counter()

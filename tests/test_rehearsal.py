@@ -10,7 +10,7 @@ from service.config import load_config
 from service.evaluation import evaluate
 from service.mapping.mapper import Mapper
 from service.runner import run_dataset
-from storage import LinkType, MapStore
+from storage import LinkType, MapStore, UnknownIdError
 
 from conftest import synthetic
 
@@ -54,21 +54,21 @@ def test_merged_keyframes_keep_their_row_and_links_but_not_their_data(walked):
         assert len(merged) == walked["out"].summary.merged
         assert len(merged) + len(nodes) == store.count_nodes() == walked["out"].summary.keyframes
         links = store.links(type=LinkType.MERGED)
-        assert {(l.from_id, l.to_id) for l in links} == {(n.merged_into, n.id) for n in merged}
+        assert {(lk.from_id, lk.to_id) for lk in links} == {(n.merged_into, n.id) for n in merged}
         survivors = {n.id: n for n in nodes}
         for n in merged:
             assert n.merged_into in survivors  # never merged into a merged keyframe
-            with pytest.raises(Exception):
+            with pytest.raises(UnknownIdError):
                 store.load_features(n.id)
             assert store.load_images(n.id) == (None, None)
             assert store.statistics(n.id)["rehearsal"]["decision"] == "merged"
         # the odometry links tracking wrote are kept
-        neighbour_to = {l.to_id for l in store.links(type=LinkType.NEIGHBOR)}
+        neighbour_to = {lk.to_id for lk in store.links(type=LinkType.NEIGHBOR)}
         assert all(n.id in neighbour_to for n in merged)
         # weights: each merge adds 1 to its survivor
         assert sum(n.weight for n in nodes) == len(merged)
         # a merged keyframe's stored pose is where its survivor sees it
-        poses = {l.to_id: survivors[l.from_id].pose @ l.transform for l in links}
+        poses = {lk.to_id: survivors[lk.from_id].pose @ lk.transform for lk in links}
         for n in merged:
             assert np.allclose(n.pose, poses[n.id], atol=1e-6)
 

@@ -43,13 +43,15 @@ def _images(h=6, w=8, seed=0):
 def test_cdr_images_decode_to_the_native_arrays():
     img, depth = _images()
     ns = 1_700_000_000_123_456_789
-    want_depth = protocol.dequantize_depth(protocol.quantize_depth(depth, 1000.0), 1000.0)  # what a native frame carries
+    # what a native frame carries
+    want_depth = protocol.dequantize_depth(protocol.quantize_depth(depth, 1000.0), 1000.0)
     for enc in ("bgr8", "rgb8"):
         msg = ros_cdr.deserialize(ros_cdr.encode_image(img, enc, ns), ros_cdr.IMAGE)
         assert ros_cdr.stamp_ns(msg) == ns
         assert np.array_equal(ros_cdr.decode_color(msg, (8, 6)), img)
     grey = np.ascontiguousarray(img[..., 1])
-    assert np.array_equal(ros_cdr.decode_color(ros_cdr.deserialize(ros_cdr.encode_image(grey, "mono8", ns), ros_cdr.IMAGE)), grey)
+    assert np.array_equal(
+        ros_cdr.decode_color(ros_cdr.deserialize(ros_cdr.encode_image(grey, "mono8", ns), ros_cdr.IMAGE)), grey)
     d = ros_cdr.decode_depth(ros_cdr.deserialize(ros_cdr.encode_image(depth, "16UC1", ns), ros_cdr.IMAGE), (8, 6))
     assert d.dtype == np.float32 and np.array_equal(d, want_depth)
     d32 = ros_cdr.decode_depth(ros_cdr.deserialize(ros_cdr.encode_image(depth, "32FC1", ns), ros_cdr.IMAGE))
@@ -66,8 +68,8 @@ def test_cdr_images_decode_to_the_native_arrays():
     T = ros_cdr.typestore().types
     msg = T[ros_cdr.IMAGE](header=ros_cdr._header(ns, "c"), height=6, width=8, encoding="16UC1", is_bigendian=1,
                            step=20, data=rows.reshape(-1))
-    assert np.array_equal(ros_cdr.decode_depth(ros_cdr.deserialize(ros_cdr.serialize(msg, ros_cdr.IMAGE), ros_cdr.IMAGE)),
-                          want_depth)
+    assert np.array_equal(
+        ros_cdr.decode_depth(ros_cdr.deserialize(ros_cdr.serialize(msg, ros_cdr.IMAGE), ros_cdr.IMAGE)), want_depth)
 
 
 def test_compressed_depth_32fc1_inverse_depth():
@@ -131,7 +133,8 @@ def test_ros_config_is_checked():
     robots = parse_robots(load_config(None, {"ros": {"robots": [RAW, CMP]}}).ros)
     assert [r.robot for r in robots] == ["rosraw", "roscmp"] and robots[1].pose is None and robots[0].intrinsics == "k"
     for entry, match in [({"robot": "r1", "color": "a", "depth": "b"}, "info"),
-                         ({"robot": "r1", "color": "a", "info": "b"}, "depth"), ({**RAW, "colour": "a"}, "unknown key 'colour'"),
+                         ({"robot": "r1", "color": "a", "info": "b"}, "depth"),
+                         ({**RAW, "colour": "a"}, "unknown key 'colour'"),
                          ({**RAW, "robot": "r 1"}, "robot id"), ({**RAW, "depth": "/r1/depth"}, "Zenoh key"),
                          ({**RAW, "pose": "r1/*/pose"}, "wildcards"), ({**RAW, "intrinsics": "q"}, "k or p"),
                          ("r1", "mapping")]:
@@ -142,7 +145,8 @@ def test_ros_config_is_checked():
     assert compressed_key(CMP["color"], CMP["color"]) and compressed_key(CMP["depth"], CMP["depth"])
     assert not compressed_key(RAW["color"], RAW["color"])
     # rmw_zenoh keys name the type: <domain>/<topic>/<type>/<hash>
-    assert compressed_key("0/r1/image/compressed/*/*", "0/r1/image/compressed/sensor_msgs::msg::dds_::CompressedImage_/RIHS01_x")
+    assert compressed_key("0/r1/image/compressed/*/*",
+                          "0/r1/image/compressed/sensor_msgs::msg::dds_::CompressedImage_/RIHS01_x")
     assert not compressed_key("0/r1/image/*/*", "0/r1/image/sensor_msgs::msg::dds_::Image_/RIHS01_x")
 
 
@@ -259,7 +263,8 @@ def test_ros_robots_map_exactly_as_the_native_robot(tmp_path):
     # sync_queue FRAMES: the frames are sent unpaced, and the thread that completes a pair decodes it, so
     # one stream's callbacks can run many images behind the other's (10 seen; the default keeps 8)
     svc = ServiceProcess(tmp_path / "map.db", {
-        "ros": {"enabled": True, "robots": [RAW, CMP], "sync_queue": FRAMES}, "loop": {"enabled": False}, "memory": {"rehearsal": False},
+        "ros": {"enabled": True, "robots": [RAW, CMP], "sync_queue": FRAMES}, "loop": {"enabled": False},
+        "memory": {"rehearsal": False},
         "service": {"queue_size": 1000, "queue_mb": 1024.0, "idle_timeout": 3600.0}}).start()
     z = None
     try:
@@ -268,7 +273,8 @@ def test_ros_robots_map_exactly_as_the_native_robot(tmp_path):
         got = {"ros": [], "native": [], "rosraw_json": []}
         subs = [z.declare_subscriber(RAW["pose"], lambda s: got["ros"].append(s.payload.to_bytes())),
                 z.declare_subscriber("mnemoslam/native/pose", lambda s: got["native"].append(s.payload.to_bytes())),
-                z.declare_subscriber("mnemoslam/rosraw/pose", lambda s: got["rosraw_json"].append(s.payload.to_bytes()))]
+                z.declare_subscriber("mnemoslam/rosraw/pose",
+                                     lambda s: got["rosraw_json"].append(s.payload.to_bytes()))]
         pubs = {k: z.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
                 for r in (RAW, CMP) for k in (r["color"], r["depth"], r["info"])}
         _wait("the service's ROS subscribers", lambda: all(p.matching_status.matching for p in pubs.values()))

@@ -28,7 +28,8 @@ from conftest import require
 # the player registers depth into the colour camera (the bags carry what it plays): folder ATE
 # 1.14 cm over the same 100 frames
 FRAMES = 100
-COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC = "/camera/rgb/image_raw", "/camera/depth_registered/image_raw", "/camera/rgb/camera_info"
+COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC = ("/camera/rgb/image_raw", "/camera/depth_registered/image_raw",
+                                        "/camera/rgb/camera_info")
 
 
 # ------------------------------------------------------------------------------------------
@@ -43,7 +44,8 @@ class BagWriter:
                  color_topic=COLOR_TOPIC, depth_topic=DEPTH_TOPIC, info_topics=(INFO_TOPIC,), pose_topic="/groundtruth",
                  distortion=(0.0, 0.0, 0.0, 0.0, 0.0)):
         from rosbags.rosbag1 import Writer as Writer1
-        from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
         from rosbags.typesys import Stores, get_typestore
 
         self.ros1 = storage == "ros1"
@@ -131,7 +133,8 @@ class BagWriter:
         G = self.T
         q = rot_to_quat(T[:3, :3])
         pose = G["geometry_msgs/msg/Pose"](position=G["geometry_msgs/msg/Point"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
-                                           orientation=G["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+                                           orientation=G["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2],
+                                                                                         w=q[3]))
         stamp_ns = round(stamp * 1e9)
         if self.pose == "PoseStamped":
             msg = G["geometry_msgs/msg/PoseStamped"](header=self.header(stamp_ns, "world"), pose=pose)
@@ -141,8 +144,8 @@ class BagWriter:
             msg = G["nav_msgs/msg/Odometry"](
                 header=self.header(stamp_ns, "world"), child_frame_id="camera",
                 pose=G["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov),
-                twist=G["geometry_msgs/msg/TwistWithCovariance"](twist=G["geometry_msgs/msg/Twist"](linear=zero, angular=zero),
-                                                                 covariance=cov))
+                twist=G["geometry_msgs/msg/TwistWithCovariance"](
+                    twist=G["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=cov))
         self.write(self.c_pose, stamp_ns, msg)
 
     def close(self) -> None:
@@ -281,14 +284,16 @@ def _small_bag(path, storage="sqlite3", frames=None, **options):
 
 def test_small_bag_decodes_every_encoding(tmp_path):
     frames = list(_frames())
-    for storage, color, depth in [("sqlite3", "mono8", "16UC1"), ("mcap", "jpeg", "32FC1"), ("ros1", "png", "compressedDepth")]:
+    for storage, color, depth in [("sqlite3", "mono8", "16UC1"), ("mcap", "jpeg", "32FC1"),
+                                  ("ros1", "png", "compressedDepth")]:
         path = _small_bag(tmp_path / (storage + (".bag" if storage == "ros1" else "")), storage, frames, color=color,
                           depth=depth, pose=None)
         ds = open_dataset(path)
         assert len(ds) == 4 and ds.ground_truth is None
         f = ds.frame(2)
         if color == "mono8":
-            assert f.image.shape == (24, 32) and np.array_equal(f.image, cv2.cvtColor(frames[2].image, cv2.COLOR_BGR2GRAY))
+            assert f.image.shape == (24, 32)
+            assert np.array_equal(f.image, cv2.cvtColor(frames[2].image, cv2.COLOR_BGR2GRAY))
         elif color == "png":
             assert np.array_equal(f.image, frames[2].image)
         else:

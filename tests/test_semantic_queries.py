@@ -150,6 +150,7 @@ def test_refreshes_when_the_version_changes():
 
 def test_real_sqlite_data_version_sees_other_connections(tmp_path):
     import sqlite3
+
     from service.semantics.queries import data_version_of
     db = tmp_path / "a map #1?.db"  # characters a file: URI must escape
     w = sqlite3.connect(db)

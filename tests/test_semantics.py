@@ -4,21 +4,18 @@ with their keyframes and surviving the move to LTM), the real model on real imag
 semantics off when the model is missing."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
 import cv2
-
 import numpy as np
 import pytest
-
-import dataclasses
 
 from client.datasets import open_dataset
 from client.frames import PinholeCamera
 from client.synthetic import SyntheticDataset
 from client.synthetic.scene import get_scene
-from conftest import require
 from service.builder import build_pipeline
 from service.config import SemanticsConfig, load_config
 from service.evaluation import associate_stamps, umeyama
@@ -28,8 +25,11 @@ from service.semantics.objects import ObjectFusion, bayes_update
 from service.semantics.segmentation import OnnxSegmenter, make_segmenter, model_path, semantics_status
 from storage import MapStore
 
+from conftest import require
+
 DOOR = 15
-LOOP = dict(rate=10, noise=True)  # 601 frames; the loop sees door_1..3 whole (figure-8 sees door_3 half, behind a corner)
+# 601 frames; the loop sees door_1..3 whole (figure-8 sees door_3 half, behind a corner)
+LOOP = dict(rate=10, noise=True)
 CAMERA = {"semantics": {"enabled": True, "source": "camera"}, "memory": {"max_wm_nodes": 30}}
 S = 4  # the recording keeps every S-th label / depth pixel: what the fusion uses (semantics.stride)
 
@@ -258,9 +258,9 @@ def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
 def test_service_fuses_streamed_labels_into_stored_objects(tmp_path, monkeypatch):
     """Through the service: frames streamed with labels (`stream ... --labels`) become objects
     in the map database, fused on the semantic worker's thread; the status says on."""
+    from client.planner import PlannerClient
     from client.streamer import stream_dataset
     from client.transport import ZenohSettings
-    from client.planner import PlannerClient
     from service.api import TOKEN_ENV, ApiThread, create_app
     from service.server import SlamService
     from tests.test_api_objects import _status as _api_status

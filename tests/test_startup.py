@@ -92,11 +92,11 @@ def test_a_second_session_closes_loops_to_the_first_sessions_map(first, tmp_path
     sid, ids = _session(db, ds, _cfg(max_wm_nodes=WM))
     with MapStore(db) as store:
         stats = [store.statistics(n) for n in ids]
-        links = [l for l in store.links(session_id=sid) if l.type in LOOPS]
+        links = [lk for lk in store.links(session_id=sid) if lk.type in LOOPS]
         trajectory, before = store.trajectory(sid), store.trajectory(first["sid"])
     retrieved = {n for st in stats for n in st["memory"]["retrieved"]}
     assert retrieved & old
-    to_old = [l for l in links if l.from_id in old and l.to_id in set(ids)]
+    to_old = [lk for lk in links if lk.from_id in old and lk.to_id in set(ids)]
     assert len(to_old) >= 3, (len(links), len(to_old))
     assert max(st["memory"]["wm"] for st in stats) <= WM + 2  # + nodes linked to STM / the loop node
     # in the old map's frame, as accurate (measured: 7.8 mm from the old keyframes unaligned; keyframe

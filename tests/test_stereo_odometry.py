@@ -7,13 +7,14 @@ path), a about 0.3 px, which stretched the odometry's scale by ~6 % on b (1.58 %
 The odometry now estimates the offset online (service/tracking/stereo_calibration.py): b 0.43 %."""
 import numpy as np
 import pytest
-from conftest import require
 
 from client.datasets import open_dataset
 from service.config import load_config
 from service.evaluation import evaluate
 from service.runner import run_dataset
 from service.tracking.features import FeatureExtractor
+
+from conftest import require
 
 pytestmark = pytest.mark.data
 

@@ -204,7 +204,8 @@ def test_bad_record_is_a_value_error_before_any_write(store, rng, tmp_path, case
 
 
 def _row_counts(path):
-    return {t: rows(path, f"SELECT COUNT(*) FROM {t}")[0][0] for t in ("nodes", "features", "images", "links", "statistics")}
+    return {t: rows(path, f"SELECT COUNT(*) FROM {t}")[0][0]
+            for t in ("nodes", "features", "images", "links", "statistics")}
 
 
 def test_failure_midway_leaves_no_partial_node(store, rng, tmp_path):
@@ -422,10 +423,10 @@ def test_links_by_type(store, rng):
     store.add_link(a[2], a[0], 2, pose(0.2))
     store.add_link(b[0], a[1], LinkType.GLOBAL_CLOSURE, pose(0.3))  # inter-session loop
     assert len(store.links()) == 6
-    assert [(l.from_id, l.to_id) for l in store.links(type=LinkType.GLOBAL_CLOSURE)] == [(a[3], a[0]), (b[0], a[1])]
-    assert [l.type for l in store.links(type=2)] == [LinkType.LOCAL_SPACE]
+    assert [(lk.from_id, lk.to_id) for lk in store.links(type=LinkType.GLOBAL_CLOSURE)] == [(a[3], a[0]), (b[0], a[1])]
+    assert [lk.type for lk in store.links(type=2)] == [LinkType.LOCAL_SPACE]
     assert len(store.links(session_id=s1)) == 6 and len(store.links(session_id=s2)) == 1
-    assert {(l.from_id, l.to_id) for l in store.links(node_ids=[a[0]])} == {(a[0], a[1]), (a[3], a[0]), (a[2], a[0])}
+    assert {(lk.from_id, lk.to_id) for lk in store.links(node_ids=[a[0]])} == {(a[0], a[1]), (a[3], a[0]), (a[2], a[0])}
     assert len(store.links(session_id=s1, type=LinkType.NEIGHBOR)) == 3
     loop = store.links(type=1, node_ids=[a[3]])[0]
     assert np.array_equal(loop.transform, pose(0.1)) and np.array_equal(loop.information, np.eye(6) * 50)
@@ -568,7 +569,7 @@ def test_unmapped_nodes_are_those_without_statistics(store, rng):
     store.add_link(a[2], a[3], LinkType.NEIGHBOR, T)
     store.add_link(a[3], a[0], LinkType.USER, T)
     assert store.delete_links([a[3]], [1, 2, 3]) == 2
-    assert {(l.from_id, l.to_id, int(l.type)) for l in store.links(session_id=s1)} == {
+    assert {(lk.from_id, lk.to_id, int(lk.type)) for lk in store.links(session_id=s1)} == {
         (a[0], a[2], 2), (a[2], a[3], 0), (a[3], a[0], 4)}
 
 
@@ -812,7 +813,7 @@ def test_kill_9_keeps_every_committed_keyframe(tmp_path):
         out, err = proc.communicate(timeout=10)
     assert proc.returncode == -signal.SIGKILL
     assert len(printed) >= 50, err
-    printed += [int(l) for l in out.split("\n")[:-1]]  # lines printed before the kill (complete ones only)
+    printed += [int(ln) for ln in out.split("\n")[:-1]]  # lines printed before the kill (complete ones only)
     assert rows(path, "PRAGMA integrity_check") == [("ok",)]
     with MapStore(path, create=False) as s:
         assert s.integrity_check() == "ok"
@@ -852,7 +853,8 @@ def test_export_writes_tum_that_read_tum_reads_back(store, rng, tmp_path):
     assert len(graph["nodes"]) == 12 and len(graph["links"]) == 10 and len(graph["sessions"]) == 2
     n0 = graph["nodes"][0]
     assert np.array(n0["pose"]).reshape(4, 4).tobytes() == want[s1][0].tobytes()  # exact
-    assert set(n0) >= {"id", "session", "stamp", "pose"} and set(graph["links"][0]) >= {"from", "to", "type", "transform"}
+    assert set(n0) >= {"id", "session", "stamp", "pose"}
+    assert set(graph["links"][0]) >= {"from", "to", "type", "transform"}
 
     files = store.export(tmp_path / "one", session_id=s2)
     assert sorted(p.name for p in files) == ["graph.json", "trajectory.tum"]
@@ -873,8 +875,9 @@ def test_db_info_and_export_text(tmp_path, rng):
         s.add_link(prev, prev - 6, LinkType.GLOBAL_CLOSURE, np.eye(4))
         s.begin_session("robot_b", STEREO)
     text = db_info(path)
-    for needle in (f"schema    v{V}", "sessions  2", "robot_a", "robot_b", "nodes     7", "links     7 (odometry 6, loop 1)",
-                   "features  7 (77 keypoints)", "images    7", "words     0", "integrity ok", "10.000000", "16.000000", "MB"):
+    for needle in (f"schema    v{V}", "sessions  2", "robot_a", "robot_b", "nodes     7",
+                   "links     7 (odometry 6, loop 1)", "features  7 (77 keypoints)", "images    7", "words     0",
+                   "integrity ok", "10.000000", "16.000000", "MB"):
         assert needle in text, (needle, text)
     out = db_export(path, tmp_path / "exp", session=s1)
     assert "trajectory.tum" in out and "graph.json" in out
@@ -889,7 +892,8 @@ def test_stats_counts_and_file_size(store, rng):
     st = store.stats()
     assert {k: st[k] for k in ("schema_version", "sessions", "nodes", "links", "features", "keypoints", "words",
                                "images", "statistics")} == dict(schema_version=V, sessions=1, nodes=1, links=0,
-                                                                features=1, keypoints=10, words=0, images=1, statistics=1)
+                                                                features=1, keypoints=10, words=0, images=1,
+                                                                statistics=1)
     assert st["file_bytes"] >= os.path.getsize(store.path) and st["wal_bytes"] > 0
     json.dumps(st)
 

@@ -8,8 +8,15 @@ import pytest
 from client.datasets import open_dataset
 from client.frames import DatasetError, PinholeCamera
 from client.geometry import look_at, rotation_angle
-from client.synthetic import (CLASS_NAMES, TRAJECTORIES, SyntheticDataset, SyntheticScene, depth_sigma, get_scene,
-                              trajectory)
+from client.synthetic import (
+    CLASS_NAMES,
+    TRAJECTORIES,
+    SyntheticDataset,
+    SyntheticScene,
+    depth_sigma,
+    get_scene,
+    trajectory,
+)
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 SMALL = PinholeCamera(262.5, 262.5, 159.5, 119.5, 320, 240)
@@ -152,7 +159,8 @@ def test_figure8_revisits_places():
     assert len(np.unique(np.nonzero(revisit)[0] // 40)) >= 5
 
 
-@pytest.mark.parametrize("name", [n for n, spec in TRAJECTORIES.items() if not spec.spin])  # walks (fastrot: its own test)
+# walks (fastrot: its own test)
+@pytest.mark.parametrize("name", [n for n, spec in TRAJECTORIES.items() if not spec.spin])
 def test_trajectory_is_walkable(scene, name):
     path = trajectory(name)
     t = np.arange(0, path.duration + 1e-9, 0.1)

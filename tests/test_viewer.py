@@ -16,11 +16,12 @@ import requests
 from client.datasets import open_dataset
 from client.streamer import stream_dataset
 from client.transport import ZenohSettings
-from conftest import require_chromium
 from service.api import TOKEN_ENV, ApiThread, create_app
 from service.config import load_config
 from service.demo import ServiceProcess, free_port, log_errors
 from service.server import SlamService
+
+from conftest import require_chromium
 
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
@@ -199,6 +200,7 @@ def test_feed_sends_what_changed(tmp_path):
     from service.semantics.queries import ObjectIndex
     from service.viewer import Limits, ViewerFeed
     from storage.records import LinkType
+
     from test_api_objects import _robot, make_map
 
     store, sid, ids, _ = make_map(tmp_path / "map.db")  # keyframes at x = 0..9; doors, chairs, a table
@@ -215,7 +217,8 @@ def test_feed_sends_what_changed(tmp_path):
         assert s["id"] == sid and s["live"] is True and s["full"] is True and s["nodes"] == 10
         assert np.reshape(s["points"], (-1, 3))[:, 0].tolist() == [0.0, 3.0, 6.0, 9.0]  # decimated, ends kept
         assert s["links"] == [] and s["memory"] == {"stm": 3, "wm": 7, "ltm": 0, "words": 42}
-        assert first["objects"]["total"] == 5 and {"door", "chair", "table"} == {o["label"] for o in first["objects"]["items"]}
+        assert first["objects"]["total"] == 5
+        assert {"door", "chair", "table"} == {o["label"] for o in first["objects"]["items"]}
         assert ["door", 2] in first["objects"]["labels"]
 
         quiet = feed.next()
@@ -261,6 +264,7 @@ def test_viewer_pans_and_zooms_in_chromium(tmp_path):
     on the view state the page exposes and on the drawn trajectory (x = 0..9 m)."""
     chromium = require_chromium()
     from playwright.sync_api import sync_playwright
+
     from test_api_objects import make_map
 
     store, sid, ids, _ = make_map(tmp_path / "map.db")
@@ -340,6 +344,7 @@ def test_feed_tells_which_sessions_share_a_frame(tmp_path):
     from service.semantics.queries import ObjectIndex
     from service.viewer import ViewerFeed
     from storage.records import LinkType
+
     from test_api_objects import make_map
 
     store, sid, ids, _ = make_map(tmp_path / "map.db")

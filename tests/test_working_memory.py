@@ -74,7 +74,7 @@ def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(t
     assert int(rows[-1]["ltm"]) > 0 and sum(int(r["retrieved"]) for r in rows) > 0
     with MapStore(tmp_path / "map.db") as store:
         stats = {n.id: store.statistics(n.id) for n in store.nodes(limit=None)}
-        loops = [(l.from_id, l.to_id) for l in store.links() if l.type in (1, 2)]  # appearance, proximity
+        loops = [(lk.from_id, lk.to_id) for lk in store.links() if lk.type in (1, 2)]  # appearance, proximity
     transferred_at, retrieved_at = {}, {}
     for node, st in sorted(stats.items()):
         for n in st["memory"]["transferred"]:

@@ -6,6 +6,6 @@ spec) and returns a `Dataset`.
 """
 from __future__ import annotations
 
-from .base import Dataset, open_dataset, FORMATS
+from .base import FORMATS, Dataset, open_dataset
 
 __all__ = ["Dataset", "open_dataset", "FORMATS"]

@@ -30,7 +30,8 @@ class Passes(Dataset):
         self._order = np.concatenate(order)
         stamps = np.asarray(dataset.stamps, dtype=np.float64)
         dt = float(np.median(np.diff(stamps))) if n > 1 else 0.0
-        self.stamps = np.concatenate([stamps, stamps[-1] + dt * np.arange(1, len(self._order) - n + 1)]) if n else stamps
+        self.stamps = (np.concatenate([stamps, stamps[-1] + dt * np.arange(1, len(self._order) - n + 1)])
+                       if n else stamps)
         self.ground_truth = None
         if dataset.ground_truth is not None:
             known = sample_poses(dataset.ground_truth, stamps)  # the frames that have a ground-truth pose

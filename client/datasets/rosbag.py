@@ -407,8 +407,8 @@ class RosbagDataset(Dataset):
                 roles[role] = found[0]
             elif role == "pose":
                 if found:
-                    log.warning("%s: %d pose topics (%s); no ground truth unless one is chosen with --topics pose=TOPIC",
-                                self.path, len(found), ", ".join(found))
+                    log.warning("%s: %d pose topics (%s); no ground truth unless one is chosen with "
+                                "--topics pose=TOPIC", self.path, len(found), ", ".join(found))
                 roles[role] = None
             elif not found:
                 raise DatasetError(f"{self.path}: no {what[role]} topic in the bag (topics: {listing})")
@@ -574,7 +574,8 @@ class RosbagDataset(Dataset):
     def frame(self, i: int) -> Frame:
         i = check_index(i, len(self))
         image, depth = self._read(i)
-        source = f"{self._where(self._color, int(self._ci[i]))}, {self._depth.topic}@{self._depth.stamps[self._di[i]] / 1e9:.6f}"
+        source = (f"{self._where(self._color, int(self._ci[i]))}, "
+                  f"{self._depth.topic}@{self._depth.stamps[self._di[i]] / 1e9:.6f}")
         for what, a in (("colour", image), ("depth", depth)):
             if a.shape[:2] != self._shape:
                 raise DatasetError(f"{source}: {what} image is {a.shape[1]}x{a.shape[0]}, expected "

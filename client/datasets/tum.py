@@ -14,7 +14,16 @@ import numpy as np
 from ..frames import Calibration, DatasetError, Frame
 from ..trajectory import read_tum
 from ._io import (
-    MAX_DT, check_index, frame_count, image_size, numbers, pinhole, read_color, read_depth, read_rows, sample_poses,
+    MAX_DT,
+    check_index,
+    frame_count,
+    image_size,
+    numbers,
+    pinhole,
+    read_color,
+    read_depth,
+    read_rows,
+    sample_poses,
 )
 from .base import Dataset
 

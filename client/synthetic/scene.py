@@ -172,7 +172,8 @@ class _Builder:
     def doorway(self, axis, c0, c1, b0, b1, top=DOOR_TOP):
         """The reveal of an opening through a thick wall (normal `axis`, from c0 to c1)."""
         b = _others(axis)[0]  # the horizontal in-wall axis (x or y)
-        jamb_tex = lambda: self.region(tx.wall, c1 - c0, top, TEXEL_WALL, np.eye(3)[b])
+        def jamb_tex():
+            return self.region(tx.wall, c1 - c0, top, TEXEL_WALL, np.eye(3)[b])
         r = jamb_tex()
         rng_c = (c0, c1)
         # jambs: planes X[b] = b0 (facing +b) and b1 (facing -b); their in-plane axes are
@@ -193,7 +194,8 @@ class _Builder:
     # -- wall-mounted things
     def door(self, room, axis, c, sign, b0, b1, height=2.05, colour=None):
         rng = self.child_rng()
-        colour = colour or [(215, 215, 210), (60, 95, 140), (90, 90, 95), (150, 110, 70), (40, 70, 110)][int(rng.integers(5))]
+        colour = colour or [(215, 215, 210), (60, 95, 140), (90, 90, 95), (150, 110, 70),
+                            (40, 70, 110)][int(rng.integers(5))]
         normal = np.zeros(3)
         normal[axis] = sign
         cas = 0.08
@@ -215,8 +217,8 @@ class _Builder:
         lever = 0.13 if hb < (b0 + b1) / 2 else -0.13
         blo[b], bhi[b] = sorted((hb, hb + lever))
         blo[d], bhi[d] = 0.98, 1.01
-        self.box(blo, bhi, DOOR, iid, lambda f, w, h, n: self.region(tx.metal, w, h, TEXEL_OBJECT, n, colour=(40, 40, 45)),
-                 skip=())
+        self.box(blo, bhi, DOOR, iid,
+                 lambda f, w, h, n: self.region(tx.metal, w, h, TEXEL_OBJECT, n, colour=(40, 40, 45)), skip=())
 
     def window(self, room, axis, c, sign, b0, b1, z0, z1, panes=2):
         normal = np.zeros(3)
@@ -263,8 +265,8 @@ class _Builder:
     def ceiling_light(self, room, x, y, size=0.6):
         lo = (x - size / 2, y - size / 2, HEIGHT - 0.04)
         hi = (x + size / 2, y + size / 2, HEIGHT)
-        iid = self.new_object(OTHER, f"ceiling_light_{sum(o.name.startswith('ceiling_light') for o in self.objects) + 1}",
-                              lo, hi, room)
+        n_lights = sum(o.name.startswith("ceiling_light") for o in self.objects)
+        iid = self.new_object(OTHER, f"ceiling_light_{n_lights + 1}", lo, hi, room)
         def tex(f, w, h, n):
             if f == "-z":
                 return self.region(tx.light_panel, w, h, TEXEL_OBJECT, n)
@@ -276,7 +278,8 @@ class _Builder:
         iid = self.new_object(TABLE, name, (x0, y0, 0), (x1, y1, h), room)
         rng = self.child_rng()
         colour = tx.WOODS[int(rng.integers(len(tx.WOODS)))]
-        tex = lambda f, w, hh, n: self.region(tx.wood, w, hh, TEXEL_OBJECT, n, colour=colour)
+        def tex(f, w, hh, n):
+            return self.region(tx.wood, w, hh, TEXEL_OBJECT, n, colour=colour)
         self.box((x0, y0, h - 0.04), (x1, y1, h), TABLE, iid, tex, skip=())
         leg = 0.05
         for lx in (x0 + 0.04, x1 - 0.04 - leg):
@@ -291,7 +294,8 @@ class _Builder:
                               (x0, y0, 0), (x1, y1, 0.92), room)
         rng = self.child_rng()
         colour = tx.random_colour(rng, (50, 170), 0.7)
-        tex = lambda f, w, h, n: self.region(tx.fabric if f == "+z" else tx.wood, w, h, TEXEL_OBJECT, n, colour=colour)
+        def tex(f, w, h, n):
+            return self.region(tx.fabric if f == "+z" else tx.wood, w, h, TEXEL_OBJECT, n, colour=colour)
         self.box((x0, y0, 0.42), (x1, y1, 0.47), CHAIR, iid, tex, skip=())
         leg = 0.035
         for lx in (x0 + 0.01, x1 - 0.01 - leg):
@@ -311,8 +315,9 @@ class _Builder:
         rng = self.child_rng()
         colour = tx.FABRICS[int(rng.integers(len(tx.FABRICS)))]
         ax = "xy".index(back[1])
-        tex = lambda f, w, h, n: self.region(tx.fabric, w, h, TEXEL_OBJECT, n, colour=colour,
-                                             cushions=3 if f in ("+z", "+x", "-x", "+y", "-y") and max(w, h) > 1.2 else 0)
+        def tex(f, w, h, n):
+            cushions = 3 if f in ("+z", "+x", "-x", "+y", "-y") and max(w, h) > 1.2 else 0
+            return self.region(tx.fabric, w, h, TEXEL_OBJECT, n, colour=colour, cushions=cushions)
         self.box((x0, y0, 0), (x1, y1, 0.42), SOFA, iid, tex)
         lo, hi = [x0, y0, 0.42], [x1, y1, 0.85]
         if back[0] == "+":
@@ -333,8 +338,8 @@ class _Builder:
         iid = self.new_object(SHELF, name, lo, hi, room)
         rng = self.child_rng()
         colour = tx.WOODS[int(rng.integers(len(tx.WOODS)))]
-        tex = lambda f, w, h, n: self.region(tx.bookshelf_front if f == front else tx.wood, w, h, TEXEL_OBJECT, n,
-                                             colour=colour)
+        def tex(f, w, h, n):
+            return self.region(tx.bookshelf_front if f == front else tx.wood, w, h, TEXEL_OBJECT, n, colour=colour)
         back = ("-" if front[0] == "+" else "+") + front[1]
         self.box(lo, hi, SHELF, iid, tex, skip=("-z", back))
 
@@ -342,8 +347,8 @@ class _Builder:
         iid = self.new_object(CABINET, name, lo, hi, room)
         rng = self.child_rng()
         colour = tx.random_colour(rng, (60, 210), 0.4)
-        tex = lambda f, w, h, n: self.region(tx.cabinet_front if f == front else tx.wood, w, h, TEXEL_OBJECT, n,
-                                             colour=colour)
+        def tex(f, w, h, n):
+            return self.region(tx.cabinet_front if f == front else tx.wood, w, h, TEXEL_OBJECT, n, colour=colour)
         back = ("-" if front[0] == "+" else "+") + front[1]
         self.box(lo, hi, CABINET, iid, tex, skip=("-z", back))
 

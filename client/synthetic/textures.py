@@ -183,7 +183,8 @@ def soft_blotches(img, rng, texel, density, size_m, delta, tint=0.3):
         d = (rng.uniform(*delta)) * (1 if rng.random() < 0.5 else -1)
         col = tuple(float(d * (1 + tint * (x - 0.5) * 2)) for x in rng.random(3))
         size = np.exp(rng.uniform(np.log(size_m[0]), np.log(size_m[1]))) / texel / f
-        draw_shape(layer, rng, rng.uniform(0, lw), rng.uniform(0, lh), size, col, ("ellipse", "poly")[int(rng.random() * 2)])
+        draw_shape(layer, rng, rng.uniform(0, lw), rng.uniform(0, lh), size, col,
+                   ("ellipse", "poly")[int(rng.random() * 2)])
     layer = cv2.GaussianBlur(layer, (0, 0), 0.04 / texel / f + 0.5)
     layer = cv2.resize(layer, (lw * f, lh * f), interpolation=cv2.INTER_LINEAR)[:h, :w]
     return np.clip(img.astype(np.float32) + layer, 0, 255).astype(np.uint8)
@@ -330,10 +331,12 @@ def ceiling(rng, h, w, texel):
 
 def door_panel(rng, h, w, texel, colour=None):
     """A closed door leaf: grain, recessed panels with lit/shadowed bevels, a sign, scuffs."""
-    colour = colour or [(215, 215, 210), (60, 95, 140), (90, 90, 95), (150, 110, 70), (40, 70, 110)][int(rng.integers(5))]
+    colour = colour or [(215, 215, 210), (60, 95, 140), (90, 90, 95), (150, 110, 70),
+                        (40, 70, 110)][int(rng.integers(5))]
     grain = stretched_noise(rng, h, w, 0.6 / texel, 0.015 / texel, axis=0) - 0.5
     grain2 = stretched_noise(rng, h, w, 0.25 / texel, 0.005 / texel, axis=0) - 0.5
-    img = colorize(colour, 0.4 * grain + 0.25 * grain2 + fractal(rng, h, w, texel, (0.3, 0.06, 0.02), (0.08, 0.06, 0.04)))
+    img = colorize(colour,
+                   0.4 * grain + 0.25 * grain2 + fractal(rng, h, w, texel, (0.3, 0.06, 0.02), (0.08, 0.06, 0.04)))
     light = tuple(float(c) for c in np.clip(np.array(colour) * 1.35 + 25, 0, 255))
     dark = tuple(float(c) for c in np.array(colour) * 0.45)
     m = int(0.1 / texel)
@@ -368,7 +371,8 @@ def door_panel(rng, h, w, texel, colour=None):
     kick = int(0.18 / texel)
     kc = (150, 160, 170) if rng.random() < 0.5 else (60, 140, 180)
     img[h - kick:] = metal(rng, kick, w, texel, kc)
-    scatter(img, rng, texel, 14.0, (0.02, 0.12), lambda r, b: contrasting(r, b, 30, 70, 0.3), ("stroke", "ellipse", "rect", "ring"))
+    scatter(img, rng, texel, 14.0, (0.02, 0.12), lambda r, b: contrasting(r, b, 30, 70, 0.3),
+            ("stroke", "ellipse", "rect", "ring"))
     return finish(img)
 
 
@@ -556,7 +560,8 @@ def bookshelf_front(rng, h, w, texel, colour=None):
             # title bands
             for _ in range(int(rng.integers(0, 4))):
                 yb = int(y1 - bh * rng.uniform(0.1, 0.9))
-                cv2.rectangle(img, (x, yb), (bx1 - 1, yb + max(1, int(0.01 / texel))), contrasting(rng, bc, 60, 140, 0.5), -1)
+                cv2.rectangle(img, (x, yb), (bx1 - 1, yb + max(1, int(0.01 / texel))),
+                              contrasting(rng, bc, 60, 140, 0.5), -1)
             x = bx1 + (1 if rng.random() < 0.5 else 0)
     return finish(img)
 

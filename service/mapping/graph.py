@@ -30,9 +30,9 @@ import time
 from dataclasses import dataclass
 
 import gtsam
+import numpy as np
 
 from client.geometry import invert
-import numpy as np
 
 # default σ of an odometry link when none is given: 0.5° / 1 cm (rotation first)
 DEFAULT_ODOMETRY_SIGMAS = np.array([np.deg2rad(0.5)] * 3 + [0.01] * 3)
@@ -386,9 +386,10 @@ class PoseGraph:
                 raise ValueError("a loop link needs two different nodes")
             before = self._estimate_locked()
             err_before = _link_error(before, a, b, t, info)
-            old = [] if replace is None else [l for l in self._links if l.loop and l.from_id == a and l.to_id == b
-                                              and np.array_equal(l.transform, replace)][:1]
-            link, = self._swap_links_locked(old, [(_Link(a, b, t.copy(), info, True, -1), self._loop_noise(info, kernel))])
+            old = [] if replace is None else [lk for lk in self._links if lk.loop and lk.from_id == a and lk.to_id == b
+                                              and np.array_equal(lk.transform, replace)][:1]
+            link, = self._swap_links_locked(old, [(_Link(a, b, t.copy(), info, True, -1),
+                                                   self._loop_noise(info, kernel))])
             iterations = 1 + self._converge_locked()
             self._cache = None
             after = self._estimate_locked()
@@ -420,11 +421,11 @@ class PoseGraph:
         the partial relinearisation check (the changes are small and at the chain's end).
         Returns the replaced links with their new measurements (for the caller to store)."""
         with self._lock:
-            old = [l for l in self._links if not l.loop and (l.from_id, l.to_id) in transforms]
+            old = [lk for lk in self._links if not lk.loop and (lk.from_id, lk.to_id) in transforms]
             if not old:
                 return []
-            new = [(dataclasses.replace(l, transform=_as_pose(transforms[(l.from_id, l.to_id)], "transform").copy()),
-                    gtsam.noiseModel.Gaussian.Information(l.information)) for l in old]
+            new = [(dataclasses.replace(lk, transform=_as_pose(transforms[(lk.from_id, lk.to_id)], "transform").copy()),
+                    gtsam.noiseModel.Gaussian.Information(lk.information)) for lk in old]
             self._swap_links_locked(old, new)
             self._cache = None
             self._iterate_locked(1e-6)
@@ -445,8 +446,8 @@ class PoseGraph:
         links were removed."""
         a, b = int(from_id), int(to_id)
         with self._lock:
-            gone = [l for l in self._links if l.loop and {l.from_id, l.to_id} == {a, b}
-                    and (transform is None or (l.from_id == a and np.array_equal(l.transform, transform)))]
+            gone = [lk for lk in self._links if lk.loop and {lk.from_id, lk.to_id} == {a, b}
+                    and (transform is None or (lk.from_id == a and np.array_equal(lk.transform, transform)))]
             if gone:
                 self._remove_links_locked(gone, restore=None)
                 self._publish_locked()
@@ -456,7 +457,7 @@ class PoseGraph:
                              back: list[_Link] = ()) -> None:
         """Remove `links` (and put the loop links `back` again, with the default kernel, in the
         same update)."""
-        self._swap_links_locked(links, [(l, self._loop_noise(l.information, self.robust)) for l in back])
+        self._swap_links_locked(links, [(lk, self._loop_noise(lk.information, self.robust)) for lk in back])
         self._converge_locked()
         self._cache = None
         if restore is not None:
@@ -475,13 +476,13 @@ class PoseGraph:
         ((link, noise model), their factor indices given here); the active links follow, the
         new ones last. Returns the new links. The estimate cache is left to the caller."""
         graph = gtsam.NonlinearFactorGraph()
-        for l, noise in new:
-            graph.add(gtsam.BetweenFactorPose3(l.from_id, l.to_id, to_pose3(l.transform), noise))
-        self._isam.update(graph, gtsam.Values(), [l.factor_index for l in gone])
-        added = [dataclasses.replace(l, factor_index=self._n_factors + k) for k, (l, _) in enumerate(new)]
+        for lk, noise in new:
+            graph.add(gtsam.BetweenFactorPose3(lk.from_id, lk.to_id, to_pose3(lk.transform), noise))
+        self._isam.update(graph, gtsam.Values(), [lk.factor_index for lk in gone])
+        added = [dataclasses.replace(lk, factor_index=self._n_factors + k) for k, (lk, _) in enumerate(new)]
         self._n_factors += len(added)
-        ids = {id(l) for l in gone}
-        self._links = [l for l in self._links if id(l) not in ids] + added
+        ids = {id(lk) for lk in gone}
+        self._links = [lk for lk in self._links if id(lk) not in ids] + added
         return added
 
     @contextlib.contextmanager
@@ -548,10 +549,10 @@ class PoseGraph:
     def _link_errors_locked(self, est: dict[int, np.ndarray]) -> np.ndarray:
         if not self._links:
             return np.zeros(0)
-        pf = np.stack([est[l.from_id] for l in self._links])
-        pt = np.stack([est[l.to_id] for l in self._links])
-        tr = np.stack([l.transform for l in self._links])
-        inf = np.stack([l.information for l in self._links])
+        pf = np.stack([est[lk.from_id] for lk in self._links])
+        pt = np.stack([est[lk.to_id] for lk in self._links])
+        tr = np.stack([lk.transform for lk in self._links])
+        inf = np.stack([lk.information for lk in self._links])
         return normalized_errors(pf, pt, tr, inf)
 
     def _publish_locked(self) -> None:
@@ -578,11 +579,11 @@ class PoseGraph:
         """(from, to, is_loop, normalised error) of every active link on the current estimate."""
         with self._lock:
             errs = self._link_errors_locked(self._estimate_locked())
-            return [(l.from_id, l.to_id, l.loop, float(e)) for l, e in zip(self._links, errs)]
+            return [(lk.from_id, lk.to_id, lk.loop, float(e)) for lk, e in zip(self._links, errs)]
 
     def loops(self) -> list[tuple[int, int]]:
         with self._lock:
-            return [(l.from_id, l.to_id) for l in self._links if l.loop]
+            return [(lk.from_id, lk.to_id) for lk in self._links if lk.loop]
 
     def changed_poses(self, tolerance: tuple[float, float] | None = None) -> dict[int, np.ndarray]:
         """Poses that moved more than (metres, radians) since the previous call, plus nodes not
@@ -658,7 +659,7 @@ class PoseGraph:
             return {int(k): result.atPose3(k).matrix() for k in keys}
 
     def _renumber_locked(self) -> None:
-        old = sorted([(l.factor_index, "l", l) for l in self._links] +
+        old = sorted([(lk.factor_index, "l", lk) for lk in self._links] +
                      [(p[2], "p", n) for n, p in self._priors.items()], key=lambda x: x[0])
         for new, (_, kind, obj) in enumerate(old):
             if kind == "l":

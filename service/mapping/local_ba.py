@@ -104,7 +104,8 @@ class LocalBundleAdjustment:
         self.adaptive_depth = bool(adaptive_depth)
         self.min_points = int(min_points)
         self.max_initial_error = float(max_initial_error)
-        self.search_radius, self.max_hamming, self.match_ratio = float(search_radius), int(max_hamming), float(match_ratio)
+        self.search_radius, self.max_hamming = float(search_radius), int(max_hamming)
+        self.match_ratio = float(match_ratio)
         self._next_id = 1 << 40  # ids of points this module creates (the tracker's count up from 0)
         self.fuse = bool(fuse)
         # tracker ids found to be the same point as an older window point -> that point's id (sorted keys)
@@ -303,7 +304,7 @@ class LocalBundleAdjustment:
         lk = inv[sel].tolist()
         # noise models shared per (pixel σ, disparity σ to 3 significant digits)
         key_d = np.where(use_depth, np.round(np.log(np.maximum(s_d, 1e-12)) * 100).astype(np.int64), 0)
-        for n, (x, l, depth) in enumerate(zip(xk, lk, use_depth.tolist())):
+        for n, (x, lmk, depth) in enumerate(zip(xk, lk, use_depth.tolist())):
             if depth:
                 key = (float(s_px[n]), int(key_d[n]))
                 m = models.get(key)
@@ -311,14 +312,15 @@ class LocalBundleAdjustment:
                     a, d2 = s_px[n] ** 2, s_d[n] ** 2
                     cov = np.array([[a, a, 0.0], [a, a + d2, 0.0], [0.0, 0.0, a]])
                     m = models[key] = gtsam.noiseModel.Robust.Create(huber3, gtsam.noiseModel.Gaussian.Covariance(cov))
-                graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u[n], u[n] - disp[n], v[n]), m, _X(x), _L(l),
+                graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u[n], u[n] - disp[n], v[n]), m, _X(x), _L(lmk),
                                                       Ks))
             else:
                 key = (float(s_px[n]), None)
                 m = models.get(key)
                 if m is None:
-                    m = models[key] = gtsam.noiseModel.Robust.Create(huber2, gtsam.noiseModel.Isotropic.Sigma(2, s_px[n]))
-                graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([u[n], v[n]]), m, _X(x), _L(l), K))
+                    m = models[key] = gtsam.noiseModel.Robust.Create(huber2,
+                                                                     gtsam.noiseModel.Isotropic.Sigma(2, s_px[n]))
+                graph.add(gtsam.GenericProjectionFactorCal3_S2(np.array([u[n], v[n]]), m, _X(x), _L(lmk), K))
         t_build = (time.perf_counter() - t0) * 1e3
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.iterations)

@@ -271,4 +271,5 @@ class LoopDetector:
             accepted, reason = True, f"accepted (score {score:.3f} >= {self.loop_threshold})"
         else:
             accepted, reason = False, f"below threshold (score {score:.3f} < {self.loop_threshold})"
-        return LoopHypothesis(best, p_best, accepted, lik, reason, float(score), float(post_v), len(cand), shared, distinct)
+        return LoopHypothesis(best, p_best, accepted, lik, reason, float(score), float(post_v), len(cand), shared,
+                              distinct)

@@ -43,7 +43,8 @@ class Verification:
     refined: bool = False  # the transform was refined by dense registration
     inlier_points: np.ndarray | None = None  # (n, 3) candidate-frame points of the PnP inliers
     inlier_pixels: np.ndarray | None = None  # (n, 2) their pixels in the new keyframe
-    sigma: tuple[float, float] | None = None  # (m, deg) largest standard deviations of the link's estimate, when one was made
+    # (m, deg) largest standard deviations of the link's estimate, when one was made
+    sigma: tuple[float, float] | None = None
 
 
 class DenseView:
@@ -84,7 +85,8 @@ def refine(v: Verification, new: DenseView, candidate: DenseView, *, max_correct
     stays. (Real RGB-D cameras whose depth is not registered to colour, or surfaces that
     changed, can pull the dense solution off the visual one; the check catches that.)
     `min_overlap`: the share of the new keyframe's points associated in the candidate (loop
-    keyframes are often half a metre apart: odometry's 0.3 would refuse them). `sigma` (metres, degrees) is the refined link's standard deviation."""
+    keyframes are often half a metre apart: odometry's 0.3 would refuse them). `sigma` (metres,
+    degrees) is the refined link's standard deviation."""
     if not v.accepted:
         return v
     res = icp.register(new.levels(), candidate.levels(), v.transform, hypotheses=False, min_inlier_ratio=min_overlap)

@@ -722,7 +722,8 @@ class Vocabulary:
             pw.append(uw)
             pn.append(np.full(len(uw), n, np.int64))
             pc.append(cnt)
-        cat = (lambda a: np.concatenate(a) if a else np.zeros(0, np.int64))
+        def cat(a):
+            return np.concatenate(a) if a else np.zeros(0, np.int64)
         nodes = np.fromiter(self._nfeat.keys(), np.int64, len(self._nfeat))
         return {
             "word_ids": ids,

@@ -309,23 +309,23 @@ class MemoryManager:
         unmapped = set(store.unmapped_nodes(session_ids=[sid]).get(sid, ()))
         stored = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
         nodes = [n for n in stored if n.merged_into is None]
-        links = [l for l in store.links(session_id=sid) if l.from_id not in unmapped and l.to_id not in unmapped]
-        merges = {l.to_id: l for l in links if l.type == LinkType.MERGED}
-        self.merged = {k: (l.from_id, l.transform) for k, l in merges.items()}
+        links = [lk for lk in store.links(session_id=sid) if lk.from_id not in unmapped and lk.to_id not in unmapped]
+        merges = {lk.to_id: lk for lk in links if lk.type == LinkType.MERGED}
+        self.merged = {k: (lk.from_id, lk.transform) for k, lk in merges.items()}
         odometry, entries = [], []  # odometry links through merged keyframes: to a node, or (rehearsal) to a survivor
-        for l in links:
-            if l.type != LinkType.NEIGHBOR:
+        for lk in links:
+            if lk.type != LinkType.NEIGHBOR:
                 continue
-            a, ta = self.merged.get(l.from_id, (l.from_id, np.eye(4)))
-            b, tb = self.merged.get(l.to_id, (l.to_id, np.eye(4)))
-            if l.to_id not in self.merged:
-                odometry.append((a, b, ta @ l.transform, l.information))
+            a, ta = self.merged.get(lk.from_id, (lk.from_id, np.eye(4)))
+            b, tb = self.merged.get(lk.to_id, (lk.to_id, np.eye(4)))
+            if lk.to_id not in self.merged:
+                odometry.append((a, b, ta @ lk.transform, lk.information))
             elif a != b:
-                entries.append((a, b, ta @ l.transform @ invert(tb),
-                                series_information(l.information, merges[l.to_id].information)))
+                entries.append((a, b, ta @ lk.transform @ invert(tb),
+                                series_information(lk.information, merges[lk.to_id].information)))
         own = {n.id for n in nodes}
-        loops = [(l.from_id, l.to_id, l.transform, l.information) for l in links
-                 if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
+        loops = [(lk.from_id, lk.to_id, lk.transform, lk.information) for lk in links
+                 if lk.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.LOCAL_TIME)]
         across = [k for k in loops if not (k[0] in own and k[1] in own)]  # to the previous map's nodes
         # odometry from a keyframe merged into the previous map's node starts at that node
         across += [k for k in odometry if k[0] not in own]
@@ -353,10 +353,11 @@ class MemoryManager:
             if src is not None:
                 self.link(n.id, src)
         closures = []
-        for l in links:
-            if l.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE):  # as the map update: path links are not loops
-                closures.append((l.from_id, l.to_id))
-                self.link(l.to_id, l.from_id)
+        for lk in links:
+            # as the map update: path links are not loops
+            if lk.type in (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE):
+                closures.append((lk.from_id, lk.to_id))
+                self.link(lk.to_id, lk.from_id)
         if self.loop_config.refine_dense:
             for n in own:
                 self.views.defer(n)

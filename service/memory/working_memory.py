@@ -5,7 +5,8 @@ only), and which move between them.
 
 This module decides; it holds no features and does no I/O. The memory manager
 (`manager.MemoryManager`) asks it what to transfer and what to retrieve, moves the data
-(vocabulary, loop detector, pose graph, feature and view caches) and tells it what moved. Moving a node between WM and LTM changes no data.
+(vocabulary, loop detector, pose graph, feature and view caches) and tells it what moved.
+Moving a node between WM and LTM changes no data.
 
 Transfer (WM → LTM, RTAB-Map's `Memory::forget`): when WM holds more than `max_wm_nodes`
 nodes, or the last map update took longer than `time_threshold_ms`, the lowest-weight
@@ -120,7 +121,8 @@ class WorkingMemory:
         return (self.max_wm_nodes > 0 and len(self._wm) > self.max_wm_nodes) or \
             (self.time_threshold_ms > 0 and update_ms > self.time_threshold_ms)
 
-    def select_transfers(self, update_ms: float, protected: Iterable[int] = (), preferred: Iterable[int] = ()) -> list[int]:
+    def select_transfers(self, update_ms: float, protected: Iterable[int] = (),
+                         preferred: Iterable[int] = ()) -> list[int]:
         """The WM nodes to move to LTM after an update that took `update_ms`: enough to get
         back under max_wm_nodes, at least one node when only the time threshold was exceeded;
         lowest weight first, then oldest. `protected` nodes (linked to STM, the loop-closure

@@ -243,8 +243,8 @@ class ObjectFusion:
 
     def _stuff_votes(self, seg, world, cand, A, centres, radii, seen, touched) -> None:
         """A wall / floor / … segment that covers most of an object's voxels, or lies mostly
-        inside it (`stuff_cover`), is a vote for that class in its histogram: a region a corrupted frame made an object of
-        turns back into wall, and is no longer reported."""
+        inside it (`stuff_cover`), is a vote for that class in its histogram: a region a corrupted
+        frame made an object of turns back into wall, and is no longer reported."""
         v = self.config.voxel
         c = world.mean(axis=0)
         r = np.linalg.norm(world - c, axis=1).max()

@@ -138,7 +138,8 @@ class _Snapshot:
     build_s: float = 0.0
 
     @classmethod
-    def from_arrays(cls, a: dict, version=None, root_of: Callable[[np.ndarray], np.ndarray] | None = None) -> "_Snapshot":
+    def from_arrays(cls, a: dict, version=None,
+                    root_of: Callable[[np.ndarray], np.ndarray] | None = None) -> "_Snapshot":
         t = time.perf_counter()
         ids = np.asarray(a["id"], np.int64).reshape(-1)
         n = len(ids)
@@ -465,7 +466,8 @@ class ObjectIndex:
         joined = self._joined(snap, rows, joined_to, label)
         if joined is not None and not joined.any():
             raise NotFound(f"no object labelled {label!r} in the robot's part of the map: no link joins its "
-                           f"keyframe {joined_to} to the {len(rows)} such object(s) yet (it is not localized in the map)")
+                           f"keyframe {joined_to} to the {len(rows)} such object(s) yet "
+                           "(it is not localized in the map)")
         blocks = snap.label_blocks.get(label)
         if blocks is not None and joined is None:
             row, best = blocks.nearest(p)

@@ -188,7 +188,8 @@ class CameraLabels:
         self.classes = class_table(config.classes)
         self.name = "camera"
 
-    def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:  # pragma: no cover - labels come with the frame
+    # never called: labels come with the frame
+    def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:  # pragma: no cover
         raise RuntimeError("camera labels come with the frame; a keyframe without labels is skipped")
 
 

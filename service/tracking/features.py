@@ -27,7 +27,8 @@ class FrameFeatures:
     grey: np.ndarray | None = None  # the frame's grey image (RGB-D), for dense registration
     depth_sigma: np.ndarray | None = None  # (N,) float32 std. dev. of each point's depth (m), NaN when unknown
     level_scale: float = 1.2  # pyramid scale factor: a keypoint at octave k is known to level_scale**k px
-    disparity: np.ndarray | None = None  # (N,) float32 stereo: measured disparity (px, before the offset correction), NaN when none
+    # (N,) float32 stereo: measured disparity (px, before the offset correction), NaN when none
+    disparity: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -37,9 +38,9 @@ class FrameFeatures:
         return np.isfinite(self.points[:, 2])
 
     def subset(self, idx) -> FrameFeatures:
-        return FrameFeatures(self.keypoints[idx], self.descriptors[idx], self.points[idx], self.octaves[idx], self.depth,
-                             self.grey, None if self.depth_sigma is None else self.depth_sigma[idx], self.level_scale,
-                             None if self.disparity is None else self.disparity[idx])
+        return FrameFeatures(self.keypoints[idx], self.descriptors[idx], self.points[idx], self.octaves[idx],
+                             self.depth, self.grey, None if self.depth_sigma is None else self.depth_sigma[idx],
+                             self.level_scale, None if self.disparity is None else self.disparity[idx])
 
     def pixel_sigmas(self) -> np.ndarray:
         """(N,) keypoint position std. dev. in pixels (1 at level 0, growing per octave)."""
@@ -181,7 +182,8 @@ class FeatureExtractor:
         xy_r, _, _ = _keypoint_arrays(kps_r)
         # Candidate pairs on the same rectified row (within the keypoint level's tolerance)
         # and in the disparity range, then the nearest right descriptor of each left keypoint.
-        row_tol = s.max_row_diff * self.config.scale_factor ** octave_l.astype(np.float32)  # coarser levels, coarser rows
+        # coarser levels, coarser rows
+        row_tol = s.max_row_diff * self.config.scale_factor ** octave_l.astype(np.float32)
         li, ri = _row_candidates(xy_l, xy_r, row_tol)
         disp = xy_l[li, 0] - xy_r[ri, 0]
         keep = (disp >= s.min_disparity) & (disp <= s.max_disparity * cam.width)
@@ -254,7 +256,8 @@ def _refine_disparity(left, right, xy, disp, half=5, search=4) -> np.ndarray:
     cols_l = np.clip(x[:, None] + r[None, :], 0, w - 1)
     pl = left[rows[:, :, None], cols_l[:, None, :]].astype(np.int16)  # (n, P, P)
     pl = pl - pl.mean(axis=(1, 2), keepdims=True).astype(np.int16)
-    cols_r = np.clip(x[:, None, None] - d0[:, None, None] - shifts[None, :, None] + r[None, None, :], 0, w - 1)  # (n, S, P)
+    cols_r = np.clip(x[:, None, None] - d0[:, None, None] - shifts[None, :, None] + r[None, None, :],
+                     0, w - 1)  # (n, S, P)
     pr = right[rows[:, None, :, None], cols_r[:, :, None, :]].astype(np.int16)  # (n, S, P, P)
     pr = pr - pr.mean(axis=(2, 3), keepdims=True).astype(np.int16)
     cost = np.abs(pl[:, None] - pr).sum(axis=(2, 3)).astype(np.float64)  # (n, S)

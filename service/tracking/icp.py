@@ -168,7 +168,8 @@ def _normals(V: np.ndarray) -> np.ndarray:
         n = n / norm
         # Reject edges: neighbours much farther apart than the pixel footprint.
         z = V[..., 2:3]
-        edge = (np.linalg.norm(dx, axis=-1, keepdims=True) > 0.1 * z) | (np.linalg.norm(dy, axis=-1, keepdims=True) > 0.1 * z)
+        edge = ((np.linalg.norm(dx, axis=-1, keepdims=True) > 0.1 * z)
+                | (np.linalg.norm(dy, axis=-1, keepdims=True) > 0.1 * z))
         flip = np.sum(n * V, axis=-1, keepdims=True) > 0
     n = np.where(flip, -n, n)
     return np.where(edge | ~np.isfinite(norm) | (norm == 0), np.nan, n).astype(np.float32)
@@ -232,7 +233,7 @@ def _geometric(P, Nn, ref: DepthLevel, R, t, cfg: _LevelConfig):
     return r[ok], np.take(p, ok, axis=1), np.take(g[:3], ok, axis=1)
 
 
-def _photometric(P, I, ref: DepthLevel, R, t):
+def _photometric(P, I_src, ref: DepthLevel, R, t):
     """Grey-value residuals I_ref(π(T p)) − I_src (bilinear) of the source points that land
     inside the reference image and are not occluded there. Returns the residuals, the
     transformed points (3, M) and the image gradient as a 3-D gradient dI/dp (3, M)."""
@@ -244,7 +245,7 @@ def _photometric(P, I, ref: DepthLevel, R, t):
         v = (p[1] * iz * ref.fy + ref.cy).reshape(-1, 1)
     s = cv2.remap(ref._reference_photometric(), u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                   borderValue=(np.nan,) * 4).reshape(-1, 4)
-    r = s[:, 0] - I
+    r = s[:, 0] - I_src
     with np.errstate(invalid="ignore"):
         # Inside the image, and the reference does not see a clearly nearer surface there.
         ok = np.flatnonzero(np.isfinite(r) & np.isfinite(iz) & (p[2] <= s[:, 3] * 1.05 + 0.02))
@@ -277,14 +278,15 @@ def _normal_equations(src: DepthLevel, ref: DepthLevel, T: np.ndarray, cfg: _Lev
     st = {"n_g": len(r_g), "N_g": P.shape[1], "r_g": r_g, "ps": ps, "sg": sg, "n_i": 0,
           "cost": (np.minimum(r_g * r_g / _COST_TAU_G ** 2, 1).sum() + P.shape[1] - len(r_g)) / P.shape[1]}
     if cfg.photometric_weight > 0 and ref.intensity is not None and src.intensity is not None:
-        Pi, I = src._source_photometric(cfg.min_gradient, cfg.max_photo_points)
+        Pi, I_src = src._source_photometric(cfg.min_gradient, cfg.max_photo_points)
         if Pi.shape[1] >= 30:
-            r_i, pi, gp = _photometric(Pi, I, ref, R, t)
+            r_i, pi, gp = _photometric(Pi, I_src, ref, R, t)
             if len(r_i) >= 30:
                 r_i = r_i - _median(r_i)
                 a = np.abs(r_i)
                 si = max(1.4826 * _median(a), cfg.sigma_i)
-                sw = np.sqrt((cfg.nu + 1) / (cfg.nu + (a / si) ** 2) * (cfg.photometric_weight / si ** 2), dtype=np.float32)
+                sw = np.sqrt((cfg.nu + 1) / (cfg.nu + (a / si) ** 2) * (cfg.photometric_weight / si ** 2),
+                             dtype=np.float32)
                 blocks.append(_rows(pi, gp, r_i, sw))
                 st["cost"] += (np.minimum(r_i * r_i / _COST_TAU_I ** 2, 1).sum() + Pi.shape[1] - len(r_i)) / Pi.shape[1]
                 st.update(n_i=len(r_i), si=si)

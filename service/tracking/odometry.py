@@ -18,8 +18,8 @@ import numpy as np
 from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rotation_angle
 
-from . import icp
 from ..config import OdometryConfig, StereoConfig
+from . import icp
 from .features import FrameFeatures
 from .matching import match_descriptors
 from .refinement import mahalanobis2, offset_information, refine_pose, sigma_from_hessian
@@ -51,7 +51,8 @@ class TrackResult:
     segment: int = 0
     map_index: np.ndarray | None = None  # per frame feature: matched local-map point or -1
     inlier_mask: np.ndarray | None = None  # per frame feature: PnP inlier
-    point_ids: np.ndarray | None = None  # per frame feature: stable id of the local-map point it is (inlier or new point), or -1
+    # per frame feature: stable id of the local-map point it is (inlier or new point), or -1
+    point_ids: np.ndarray | None = None
 
     @property
     def tracked(self) -> bool:
@@ -72,7 +73,8 @@ class LocalMap:
         self.origins = np.zeros((0, 3), np.float64)  # camera centre of the first sighting
         self.disparity = np.zeros(0, np.float64)  # stereo: disparity measured at the first sighting (NaN: none)
         self.cos0 = np.zeros(0, np.float64)  # cosine between the first ray and that camera's optical axis
-        self.ids = np.zeros(0, np.int64)  # stable point ids (indices shift when points are trimmed): the map update's point tracks
+        # stable point ids (indices shift when points are trimmed): the map update's point tracks
+        self.ids = np.zeros(0, np.int64)
         self._next_id = 0
 
     def __len__(self) -> int:
@@ -190,7 +192,8 @@ class Odometry:
             result = self._register_depth(features, predicted if result is None else result[0]) or result
         if result is None:
             self.lost_in_row += 1
-            if self.lost_in_row >= self.config.lost_frames_reset and features.has_depth.sum() >= self.config.min_inliers:
+            if (self.lost_in_row >= self.config.lost_frames_reset
+                    and features.has_depth.sum() >= self.config.min_inliers):
                 return self._start_segment(features, stamp, new_segment=True)
             return TrackResult("lost", None, segment=self.segment, map_index=np.full(len(features), -1))
         pose, map_index, inliers = result[:3]
@@ -207,8 +210,8 @@ class Odometry:
         self.velocity = invert(self.pose) @ pose  # motion over the last interval ...
         self._last_dt = self._dt(stamp)  # ... of this length, rescaled in _predict
         self.pose, self.last_stamp, self.lost_in_row = pose, stamp, 0
-        return TrackResult("ok", pose, int(inliers.sum()), int((map_index >= 0).sum()), self.segment, map_index, inliers,
-                           point_ids)
+        return TrackResult("ok", pose, int(inliers.sum()), int((map_index >= 0).sum()), self.segment, map_index,
+                           inliers, point_ids)
 
     def _confident(self, result) -> bool:
         """A PnP pose the depth cannot improve: enough inliers and, where its σ was estimated
