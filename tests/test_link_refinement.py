@@ -1,7 +1,6 @@
 """Two-view reprojection refinement of loop / proximity links (service/mapping/link_refinement.py):
 the estimate, its covariance and the accuracy check, on exact synthetic geometry."""
 import numpy as np
-import pytest
 
 from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rodrigues, rotation_angle

@@ -76,7 +76,8 @@ def test_link_report_against_ground_truth(mapped, tmp_path):
     with MapStore(copy, create=False) as store:
         a, b = [n for n in store.nodes(limit=None, merged=False)][:2]
         gt = ds.ground_truth
-        true = invert(gt.poses[np.argmin(np.abs(gt.stamps - a.stamp))]) @ gt.poses[np.argmin(np.abs(gt.stamps - b.stamp))]
+        true = (invert(gt.poses[np.argmin(np.abs(gt.stamps - a.stamp))])
+                @ gt.poses[np.argmin(np.abs(gt.stamps - b.stamp))])
         store.add_link(a.id, b.id, LinkType.USER, true @ make_pose(np.eye(3), [0.0, 0.07, 0.0]))
     r = evaluate_map_links(ds.ground_truth, copy)
     user = r.by_kind()["user"]
@@ -90,7 +91,8 @@ def test_links_along_the_own_path_are_exact_and_not_loops(mapped):
     # measured (15 Hz with noise, 90 s figure-8): loop 361 links, error median 0.96 mm, max 13 mm
     # (the longest, ~0.9 m links); figure-8 648 links, 1.0 / 11 mm. At 10 Hz (figure-8 in 40 s):
     # loop 337 links, 1.0 / 9.3 mm; figure-8 570 links, 1.0 / 10.0 mm
-    assert path.links >= slam.summary.keyframes - slam.summary.merged, path.format()  # every map node (merged keyframes have their survivor's)
+    # every map node (merged keyframes have their survivor's)
+    assert path.links >= slam.summary.keyframes - slam.summary.merged, path.format()
     assert path.false_links == 0 and path.link_error_median < 0.002 and path.link_error_max < 0.02, path.format()
     with MapStore(db, create=False) as store:
         loops = store.links(type=LinkType.GLOBAL_CLOSURE) + store.links(type=LinkType.LOCAL_SPACE)

@@ -210,7 +210,7 @@ def test_crafted_messages_have_their_reason():
                         (b"MSLF\x03\x00", None)],
         "bad_header": [(_craft(header_len=10), None),
                        (_craft(version=2), None),  # a version 1 layout is too short for version 2
-                       # (_craft(header_len=2000, p1=bytes(2000)), None),
+                       (_craft(header_len=2000, p1=bytes(2000)), None),
                        (_craft(kind=3), None), (_craft(cenc=3), None), (_craft(senc=3, kind=0), None),
                        (_craft(c=2), None), (_craft(c=0), None), (_craft(c=4), None),
                        (_craft(kind=2, senc=1, p2=bytes(12)), None),  # mono with a second image

@@ -32,8 +32,8 @@ from ..memory.manager import MemoryManager, series_information
 from ..tracking.features import FrameFeatures
 from ..tracking.matching import match_descriptors
 from .graph import PoseGraph
-from .local_ba import LocalBundleAdjustment
 from .link_refinement import refine_link
+from .local_ba import LocalBundleAdjustment
 from .loop_detection import LoopDetector
 from .proximity import nearby
 from .verification import Verification, refine, register_dense, verify
@@ -53,7 +53,8 @@ class KeyframeUpdate:
     odom_from: int | None  # previous keyframe of the same segment
     transform: np.ndarray | None  # T_from_to of that odometry link
     information: np.ndarray | None
-    point_ids: np.ndarray | None = None  # per feature: the tracker's stable local-map point id or -1 (local BA's tracks); None: unknown
+    # per feature: the tracker's stable local-map point id or -1 (local BA's tracks); None: unknown
+    point_ids: np.ndarray | None = None
 
     @classmethod
     def from_store(cls, store: MapStore, node_id: int, images: bool = True) -> "KeyframeUpdate":
@@ -73,7 +74,7 @@ class KeyframeUpdate:
                 depth = None
             else:
                 grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        links = [l for l in store.links(node_ids=[node.id], type=LinkType.NEIGHBOR) if l.to_id == node.id]
+        links = [lk for lk in store.links(node_ids=[node.id], type=LinkType.NEIGHBOR) if lk.to_id == node.id]
         odom = links[0] if links else None
         features = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8), depth, grey)
         return cls(node.id, node.stamp, node.pose, features, odom.from_id if odom else None,
@@ -95,10 +96,12 @@ class LoopStatistics:
     sigma: list | None = None  # [m, deg] largest standard deviations of the link's estimate (two-view refinement)
     proximity: list = field(default_factory=list)  # [{node, decision, inliers, refined}] spatial candidates
     path: list = field(default_factory=list)  # [{node, decision, inliers, refined}] recent keyframes of its own path
-    rehearsal: dict = field(default_factory=dict)  # {node, similarity, inliers, distance, rotation, decision}: the node it was or wasn't merged into
+    # {node, similarity, inliers, distance, rotation, decision}: the node it was or wasn't merged into
+    rehearsal: dict = field(default_factory=dict)
     timings_ms: dict = field(default_factory=dict)
-    memory: dict = field(default_factory=dict)  # after the update: stm, wm, ltm sizes, transferred / retrieved ids, words
-    local_ba: dict = field(default_factory=dict)  # {keyframes, points, observations, depth_scale, ms}: the local BA that refined its odometry link
+    memory: dict = field(default_factory=dict)  # after the update: stm, wm, ltm sizes, transferred/retrieved ids, words
+    # {keyframes, points, observations, depth_scale, ms}: the local BA that refined its odometry link
+    local_ba: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -137,7 +140,8 @@ class Mapper:
         self._correction = np.eye(4)  # T_map_odom
         self._lock = threading.Lock()
         self.loops: list[tuple[int, int]] = []
-        self.links_dropped = 0  # verified loop / proximity links refused as inaccurate (their estimated σ beyond loop.link_max_sigma_*)
+        # verified loop / proximity links refused as inaccurate (their estimated σ beyond loop.link_max_sigma_*)
+        self.links_dropped = 0
         # the statistics of the last STATISTICS_KEPT updates (every update's are in the database)
         self.statistics: collections.OrderedDict[int, LoopStatistics] = collections.OrderedDict()
         self._queue: queue.Queue | None = None
@@ -313,7 +317,7 @@ class Mapper:
             {k: v for k, v in links.items() if k[1] != u.node_id}) if c.local_ba_relink else []
         # the database keeps the links the graph has (a reload, the link report): the window's
         # older links and (below) the keyframe's own, which tracking stored as the tracker's
-        stored = [(l.from_id, l.to_id, l.transform, l.information) for l in relinked]
+        stored = [(lk.from_id, lk.to_id, lk.transform, lk.information) for lk in relinked]
         info = {"keyframes": res.keyframes, "matched": matched, "points": res.points,
                 "observations": res.observations, "depth_observations": res.depth_observations,
                 "depth_scale": round(res.depth_scale, 3), "error_before": res.error_before,
@@ -369,7 +373,8 @@ class Mapper:
                 r["decision"] = f"rejected: graph {outcome.reason}"
                 return Rehearsal(None, (c, v))
         r["decision"] = "merged"
-        r["loop"] = entering = self.memory.merge(u.node_id, c, p, v.transform, v.information)  # came back to c's part of the map
+        # came back to c's part of the map?
+        r["loop"] = entering = self.memory.merge(u.node_id, c, p, v.transform, v.information)
         if entering:
             self.loops.append((c, p))
             self.on_event("loop_closed", {"from": c, "to": u.node_id, "inliers": v.inliers,
@@ -425,8 +430,8 @@ class Mapper:
             else:
                 decision, v = self._close_loop(u, candidate, LinkType.LOCAL_SPACE, prior)
             stats.proximity.append({"node": candidate, "decision": decision,
-                                    "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined),
-                                    "sigma": _rounded_sigma(v)})
+                                    "inliers": 0 if v is None else v.inliers,
+                                    "refined": bool(v is not None and v.refined), "sigma": _rounded_sigma(v)})
             if decision == "accepted":
                 return
 
@@ -508,7 +513,8 @@ class Mapper:
         info = v.information / c.link_refine_sigma_factor ** 2 if refined else v.information
         if c.link_refine_information:
             info = e.information(info)
-        return "ok", dataclasses.replace(v, transform=T, information=info, sigma=(e.sigma_translation, e.sigma_rotation))
+        return "ok", dataclasses.replace(v, transform=T, information=info,
+                                         sigma=(e.sigma_translation, e.sigma_rotation))
 
     def _add_link(self, u: KeyframeUpdate, candidate: int, kind: LinkType, v: Verification) -> str:
         """Add a verified link to the graph (which may refuse it) and store it (the poses it
