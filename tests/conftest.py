@@ -64,7 +64,8 @@ class _RenderedOnce(SyntheticDataset):
     """The synthetic dataset, each frame rendered once per test session (see `synthetic`)."""
 
     def frame(self, i: int):
-        key = (self.trajectory, self.path.duration, self.rate, self.camera, self.noise, self.exposure, self.seed, i)
+        key = (self.trajectory, self.path.duration, self.rate, self.camera, self.noise, self.exposure, self.seed,
+               getattr(self.person, "walk", None), i)
         f = _RENDERED.get(key) if 0 <= i < len(self) else None
         if f is None:
             f = super().frame(i)  # IndexError out of range, as the dataset's own

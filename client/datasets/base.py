@@ -66,10 +66,11 @@ def _is_bag(path: Path) -> bool:
 
 def open_dataset(spec: str | Path, format: str | None = None, **options) -> Dataset:
     """Open a dataset folder, a ROS bag (a rosbag2 folder with metadata.yaml, a `.db3` /
-    `.mcap` file, a ROS 1 `.bag` file), or the synthetic scene with `synthetic[:TRAJECTORY]`.
+    `.mcap` file, a ROS 1 `.bag` file), or the synthetic scene with `synthetic[:TRAJECTORY][?person]`
+    (`?person`: with the walking person, as `person=True`).
 
     `options` go to the player (e.g. `max_frames`; for bags `topics`, see
-    `client.datasets.rosbag`; for the synthetic scene `noise`, `seed`, `frames`, ...).
+    `client.datasets.rosbag`; for the synthetic scene `noise`, `seed`, `frames`, `person`, ...).
     """
     text = str(spec)
     topics = options.pop("topics", None)
@@ -78,7 +79,12 @@ def open_dataset(spec: str | Path, format: str | None = None, **options) -> Data
             raise DatasetError(f"{text}: --topics applies to ROS bags only")
         from ..synthetic import SyntheticDataset
 
-        trajectory = text.split(":", 1)[1] if ":" in text else "loop"
+        base, _, extra = text.partition("?")  # synthetic:loop?person: with the walking person
+        for flag in filter(None, extra.split("&")):
+            if flag != "person":
+                raise DatasetError(f"{text}: unknown synthetic option {flag!r} (known: person)")
+            options.setdefault("person", True)
+        trajectory = base.split(":", 1)[1] if ":" in base else "loop"
         return SyntheticDataset(trajectory=trajectory, **options)
     path = Path(text).expanduser()
     if not path.exists():

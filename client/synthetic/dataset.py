@@ -12,6 +12,7 @@ from ..frames import Calibration, DatasetError, Frame, PinholeCamera
 from ..trajectory import Trajectory
 from .blur import motion_blur
 from .kinect import add_kinect_noise
+from .person import Person, Walk
 from .scene import SyntheticScene, get_scene
 from .trajectories import TRAJECTORIES
 from .trajectories import trajectory as make_path
@@ -46,6 +47,11 @@ class SyntheticDataset(Dataset):
     exposure centred on the frame's stamp (`blur.py`); depth, labels and the ground truth are
     those of the stamp (mid-exposure). `noise=None` / `exposure=None` take the trajectory's
     defaults (`PathSpec.noise` / `exposure`: off, except "fastrot": "kinect" and 20 ms).
+    With `person=True` a person walks through the scene (`person.py`: a textured box labelled
+    `person`, class 13, its own instance id) to and fro along the trajectory's `PathSpec.person`
+    walk (the loop has one), or along a `Walk` given as `person`; it is drawn into colour, depth,
+    labels and instances before blur and noise. Off by default: the frames are then exactly
+    those of the static scene.
     """
 
     format = "synthetic"
@@ -53,7 +59,7 @@ class SyntheticDataset(Dataset):
     def __init__(self, trajectory: str = "loop", rate: float = 30.0, width: int = 640, height: int = 480,
                  fx: float = 525.0, noise: bool | str | None = None, seed: int = 0, max_frames: int | None = None,
                  duration: float | None = None, scene: SyntheticScene | None = None, frames: int | None = None,
-                 exposure: float | None = None):
+                 exposure: float | None = None, person: bool | Walk | None = False):
         if not (isinstance(rate, (int, float)) and rate > 0):
             raise DatasetError(f"synthetic: rate must be > 0 Hz, got {rate!r}")
         if int(width) < 8 or int(height) < 8:
@@ -70,6 +76,7 @@ class SyntheticDataset(Dataset):
             raise DatasetError(f"synthetic: exposure must be 0..1 s, got {exposure!r}")
         self.seed = int(seed)
         self.scene = scene if scene is not None else get_scene(self.seed)
+        self.person = self._person(person, spec.person)
         w, h = int(width), int(height)
         self.camera = PinholeCamera(float(fx), float(fx), (w - 1) / 2.0, (h - 1) / 2.0, w, h)
         self.name = f"synthetic-{self.trajectory}"
@@ -87,7 +94,7 @@ class SyntheticDataset(Dataset):
     def __repr__(self) -> str:
         return (f"SyntheticDataset({self.trajectory!r}, {len(self)} frames @ {self.rate:g} Hz, "
                 f"{self.camera.width}x{self.camera.height}, noise={self.noise}, exposure={self.exposure:g}, "
-                f"seed={self.seed})")
+                f"seed={self.seed}{', person' if self.person is not None else ''})")
 
     def pose(self, i: int) -> np.ndarray:
         return self.ground_truth.poses[i]
@@ -97,6 +104,8 @@ class SyntheticDataset(Dataset):
             raise IndexError(f"{self.name}: frame {i} out of range 0..{len(self) - 1}")
         pose = self.ground_truth.poses[i]
         r = self.scene.render(pose, self.camera, incidence=bool(self.noise))
+        if self.person is not None:
+            r = self.person.composite(r, pose, self.camera, float(self.ground_truth.stamps[i]))
         rgb, depth = r.rgb, r.depth
         if self.exposure > 0:
             t = float(self.ground_truth.stamps[i])
@@ -112,6 +121,19 @@ class SyntheticDataset(Dataset):
         return Frame(index=i, stamp=float(self.ground_truth.stamps[i]), image=rgb, depth=depth,
                      source=f"synthetic:{self.trajectory}#{i}",
                      extras={"labels": r.labels, "instances": r.instances})
+
+    def _person(self, person, default: Walk | None) -> Person | None:
+        """The walking person of `person` (False / None: none; True: the path's walk; a `Walk`)."""
+        if person is None or person is False:
+            return None
+        walk = default if person is True else person
+        if walk is None:
+            raise DatasetError(f"synthetic: the {self.trajectory!r} path has no person walk; pass person=Walk(...)")
+        if not isinstance(walk, Walk):
+            raise DatasetError(f"synthetic: person must be true, false or a Walk, got {person!r}")
+        walk = Walk(tuple(map(float, walk.start)), tuple(map(float, walk.end)), float(walk.speed), float(walk.phase))
+        instance = 1 + max((o.instance_id for o in self.scene.objects), default=0)
+        return Person(walk, self.seed, instance, self.scene.quads.detail)
 
 
 def _noise_model(noise) -> str | bool:

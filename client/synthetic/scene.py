@@ -36,9 +36,9 @@ from . import textures as tx
 from .raster import QuadSet, Rasterizer, RenderResult, detail_offsets, detail_table
 
 CLASS_NAMES: dict[int, str] = {
-    0: "other", 1: "wall", 4: "floor", 6: "ceiling", 9: "windowpane", 11: "cabinet", 15: "door",
+    0: "other", 1: "wall", 4: "floor", 6: "ceiling", 9: "windowpane", 11: "cabinet", 13: "person", 15: "door",
     16: "table", 20: "chair", 23: "painting", 24: "sofa", 25: "shelf",
-}
+}  # (13 "person": only the walking person of `person.py`, when a dataset adds it)
 OTHER, WALL, FLOOR, CEILING, WINDOW, CABINET, DOOR, TABLE, CHAIR, PAINTING, SOFA, SHELF = (
     0, 1, 4, 6, 9, 11, 15, 16, 20, 23, 24, 25)
 
@@ -474,17 +474,7 @@ class SyntheticScene:
         _build(bd)
         self.objects: list[SceneObject] = bd.objects
         self.atlas = _pack(bd.regions)
-        q = bd.quads
-        tex = []
-        for d in q:
-            reg = bd.regions[d["region"]]
-            ox = reg.ox + PAD - d["flip"] * d["ob"] / reg.texel
-            oy = reg.oy + PAD + d["od"] / reg.texel
-            tex.append((ox, d["flip"] / reg.texel, oy, -1.0 / reg.texel))
-        self.quads = QuadSet([d["axis"] for d in q], [d["c"] for d in q], [d["sign"] for d in q],
-                             [d["lo"] for d in q], [d["hi"] for d in q], [d["label"] for d in q],
-                             [d["instance"] for d in q], tex, self.atlas,
-                             detail_table(self.seed), detail_offsets(self.seed, len(q)))
+        self.quads = quad_set(bd, self.atlas, detail_table(self.seed), detail_offsets(self.seed, len(bd.quads)))
         self._raster = Rasterizer(self.quads)
 
     # -- rendering
@@ -573,6 +563,20 @@ def _pack(regions: list[_Region]) -> np.ndarray:
         atlas[y:y + img.shape[0], x:x + img.shape[1]] = img
         regions[i].ox, regions[i].oy = x, y
     return atlas
+
+
+def quad_set(bd: _Builder, atlas: np.ndarray, detail: np.ndarray | None, offsets: np.ndarray | None) -> QuadSet:
+    """A builder's quads as the renderer's `QuadSet`, their textures in `atlas` (packed by `_pack`)."""
+    q = bd.quads
+    tex = []
+    for d in q:
+        reg = bd.regions[d["region"]]
+        ox = reg.ox + PAD - d["flip"] * d["ob"] / reg.texel
+        oy = reg.oy + PAD + d["od"] / reg.texel
+        tex.append((ox, d["flip"] / reg.texel, oy, -1.0 / reg.texel))
+    return QuadSet([d["axis"] for d in q], [d["c"] for d in q], [d["sign"] for d in q],
+                   [d["lo"] for d in q], [d["hi"] for d in q], [d["label"] for d in q],
+                   [d["instance"] for d in q], tex, atlas, detail, offsets)
 
 
 _CACHE: dict[int, SyntheticScene] = {}

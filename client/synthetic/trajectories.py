@@ -27,6 +27,7 @@ import numpy as np
 
 from ..frames import DatasetError
 from ..geometry import look_at, make_pose
+from .person import Walk
 
 EYE_HEIGHT = 1.5
 
@@ -50,6 +51,9 @@ class PathSpec:
     # what the dataset gives its frames unless told otherwise (SyntheticDataset noise / exposure)
     noise: bool | str = False
     exposure: float = 0.0  # s; > 0: colour images blurred by the motion during the exposure
+    # where the walking person (`SyntheticDataset(person=True)`, `person.py`) walks on this path:
+    # in view for much of it, never nearer than 1 m to the camera; None: the path has none
+    person: Walk | None = None
 
 
 # Doorway centres: living<->office (6.05, 2.5), living<->hall (2.6, 5.05), office<->hall (8.6, 5.05).
@@ -79,7 +83,10 @@ TRAJECTORIES: dict[str, PathSpec] = {
                 (8.1, 6.25), (7.0, 6.25), (5.0, 6.25), (3.4, 6.2), (2.6, 5.6), (2.6, 5.05), (2.6, 4.5),
                 (2.9, 3.2)),
         duration=60.0, closed=True,
-        description="living room -> office (around the dining table) -> hall -> living room, back to the start pose"),
+        description="living room -> office (around the dining table) -> hall -> living room, back to the start pose",
+        # across the office behind the dining table's north chairs, seen through the doorway from the
+        # start (every frame of the first 6 s) and again from the office: ~50 of 300 frames at 5 Hz
+        person=Walk((6.6, 3.45), (9.9, 3.45), speed=0.5, phase=11.0)),
     "figure8": PathSpec(
         points=_FIG8_LAP + _second_lap(_FIG8_LAP), duration=90.0, closed=True,
         description="two laps of a figure eight: around the living room and around the dining table, "
