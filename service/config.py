@@ -231,6 +231,7 @@ class SemanticsConfig:
     queue_size: int = 4  # keyframes waiting for the semantic worker; when full the newest is dropped (and counted)
     nice: int = 10  # the semantic worker thread's nice increment (lower CPU priority than tracking); 0 = same priority
     max_duty: float = 0.5  # the semantic worker rests after each keyframe so that it is busy at most this share of the time (on 2 cores it slows tracking in proportion; keyframes that arrive meanwhile queue, then drop and are counted); 1 = no rest
+    dynamic: list = field(default_factory=lambda: ["person", "car"])  # classes that move (people, animals, vehicles: of ADE20K-32 person and car; name other tables' own, e.g. bus, dog): their segments never become objects, nor vote in one; a keyframe showing one counts in the worker's `dynamic`; [] = they map like any thing
     ignore: list = field(default_factory=lambda: ["other", "wall", "building", "sky", "floor", "ceiling", "road", "grass", "sidewalk", "earth", "mountain", "water", "sea", "field", "rug"])  # classes that never become objects ("stuff": surfaces without an extent)
     stride: int = 4  # label / depth pixels used: every stride-th of each row and column
     min_depth: float = 0.3  # m; labelled pixels with depth outside [min, max] are not used

@@ -6,7 +6,9 @@ pixels with valid depth (every `stride`-th, vectorised), split at depth disconti
 grouped into
 connected components per class (OpenCV), back-projected into the camera frame and clipped
 to their 2nd–98th percentile box; small or huge segments and "stuff" classes (walls,
-floors: `semantics.ignore`) are dropped.
+floors: `semantics.ignore`) are dropped. Segments of dynamic classes (people, cars:
+`semantics.dynamic`) are left out of the map altogether: they make no object and vote in none
+(`ObjectFusion.fuse` counts them in `dynamic_segments`).
 
 `ObjectFusion` keeps the objects. Each is anchored to the keyframe that first saw it: its
 surface is a set of voxels in that keyframe's camera frame, so when loop closure moves the
@@ -153,8 +155,10 @@ class ObjectFusion:
         self.config = config
         self.objects: list[FusedObject] = []
         self.deleted: list[int] = []  # stored ids of objects merged into others (the worker deletes them)
-        ignored = set(config.ignore)
+        ignored, dynamic = set(config.ignore), set(config.dynamic)
         self.ignore = np.array([n in ignored for n in self.classes] + [True])  # last: out-of-table ids
+        self.dynamic = np.array([n in dynamic for n in self.classes] + [False])  # things that move: never objects
+        self.dynamic_segments = 0  # dynamic-class segments in the last keyframe fused (left out)
         self.prior = np.full(len(self.classes), 1.0 / len(self.classes))
 
     # -- state -------------------------------------------------------------------------------
@@ -186,8 +190,12 @@ class ObjectFusion:
              anchor_poses: Mapping[int, np.ndarray]) -> int:
         """Fuse one keyframe (camera-to-map `pose`, its label image and depth) into the objects.
         `anchor_poses`: the current map poses of the objects' anchors (missing ones are not
-        candidates for association). Returns the number of segments fused."""
+        candidates for association). Returns the number of segments fused; segments of a dynamic
+        class (`semantics.dynamic`) are not fused, only counted in `dynamic_segments`."""
         segments = extract_segments(labels, depth, camera, self.config, self.ignore)
+        moving = self.dynamic[[s.class_id for s in segments]] if segments else np.zeros(0, bool)
+        self.dynamic_segments = int(moving.sum())
+        segments = [s for s, m in zip(segments, moving) if not m]
         if not segments:
             return 0
         cand = [o for o in self.objects if o.node_id in anchor_poses]
@@ -336,12 +344,14 @@ class ObjectFusion:
         return [o for o in self.objects if o.observations >= self.config.min_observations and self._thing(o)]
 
     def retired(self) -> list[FusedObject]:
-        """Stored objects that are no longer things: labelled as an ignored class now, or grown
-        larger than `max_extent` (the store should drop them)."""
+        """Stored objects that are no longer things: labelled as an ignored or dynamic class now,
+        or grown larger than `max_extent` (the store should drop them)."""
         return [o for o in self.objects if o.id is not None and not self._thing(o)]
 
     def _thing(self, o: FusedObject) -> bool:
-        return not self.ignore[o.class_id] and o.size <= self.config.max_extent
+        """Reported: not stuff, not a dynamic class (a person stored before the class was listed
+        as dynamic is retired), no larger than `max_extent`."""
+        return not self.ignore[o.class_id] and not self.dynamic[o.class_id] and o.size <= self.config.max_extent
 
     def record(self, o: FusedObject, anchor_pose: np.ndarray | None) -> ObjectRecord:
         """The stored form of an object (extent along the map axes from the anchor's pose)."""

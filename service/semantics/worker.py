@@ -5,7 +5,9 @@ the camera's labels or None, camera) to `SemanticWorker.submit`, which only enqu
 (bounded queue; when full the keyframe is dropped and counted). The worker's thread
 segments it when the source is a model, fuses it (`objects.ObjectFusion`) with the anchors'
 current poses read from the map database, and writes the confirmed objects that changed
-(`MapStore.save_objects`). Errors are logged and counted, never raised into tracking.
+(`MapStore.save_objects`). Dynamic classes (`semantics.dynamic`: people, cars) make no
+objects; the keyframes that showed one are counted (`dynamic`). Errors are logged and
+counted, never raised into tracking.
 Without `background` (offline runs) `submit` does the work at once, so runs are
 reproducible.
 
@@ -64,6 +66,7 @@ class SemanticWorker:
         self.fusion.load(store.objects())
         self.connectivity = MapConnectivity()
         self.processed = self.dropped = self.errors = self.skipped = 0
+        self.dynamic = 0  # keyframes processed that showed a dynamic-class thing (left out of the map)
         self._per_robot: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         self.last_error: str | None = None
         self.seconds = 0.0
@@ -108,11 +111,13 @@ class SemanticWorker:
             return self.store.delete_objects([int(object_id)])
 
     def stats(self, robot: str | None = None) -> dict:
-        """Keyframes processed, dropped, failed and skipped (of `robot`'s keyframes when given,
-        else of all), and the map's objects."""
+        """Keyframes processed, dropped, failed and skipped, and those processed that showed a
+        dynamic-class thing (a person: `dynamic`, not mapped) (of `robot`'s keyframes when
+        given, else of all), and the map's objects."""
         counts = self._per_robot.get(robot, collections.Counter()) if robot is not None else {
-            "processed": self.processed, "dropped": self.dropped, "errors": self.errors, "skipped": self.skipped}
-        out = {k: counts.get(k, 0) for k in ("processed", "dropped", "errors", "skipped")}
+            "processed": self.processed, "dropped": self.dropped, "errors": self.errors, "skipped": self.skipped,
+            "dynamic": self.dynamic}
+        out = {k: counts.get(k, 0) for k in ("processed", "dropped", "errors", "skipped", "dynamic")}
         return {**out, "objects": len(self.fusion.confirmed()), "last_error": self.last_error,
                 "ms_per_keyframe": 1e3 * self.seconds / self.processed if self.processed else None}
 
@@ -151,8 +156,11 @@ class SemanticWorker:
                 anchors = anchors[self.connectivity.roots(anchors) == self.connectivity.find(kf.node_id)].tolist()
                 poses = {n.id: n.pose for n in self.store.get_nodes(anchors)} if anchors else {}
                 self.fusion.fuse(kf.node_id, kf.pose, labels, kf.depth, kf.camera, poses)
+                moving = self.fusion.dynamic_segments
             self.flush()
             self._count(kf, "processed")
+            if moving:
+                self._count(kf, "dynamic")
         except Exception as e:  # never into tracking: log, count, go on
             self._count(kf, "errors")
             self.last_error = f"{type(e).__name__}: {e}"
