@@ -100,6 +100,8 @@ class RobotStatus(Open):
     node_id: int | None = Field(None, description="its latest keyframe")
     keyframes_mapped: int
     map_backlog: int
+    restarts: int = Field(0, description="camera restarts (stamps back by more than service.restart_gap): its "
+                          "session ended \"restarted\" and session_id is the new one's")
     map: int | None = Field(None, description="(GET /robots/{robot}) the map id of the oldest session that links "
                             "join its latest keyframe to: its own session's until it relocalizes in an older map")
 
