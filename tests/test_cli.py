@@ -287,3 +287,34 @@ def test_demo_noise_is_the_paths_own_model_where_it_has_one():
 
     assert _has_noise("fastrot") and not _has_noise("loop") and not _has_noise("figure8")
     assert not _has_noise("no-such-path")
+
+
+# -- rough edges of a first use (issue 24) ------------------------------------------------------
+
+def _cli(*args, cwd, **kw) -> subprocess.Popen:
+    """`mnemoslam ...` (this checkout's) as a user runs it, in the folder `cwd`."""
+    return subprocess.Popen([sys.executable, "-m", "service.cli", *args], cwd=cwd, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)), **kw)
+
+
+def test_demo_runs_from_an_empty_folder(tmp_path):
+    """`mnemoslam demo` outside the checkout: it makes its output folder where it runs and
+    says where the map is (it failed: "the folder out/demo does not exist"). --frames keeps it
+    short; `make demo` streams the whole path."""
+    proc = _cli("demo", "--frames", "45", "-q", cwd=tmp_path)
+    try:
+        out, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out + err
+    db = tmp_path / "out" / "demo" / "map.db"
+    lines = out.splitlines()
+    assert lines[0] == f"demo: starting the service (database {db})"
+    assert lines[1].startswith("demo: streaming synthetic-loop (45 frames) over Zenoh")
+    assert lines[2].startswith("demo: service processed 45 frames (45 tracked, ")
+    assert re.match(r"demo: keyframe ATE RMSE [0-9.]+ cm over \d+ keyframes", lines[3])
+    assert lines[4].startswith("demo: REST GET /sessions/1/nodes?bbox=")
+    assert lines[-1] == f"demo: service stopped (exit 0); map in {db}"
+    assert db.is_file() and (tmp_path / "out" / "demo" / "service.log").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
