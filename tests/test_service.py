@@ -1,5 +1,6 @@
 """The service end to end: `mnemoslam serve` in its own process, camera clients streaming
 over a real Zenoh session on loopback, the real SQLite file, the real uvicorn server."""
+import dataclasses
 import signal
 import sqlite3
 import struct
@@ -263,3 +264,37 @@ def test_rest_bad_parameters_are_clear_4xx(service_with_p1, path, status):
     with pytest.raises(ApiError) as e:
         service.api.get(path)
     assert e.value.status == status and e.value.detail
+
+
+# -- rough edges of a first use (issue 24) ------------------------------------------------------
+
+def test_sessions_filter_by_robot_and_keep_their_config_apart(service_with_p1):
+    service = service_with_p1
+    (p1,) = service.api.get("/sessions", robot="p1")
+    assert service.api.get("/sessions", robot="nobody") == []
+    assert "config" not in p1 and p1["robot"] == "p1" and p1["calibration"]["width"] == 640
+    one = service.api.get(f"/sessions/{p1['id']}")
+    assert one["config"]["service"]["restart_gap"] == 5.0 and {**one, "config": None} == {**p1, "config": None}
+    with pytest.raises(ApiError) as e:
+        service.api.get("/sessions/999")
+    assert e.value.status == 404
+
+
+def test_config_hides_the_environment_token_and_no_lock_file_stays(tmp_path, monkeypatch):
+    """/config shows the token as *** when it comes from MNEMOSLAM_API_TOKEN; after a clean
+    stop nothing but the database is left beside it (no <db>-mapping.lock)."""
+    monkeypatch.setenv("MNEMOSLAM_API_TOKEN", "secret-from-env")
+    svc = ServiceProcess(tmp_path / "map.db").start()
+    try:
+        assert svc.api.get("/config")["api"]["token"] == "***"
+        stream_dataset(open_dataset("synthetic:loop", max_frames=5), "lk", _settings(svc), rate=None,
+                       progress=False, wait_for_subscriber=10.0)
+        svc.wait_processed("lk", 5)
+        lock = tmp_path / "map.db-mapping.lock"  # the mapping process holds it while it runs
+        deadline = time.monotonic() + 60
+        while not lock.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert lock.exists()
+    finally:
+        assert svc.stop() == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.db"]
