@@ -140,6 +140,7 @@ class CameraStreamer:
                 if e.get("reason") == "restarted":
                     log.warning("the service ended session %s of %s (reason restarted: the stamps jumped back, "
                                 "taken as a camera restart); a new session starts", e.get("session_id"), self.robot)
+
     def _on_pose(self, sample) -> None:
         try:
             msg = decode_pose(sample.payload.to_bytes())
@@ -632,4 +633,4 @@ def stream_main(args) -> int:
     return 0
 
 
-__all__ = ["CameraStreamer", "StreamStats", "stream_dataset", "add_stream_arguments", "stream_main"]
+__all__ = ["CameraStreamer", "StreamStats", "NoServiceError", "stream_dataset", "add_stream_arguments", "stream_main"]
