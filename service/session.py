@@ -7,10 +7,11 @@ Frames arrive from Zenoh's callback thread (`submit`); a frame whose stamp does 
 is rejected and counted, unless its stamp is more than `service.restart_gap` seconds older
 than the last one: that is a camera (or clock) restart, and the robot's session ends
 ("restarted") and a new one starts with that frame (the frames queued before it still go to
-the old session, which is closed on a thread of its own); when the pipeline falls behind, the queue (bounded in frames and in
-decoded bytes) drops its *oldest* frame (a camera wants the freshest pose, not a growing
-backlog) and counts the drop. The bytes counted are every array the frame holds: image, depth,
-right image and the arrays in `frame.extras` (a label image sent with the frame).
+the old session, which is closed on a thread of its own); when the pipeline falls behind,
+the queue (bounded in frames and in decoded bytes) drops its *oldest* frame (a camera wants
+the freshest pose, not a growing backlog) and counts the drop. The bytes counted are every
+array the frame holds: image, depth, right image and the arrays in `frame.extras` (a label
+image sent with the frame).
 """
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ class SessionStats:
     fps: float = 0.0  # processed frames per second over the last few seconds
     position: tuple | None = None  # map-frame camera position of the last tracked frame (REST: where the robot is)
     node_id: int | None = None  # its latest keyframe in the map
-    restarts: int = 0  # camera restarts (stamps jumping back by more than service.restart_gap): sessions ended "restarted"
+    restarts: int = 0  # camera restarts (stamps back by more than service.restart_gap): sessions ended "restarted"
 
 
 class RobotSession:

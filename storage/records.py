@@ -123,7 +123,9 @@ class SessionRecord:
     ended_at: float | None
     calibration: Calibration
     config: dict | None
-    end_reason: str | None = None  # "stopped" (normal end), "idle", "restarted" (a camera restart), "crashed" (found open at start-up), None while running
+    # "stopped" (normal end), "idle", "restarted" (a camera restart), "crashed" (found open at
+    # start-up), None while running
+    end_reason: str | None = None
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
