@@ -175,8 +175,9 @@ full (integers >= 0). A camera that sees dropped grow sends too fast for the ser
 Event message (JSON, on ``<prefix>/<robot>/events``)
 ====================================================
 ``{"version": 1, "robot", "kind", "data": {...}}`` with kind one of `EVENT_KINDS`
-("keyframe_added", "loop_closed", "tracking_lost", "map_corrected", "session_started") and
-JSON data (numpy scalars / arrays are converted to numbers / lists). The service sends:
+("keyframe_added", "loop_closed", "tracking_lost", "map_corrected", "session_started",
+"session_ended", "frame_rejected") and JSON data (numpy scalars / arrays are converted to
+numbers / lists). The service sends:
 
 ==================  ==========================================================================
 kind                data
@@ -190,6 +191,14 @@ loop_closed         ``from``, ``to`` (node ids: the older keyframe, the new one)
                     "proximity" (a keyframe the graph placed near the new one) or "merged"
                     (rehearsal: ``to`` was merged into the older node ``from``)
 map_corrected       ``nodes``: how many keyframe poses the map update moved
+session_ended       ``session_id``, ``reason``: "restarted" (the camera's stamps jumped back by
+                    more than ``service.restart_gap``: a camera or clock restart; a
+                    ``session_started`` of the new session follows), "idle" or "stopped"
+frame_rejected      ``reason`` (a `ProtocolError` reason, or the service's: "stamp_order",
+                    "no_calibration", "too_many_robots", ...), ``seq`` of the refused frame
+                    (null when its header could not be read), ``detail`` (text, may be empty);
+                    one per frame the service refused on the robot's frame key, so a camera
+                    knows a frame will not be answered
 ==================  ==========================================================================
 """
 from __future__ import annotations
@@ -215,7 +224,8 @@ KINDS = {"rgbd": 0, "stereo": 1, "mono": 2}
 COLOR_ENCODINGS = {"raw": 0, "png": 1, "jpeg": 2}
 SECOND_ENCODINGS = {"none": 0, "raw": 1, "png": 2}
 LABEL_ENCODINGS = {"none": 0, "raw": 1, "png": 2}
-EVENT_KINDS = ("keyframe_added", "loop_closed", "tracking_lost", "map_corrected", "session_started")
+EVENT_KINDS = ("keyframe_added", "loop_closed", "tracking_lost", "map_corrected", "session_started", "session_ended",
+               "frame_rejected")
 _KIND_NAMES = {v: k for k, v in KINDS.items()}
 _COLOR_NAMES = {v: k for k, v in COLOR_ENCODINGS.items()}
 _SECOND_NAMES = {v: k for k, v in SECOND_ENCODINGS.items()}
@@ -395,6 +405,18 @@ def quantize_depth(depth: np.ndarray, depth_scale: float) -> np.ndarray:
 def dequantize_depth(q: np.ndarray, depth_scale: float) -> np.ndarray:
     """uint16 depth_scale units -> float32 metres (0 stays 0)."""
     return q.astype(np.float32) / np.float32(depth_scale)
+
+
+def peek_seq(payload: Any) -> int | None:
+    """The seq field of a frame message whose fixed header is there (magic and length checked
+    only), else None: for reporting a refused frame by its seq."""
+    try:
+        data = memoryview(payload)
+        if data.nbytes >= FIXED_HEADER_BYTES and bytes(data[:4]) == MAGIC:
+            return int(struct.unpack_from("<Q", data, 10)[0])
+    except (TypeError, ValueError, struct.error):
+        pass
+    return None
 
 
 def _check_stamp(stamp: Any) -> float:
@@ -1038,6 +1060,6 @@ __all__ = [
     "label_image", "EVENT_KINDS",
     "ROBOT_PATTERN", "FIXED_HEADER_BYTES", "MAX_HEADER_BYTES", "ProtocolError", "Limits", "DEFAULT_LIMITS",
     "KeySpace", "check_robot", "WireFrame", "frame_kind", "quantize_depth", "dequantize_depth", "encode_frame",
-    "decode_frame", "CameraInfo", "encode_info", "decode_info", "decode_info_message", "PoseMessage",
+    "decode_frame", "peek_seq", "CameraInfo", "encode_info", "decode_info", "decode_info_message", "PoseMessage",
     "encode_pose", "decode_pose", "EventMessage", "encode_event", "decode_event",
 ]

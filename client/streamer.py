@@ -38,6 +38,8 @@ options and sets `stream_main` as the command's `func`.
 """
 from __future__ import annotations
 
+import argparse
+import itertools
 import logging
 import math
 import sys
@@ -47,7 +49,7 @@ from dataclasses import dataclass
 
 from .frames import Calibration, DatasetError, Frame
 from .protocol import (DEFAULT_CLASSES, DEFAULT_PREFIX, KINDS, LABEL_ENCODINGS, KeySpace, ProtocolError,
-                       decode_pose, encode_frame, encode_info, frame_kind)
+                       decode_event, decode_pose, encode_frame, encode_info, frame_kind)
 from .transport import DEFAULT_ENDPOINT, MODES, ZenohSettings, open_session, undeclare_all
 
 log = logging.getLogger(__name__)
@@ -101,13 +103,43 @@ class CameraStreamer:
         self.answered_seq: int | None = None
         self.answered = 0
         self.service_dropped = 0
+        # ... and its events: frames it refused (frame_rejected: reason -> count, the first
+        # reason's detail), sessions it started and ended for this robot (a camera restart)
+        self.rejected: dict[str, int] = {}
+        self.rejected_detail: dict[str, str] = {}
+        self.sessions_started: list[int] = []
+        self.sessions_ended: list[tuple[int | None, str]] = []  # (session id, reason)
+        self._done_seq = -1  # the newest frame answered or refused
         self._answer = threading.Condition()
         self._publisher = session.declare_publisher(
             self.frame_key, congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE)
         self._queryable = session.declare_queryable(self.info_key, self._answer_info)
         self._poses = session.declare_subscriber(self.keyspace.pose(robot), self._on_pose)
+        self._events = session.declare_subscriber(self.keyspace.events(robot), self._on_event)
         session.put(self.info_key, self.info, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _on_event(self, sample) -> None:
+        try:
+            e = decode_event(sample.payload.to_bytes())
+        except ProtocolError as err:
+            log.debug("bad event message: %s", err)
+            return
+        with self._answer:
+            if e.kind == "frame_rejected":
+                reason = str(e.get("reason") or "unknown")
+                self.rejected[reason] = self.rejected.get(reason, 0) + 1
+                self.rejected_detail.setdefault(reason, str(e.get("detail") or ""))
+                if isinstance(e.get("seq"), int):
+                    self._done_seq = max(self._done_seq, e["seq"])
+                self._answer.notify_all()
+            elif e.kind == "session_started" and isinstance(e.get("session_id"), int):
+                self.sessions_started.append(e["session_id"])
+            elif e.kind == "session_ended":
+                self.sessions_ended.append((e.get("session_id"), str(e.get("reason"))))
+                if e.get("reason") == "restarted":
+                    log.warning("the service ended session %s of %s (reason restarted: the stamps jumped back, "
+                                "taken as a camera restart); a new session starts", e.get("session_id"), self.robot)
 
     def _on_pose(self, sample) -> None:
         try:
@@ -120,15 +152,20 @@ class CameraStreamer:
             self.answered_seq = msg.seq if self.answered_seq is None else max(self.answered_seq, msg.seq)
             if msg.dropped is not None:
                 self.service_dropped = max(self.service_dropped, msg.dropped)
+            self._done_seq = max(self._done_seq, msg.seq)
             self._answer.notify_all()
 
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
     def wait_for_room(self, seq: int, window: int, timeout: float) -> bool:
-        """Wait until the service has answered frame `seq - window` or a later one, i.e. at
-        most `window` frames are in flight (True), or `timeout` seconds passed (False: a frame
-        may have been rejected, or the service does not answer)."""
+        """Wait until the service has answered (or refused: frame_rejected) frame `seq - window`
+        or a later one, i.e. at most `window` frames are in flight (True), or `timeout` seconds
+        passed (False: the service does not answer)."""
         end = time.monotonic() + timeout
         with self._answer:
-            while (self.answered_seq if self.answered_seq is not None else -1) < seq - window:
+            while self._done_seq < seq - window:
                 left = end - time.monotonic()
                 if left <= 0:
                     return False
@@ -146,15 +183,21 @@ class CameraStreamer:
         """True when some subscriber on the network matches the frame key."""
         return bool(self._publisher.matching_status.matching)
 
-    def wait_for_subscriber(self, timeout: float) -> bool:
-        """Wait up to `timeout` seconds for a subscriber of the frame key; True if there is one.
-        When one had to be waited for, the camera info is put again: the put at construction
-        reached nobody, and the service admits a robot when its info arrives."""
-        end = time.monotonic() + max(0.0, timeout)
+    def wait_for_subscriber(self, timeout: float, on_wait=None, after: float = 1.0) -> bool:
+        """Wait up to `timeout` seconds (math.inf: as long as it takes) for a subscriber of the
+        frame key; True if there is one. `on_wait()` is called once when none came within
+        `after` seconds. When one had to be waited for, the camera info is put again: the put at
+        construction reached nobody, and the service admits a robot when its info arrives."""
+        start = time.monotonic()
+        end = start + max(0.0, timeout)
         waited = False
         while not self.has_subscriber:
-            if time.monotonic() >= end:
+            now = time.monotonic()
+            if now >= end:
                 return False
+            if on_wait is not None and now - start >= after:
+                on_wait()
+                on_wait = None
             waited = True
             time.sleep(0.01)
         if waited:
@@ -188,7 +231,7 @@ class CameraStreamer:
         if self._closed:
             return
         self._closed = True
-        undeclare_all((self._publisher, self._queryable, self._poses))
+        undeclare_all((self._publisher, self._queryable, self._poses, self._events))
 
     def __enter__(self) -> "CameraStreamer":
         return self
@@ -212,13 +255,29 @@ class StreamStats:
     dropped: int = 0  # frames the service reported dropping (its queue was full)
     rate: float | None = None  # the rate in the end (lower than asked when adapted to drops)
     skipped: int = 0  # frames whose files could not be read (DatasetError), logged and not sent
+    rejected: dict | None = None  # reason -> frames the service refused (its frame_rejected events)
+    rejected_detail: dict | None = None  # reason -> the service's detail of the first such frame
+    sessions: list | None = None  # the service's sessions of the robot started while streaming
+    restarts: int = 0  # of those ended meanwhile, the ones ended "restarted" (a camera restart)
+
+    @property
+    def rejected_total(self) -> int:
+        return sum((self.rejected or {}).values())
 
     def line(self) -> str:
+        rejected = self.rejected_total
         return (f"streamed {self.frames} frames, {self.bytes / 1e6:.1f} MB in {self.seconds:.2f} s "
                 f"({self.fps:.1f} fps, {self.mbps:.1f} Mbit/s, {self.encoding}); the service answered "
                 f"{self.answered} and dropped {self.dropped}"
+                + (f", rejected {rejected} ({self.reasons()})" if rejected else "")
                 + (f"; {self.skipped} unreadable frame(s) skipped" if self.skipped else "")
+                + (f"; it took {self.restarts} camera restart(s): new session(s) "
+                   f"{', '.join(map(str, (self.sessions or [])[-self.restarts:]))}" if self.restarts else "")
                 + ("" if self.subscriber else "; no subscriber was listening"))
+
+    def reasons(self) -> str:
+        """"stamp_order: 20, size_mismatch: 1", most frequent first."""
+        return ", ".join(f"{r}: {n}" for r, n in sorted((self.rejected or {}).items(), key=lambda kv: -kv[1]))
 
 
 def _length(dataset) -> int | None:
@@ -266,7 +325,8 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
                    max_frames: int | None = None, wait_for_subscriber: float = 0.0,
                    kind: str | None = None, session=None, window: int = 4, adapt: bool = False,
                    answer_timeout: float = 2.0, labels: bool = False,
-                   classes: tuple[str, ...] | list[str] | None = None) -> StreamStats:
+                   classes: tuple[str, ...] | list[str] | None = None, require_subscriber: bool = False,
+                   on_wait=None) -> StreamStats:
     """Stream every frame of `dataset` (any `Dataset`, incl. `CaptureSource`) as `robot`.
 
     Opens a session with `settings` (default `ZenohSettings.client()`), unless an open
@@ -280,6 +340,15 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
     that long for a subscriber on the frame key before the first frame (then stream anyway).
     seq counts frames from 0. `kind` defaults to the dataset's `kind` attribute if it has one
     (CaptureSource: "mono"), else its calibration's.
+
+    `require_subscriber`: no subscriber within `wait_for_subscriber` seconds (math.inf: wait as
+    long as it takes), at the start or whenever it goes away while streaming, is a
+    `NoServiceError` naming the address, instead of streaming into the void; `on_wait()` is
+    called once when a wait lasts more than a second (e.g. to say that it waits).
+
+    The service refuses frames it cannot take (a stamp that does not increase, a wrong image
+    size, ...) with a frame_rejected event on the robot's events key: counted by reason in
+    `StreamStats.rejected`, and such a frame does not hold up the window.
 
     A frame whose files cannot be read (DatasetError) is logged, counted in
     `StreamStats.skipped` and not sent (seq counts the frames sent), as `mnemoslam run` skips
@@ -301,6 +370,19 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
     total = _length(dataset)
     if max_frames is not None:
         total = max_frames if total is None else min(total, max_frames)
+    frames = _frames(dataset)
+    if labels:  # before the camera is announced: a service would admit the robot and wait for its frames
+        ahead = []
+        for item in frames:
+            ahead.append(item)
+            if not isinstance(item, DatasetError):
+                if "labels" not in item.extras:
+                    raise ValueError(f"--labels: the frames of {getattr(dataset, 'name', 'the dataset')} carry no "
+                                     f"labels (frame.extras['labels']; synthetic datasets have them)")
+                break
+            if max_frames is not None and len(ahead) >= max_frames:
+                break
+        frames = itertools.chain(ahead, frames)
     own = session is None
     if own:
         session = open_session(settings)
@@ -311,7 +393,9 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
         streamer = CameraStreamer(session, robot, dataset.calibration, keyspace, color=color, depth=depth, kind=kind,
                                   labels=depth if labels else None, classes=classes)
         try:
-            if wait_for_subscriber > 0 and not streamer.wait_for_subscriber(wait_for_subscriber):
+            if wait_for_subscriber > 0 and not streamer.wait_for_subscriber(wait_for_subscriber, on_wait):
+                if require_subscriber:
+                    raise NoServiceError(_no_service(settings, session, streamer, wait_for_subscriber))
                 log.warning("no subscriber on %s after %.1f s; streaming anyway", streamer.frame_key,
                             wait_for_subscriber)
             if progress:
@@ -321,7 +405,7 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
             t0 = time.perf_counter()
             sent = skipped = 0
             next_at, dropped = t0, 0  # when the next frame is due at `rate`; drops seen so far
-            for frame in _frames(dataset):
+            for frame in frames:
                 if max_frames is not None and sent + skipped >= max_frames:
                     break
                 if isinstance(frame, DatasetError):
@@ -330,9 +414,9 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
                     if bar is not None:
                         bar.update(1)
                     continue
-                if labels and sent == 0 and "labels" not in frame.extras:
-                    raise ValueError(f"--labels: the frames of {getattr(dataset, 'name', 'the dataset')} carry no "
-                                     f"labels (frame.extras['labels']; synthetic datasets have them)")
+                if require_subscriber and not streamer.has_subscriber \
+                        and not streamer.wait_for_subscriber(wait_for_subscriber, on_wait):  # the service went away
+                    raise NoServiceError(_no_service(settings, session, streamer, wait_for_subscriber, sent))
                 if rate is None:
                     streamer.wait_for_room(sent, window, answer_timeout)
                 else:
@@ -364,7 +448,32 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
     secs = max(seconds, 1e-9)
     return StreamStats(sent, streamer.bytes_sent, seconds, sent / secs, streamer.bytes_sent * 8 / 1e6 / secs, matched,
                        f"{color}/{depth}" + ("+labels" if labels else ""), streamer.answered,
-                       streamer.service_dropped, rate, skipped)
+                       streamer.service_dropped, rate, skipped, dict(streamer.rejected),
+                       dict(streamer.rejected_detail), list(streamer.sessions_started),
+                       sum(reason == "restarted" for _, reason in streamer.sessions_ended))
+
+
+class NoServiceError(ConnectionError):
+    """No service subscribes to the camera's frames (nothing listens at the address, or a
+    service with another key prefix): `stream_dataset(require_subscriber=True)`."""
+
+
+def _no_service(settings: ZenohSettings, session, streamer: CameraStreamer, waited: float, sent: int = 0) -> str:
+    """Why no frame can reach a service: nothing listens at the address(es), or a peer is there
+    but does not subscribe to the frame key."""
+    where = ", ".join(settings.connect) or "the network (no --connect endpoint)"
+    try:
+        peers = list(session.info.peers_zid()) + list(session.info.routers_zid())
+    except Exception:  # the session is closing
+        peers = []
+    if peers:
+        why = (f"a Zenoh peer is connected at {where} but nothing subscribes to {streamer.frame_key} "
+               f"(a service with another zenoh.prefix?)")
+    else:
+        why = f"nothing listens at {where}"
+    when = f"after {sent} frame(s) the service went away: " if sent else ""
+    return (f"{when}{why} (waited {waited:g} s); start `mnemoslam serve` first (or fix --connect / --prefix), "
+            f"or pass --wait to wait for the service")
 
 
 # ------------------------------------------------------------------------------------------
@@ -404,17 +513,55 @@ def add_stream_arguments(parser):
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"key expression prefix (default {DEFAULT_PREFIX})")
     parser.add_argument("--max-frames", type=positive_int, metavar="N",
                         help="stop after this many frames (a positive integer; default: all)")
-    parser.add_argument("--wait", type=float, default=5.0,
-                        help="seconds to wait for the service to subscribe before streaming (default 5)")
+    parser.add_argument("--wait", type=_wait_seconds, nargs="?", const=math.inf, default=5.0, metavar="SECONDS",
+                        help="wait for the service: without SECONDS as long as it takes (a camera started before "
+                             "the service), else that long; without --wait 5 s, then `stream` fails naming the "
+                             "address (also when the service goes away while streaming); 0: stream even with "
+                             "nobody listening")
+    parser.add_argument("--max-rejected", type=_share, default=0.5, metavar="SHARE",
+                        help="exit 1 when the service refused at least this share of the frames sent, naming its "
+                             "reason (default 0.5; 1: only when it refused them all)")
     parser.add_argument("-q", "--quiet", action="store_true",
                         help="no progress bar (there is one only when stderr is a terminal)")
     parser.set_defaults(func=stream_main)
     return parser
 
 
+def _wait_seconds(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r} (--wait alone waits as long as it "
+                                         f"takes: put it after the dataset)") from None
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return v
+
+
+def _share(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not 0 < v <= 1:
+        raise argparse.ArgumentTypeError(f"expected a share in (0, 1], got {text!r}")
+    return v
+
+
+# what a refused frame's reason means for the one streaming it
+_REJECT_HINTS = {
+    "stamp_order": "stream under another --robot, or once the robot's slot is freed (service.idle_timeout)",
+    "size_mismatch": "the images are not the size of the robot's calibration (its first camera info)",
+    "no_calibration": "the service has no camera info of the robot (all its robot slots taken, or the info "
+                      "did not arrive)",
+}
+
+
 def stream_main(args) -> int:
-    """`mnemoslam stream`: returns 0 when all frames were sent and a subscriber was there,
-    1 when nobody subscribed. DatasetError / ValueError / OSError propagate for the CLI.
+    """`mnemoslam stream`: returns 0 when all frames were sent, a subscriber was there and the
+    service refused less than --max-rejected of them; 1 when nobody subscribed (--wait 0) or it
+    refused that many (the reason on stderr). No service within --wait seconds is a
+    NoServiceError (an OSError). DatasetError / ValueError / OSError propagate for the CLI.
     Frames that cannot be read are skipped (counted in the summary line)."""
     from .cliargs import want_progress
 
@@ -451,11 +598,20 @@ def stream_main(args) -> int:
         total = _length(dataset)
         print(f"stream: {dataset.name} ({total if total is not None else 'live'} frames) as {robot} "
               f"to {', '.join(connect)} on {KeySpace(prefix).frame(robot)}", file=sys.stderr)
+    wait = getattr(args, "wait", 5.0)
+    wait = 5.0 if wait is None else float(wait)
+    key = KeySpace(prefix).frame(robot)
+
+    def say_waiting() -> None:
+        print(f"stream: waiting for the service at {', '.join(connect)} (nothing subscribes to {key} yet"
+              + ("" if math.isinf(wait) else f"; up to {wait:g} s") + ")", file=sys.stderr, flush=True)
+
     try:
         stats = stream_dataset(dataset, robot, settings, rate=getattr(args, "rate", None),
                                color=getattr(args, "encoding", "auto"), depth=getattr(args, "depth_encoding", "auto"),
                                prefix=prefix, progress=want_progress(quiet), max_frames=max_frames,
-                               wait_for_subscriber=float(getattr(args, "wait", 5.0) or 0.0),
+                               wait_for_subscriber=wait, require_subscriber=wait > 0,
+                               on_wait=say_waiting if wait > 5.0 else None,
                                window=max(1, int(getattr(args, "window", 4))), adapt=bool(getattr(args, "adapt", False)),
                                labels=labels)
     finally:
@@ -463,7 +619,18 @@ def stream_main(args) -> int:
         if close is not None:
             close()
     print(stats.line())
-    return 0 if stats.subscriber else 1
+    if not stats.subscriber:
+        return 1
+    share = float(getattr(args, "max_rejected", 0.5) or 0.5)
+    refused = stats.rejected_total
+    if stats.frames and refused and refused >= share * stats.frames:
+        top = max(stats.rejected, key=stats.rejected.get)
+        detail = (stats.rejected_detail or {}).get(top) or ""
+        hint = _REJECT_HINTS.get(top, "")
+        print(f"stream: error: the service refused {refused} of {stats.frames} frames ({stats.reasons()}): "
+              f"{top}" + (f": {detail}" if detail else "") + (f"; {hint}" if hint else ""), file=sys.stderr)
+        return 1
+    return 0
 
 
-__all__ = ["CameraStreamer", "StreamStats", "stream_dataset", "add_stream_arguments", "stream_main"]
+__all__ = ["CameraStreamer", "StreamStats", "NoServiceError", "stream_dataset", "add_stream_arguments", "stream_main"]

@@ -100,6 +100,8 @@ class RobotStatus(Open):
     node_id: int | None = Field(None, description="its latest keyframe")
     keyframes_mapped: int
     map_backlog: int
+    restarts: int = Field(0, description="camera restarts (stamps back by more than service.restart_gap): its "
+                          "session ended \"restarted\" and session_id is the new one's")
     map: int | None = Field(None, description="(GET /robots/{robot}) the map id of the oldest session that links "
                             "join its latest keyframe to: its own session's until it relocalizes in an older map")
 
@@ -115,15 +117,19 @@ class CalibrationOut(BaseModel):
     depth_scale: float
 
 
-class SessionOut(BaseModel):
+class SessionSummary(BaseModel):
     id: int
     robot: str
     map_id: int
     started_at: float
     ended_at: float | None
     calibration: CalibrationOut
-    config: dict[str, Any] | None
-    end_reason: str | None
+    end_reason: str | None = Field(description='"stopped", "idle", "restarted" (a camera restart), "crashed"; '
+                                               'null while it runs')
+
+
+class SessionOut(SessionSummary):
+    config: dict[str, Any] | None = Field(description="the service's configuration the session ran with")
 
 
 class NodeOut(BaseModel):
@@ -540,9 +546,18 @@ def robot(robot: RobotId, service: ServiceDep, request: Request):
     raise HTTPException(404, f"unknown robot {robot!r}")
 
 
-@read_routes.get("/sessions", response_model=list[SessionOut])
-def sessions(store: StoreDep):
-    return [s.to_dict() for s in store.sessions()]
+@read_routes.get("/sessions", response_model=list[SessionSummary])
+def sessions(store: StoreDep, robot: Annotated[str | None, Query(
+        pattern=f"^{ROBOT_PATTERN.pattern}$", description="only this robot's sessions")] = None):
+    """The sessions, oldest first (only `robot`'s with ?robot=); each one's configuration is
+    in GET /sessions/{id}."""
+    return [s.to_dict() for s in store.sessions(robot=robot)]
+
+
+@read_routes.get("/sessions/{session_id}", response_model=SessionOut, responses=_errors(404))
+def session(session: SessionDep):
+    """One session, with the configuration it ran with."""
+    return session.to_dict()
 
 
 @read_routes.get("/sessions/{session_id}/nodes", response_model=NodePage, responses=_errors(400, 404))
@@ -602,9 +617,13 @@ def metrics(request: Request):
 
 
 @read_routes.get("/config", response_model=Config)
-def config(service: ServiceDep):
-    """The service's configuration (the API token is shown as *** when set)."""
-    return service.status()["config"]
+def config(service: ServiceDep, request: Request):
+    """The service's configuration (the API token is shown as *** when set, also by
+    MNEMOSLAM_API_TOKEN)."""
+    config = service.status()["config"]
+    if request.app.state.access.token:
+        config = {**config, "api": {**config["api"], "token": "***"}}
+    return config
 
 
 # -- semantic map -----------------------------------------------------------------------------

@@ -68,7 +68,7 @@ def _cmd_demo(args) -> int:
     from .demo import run_demo
 
     return run_demo(args.trajectory, args.rate, not args.no_noise, args.out, progress=want_progress(args.quiet),
-                    overrides=_overrides(args))
+                    overrides=_overrides(args), **({"frames": args.frames} if args.frames else {}))
 
 
 def check_db_folder(path: str | Path) -> Path:
@@ -215,7 +215,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--trajectory", default="loop", help="synthetic camera path (loop, figure8, walk_a, walk_b, straight)")
     d.add_argument("--rate", type=float, default=15.0, help="frames per second of the synthetic camera")
     d.add_argument("--no-noise", action="store_true", help="exact depth instead of Kinect-like noise (the path's own model where it has one: fastrot's disparity noise)")
-    d.add_argument("--out", default="out/demo", help="output folder")
+    d.add_argument("--out", default="out/demo", help="output folder, made when missing (default out/demo in the "
+                                                    "current folder): the map database and the service's log")
+    d.add_argument("--frames", type=positive_int, metavar="N",
+                   help="stream only the path's first N frames (default: all of it, e.g. 901 for the loop at 15 Hz)")
     _add_set(d, "of the service the demo starts")
     d.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     d.set_defaults(func=_cmd_demo)

@@ -41,8 +41,9 @@ class ServiceProcess:
     def __init__(self, db: Path, config: dict | None = None, log_path: Path | None = None):
         self.zenoh_port, self.http_port = free_port(), free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
+        # the database's absolute path: the child runs in the checkout, not in the caller's folder
         cfg = {"zenoh": {"listen": [self.endpoint]}, "api": {"port": self.http_port},
-               "storage": {"path": str(db)}}
+               "storage": {"path": str(Path(db).resolve())}}
         cfg = merge_overrides(cfg, config or {})  # nested: {"loop": {"enabled": False}}, top-level keys too
         self.dir = Path(tempfile.mkdtemp(prefix="mnemoslam-svc-"))
         self.config_path = self.dir / "service.yaml"
@@ -195,23 +196,26 @@ def _has_noise(trajectory: str) -> bool:
 
 
 def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, out: str = "out/demo",
-             progress: bool = True, overrides: dict | None = None) -> int:
+             progress: bool = True, overrides: dict | None = None, frames: int | None = None) -> int:
     """The demo; `overrides` (nested config keys, `mnemoslam demo --set`) go to the service.
     Prints a short report (and the error lines of the service's log, if any); progress bar
-    when `progress`."""
+    when `progress`. `out` (made with its parents when missing) holds the database and the
+    service's log, relative to the current folder; `frames`: stream only the path's first
+    frames (default: all of it)."""
     # semantics from the synthetic camera's labels, unless the caller says otherwise
     service_config = merge_overrides({"semantics": {"enabled": True, "source": "camera"}}, overrides or {})
     _check_overrides(service_config)
     labels = load_config(None, service_config).semantics.source == "camera"
     prefix = load_config(None, service_config).zenoh.prefix
-    out_dir = Path(out)
+    out_dir = Path(out).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
     db = out_dir / "map.db"
     for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
         p.unlink(missing_ok=True)
     # noise: the path's own sensor model where it has one (fastrot: Kinect disparity noise and
     # blur), else the axial model; none with --no-noise
-    dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=None if noise and _has_noise(trajectory) else noise)
+    dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=None if noise and _has_noise(trajectory) else noise,
+                           **({"max_frames": frames} if frames else {}))
     print(f"demo: starting the service (database {db})")
     log_path = out_dir / "service.log"
     svc = ServiceProcess(db, service_config, log_path=log_path)
@@ -221,6 +225,7 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
         svc.stop()
         print(log_report(log_path) or f"demo: the service did not start; see its log {log_path}")
         raise
+    ev = None
     try:
         print(f"demo: streaming {dataset.name} ({len(dataset)} frames) over Zenoh to {svc.endpoint} as robot 'demo'")
         stats = stream_dataset(dataset, "demo", ZenohSettings(connect=[svc.endpoint]), rate=None,
@@ -247,4 +252,4 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
         errors = log_report(log_path)  # also when the demo failed: the log may say why
         if errors:
             print(errors)
-    return 0 if ev.matched > 0 and code == 0 else 1
+    return 0 if ev is not None and ev.matched > 0 and code == 0 else 1

@@ -22,6 +22,7 @@ Metric names (prefix `mnemoslam_`; counters end in `_total`):
 - per robot (`robot`): `frames_received_total`, `frames_labelled_total`,
   `frames_processed_total`, `frames_dropped_total` (queue full), `frames_rejected_total{reason}`,
   `frames_tracked_total`, `frames_lost_total`, `keyframes_total`, `keyframes_mapped_total`,
+  `robot_restarts_total` (camera restarts: a new session in the same slot),
   `queue_depth`, `queue_bytes`, `frames_per_second`, `frame_processing_seconds` (moving
   mean), `map_backlog`, `robot_state{state}` (1 for the current one);
 - per robot, from the map: `map_update_seconds` (histogram), `memory_nodes{memory="stm|wm|ltm"}`,
@@ -67,6 +68,8 @@ ROBOT_COUNTERS = (
     ("lost", "frames_lost", "processed frames where tracking was lost"),
     ("keyframes", "keyframes", "keyframes taken"),
     ("keyframes_mapped", "keyframes_mapped", "keyframes the map update (loop closure, graph) has done"),
+    ("restarts", "robot_restarts", "camera restarts (stamps back by more than service.restart_gap): sessions ended "
+                                   "\"restarted\" and begun again"),
 )
 ROBOT_GAUGES = (  # (key, name, help, scale)
     ("queue_depth", "queue_depth", "frames waiting in the robot's queue", 1.0),

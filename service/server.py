@@ -152,13 +152,17 @@ class SlamService:
                 seq, frame = msg.seq, msg.frame
         except protocol.ProtocolError as e:
             session.reject(e.reason)
-            self.count_reject(e.reason, key, e)
+            self.count_reject(e.reason, key, e, payload if decode is None else None)
             return
         except Exception as e:  # a bug in decoding must not reach Zenoh's thread
             session.reject("internal")
-            self.count_reject("internal", key, e)
+            self.count_reject("internal", key, e, payload if decode is None else None)
             return
-        session.submit(seq, frame)
+        refused = session.submit(seq, frame)
+        if refused is not None:  # (counted by the session: /robots/{id})
+            self._announce_reject(session.robot, refused, seq, f"stamp {frame.stamp:.6f} s is not after the "
+                                  f"robot's last; a jump back by more than service.restart_gap "
+                                  f"({self.config.service.restart_gap:g} s) would be a camera restart")
 
     def _hold(self, robot: str, key: str, payload, decode=None) -> RobotSession | None:
         """Keep a frame of a robot without a slot, undecoded, until its camera info arrives
@@ -186,7 +190,7 @@ class SlamService:
                     self._held_bytes -= len(held[1].popleft()[1])
                     dropped += 1
         for _ in range(dropped):
-            self.count_reject("no_calibration", key, None)
+            self.count_reject("no_calibration", key, "no camera info (calibration) of the robot", payload)
         return None
 
     def _release_held(self, robot: str, session: RobotSession | None) -> None:
@@ -198,7 +202,7 @@ class SlamService:
         for key, payload, decode in held[1]:
             self._held_bytes -= len(payload)
             if session is None:
-                self.count_reject("no_calibration", key, None)
+                self.count_reject("no_calibration", key, "no camera info (calibration) of the robot", payload)
             else:
                 self._submit(session, key, payload, decode)
 
@@ -213,12 +217,24 @@ class SlamService:
             return
         self.admit(info.robot, info.calibration, info.classes)
 
-    def count_reject(self, reason: str, key: str, err) -> None:
+    def count_reject(self, reason: str, key: str, err, payload=None) -> None:
+        """Count a refused message; a frame on a robot's frame key is also announced on the
+        robot's events key (frame_rejected, with its seq when `payload`'s header says it)."""
         with self._lock:
             self.rejected[reason] += 1
             n = self.rejected[reason]
         if n <= 3 or n % 1000 == 0:  # structured, rate-limited
             log.warning("rejected message reason=%s key=%s count=%d detail=%s", reason, key, n, err)
+        parsed = self.keys.parse(key)
+        if parsed is not None and parsed[1] == "camera/frame":
+            self._announce_reject(parsed[0], reason, None if payload is None else protocol.peek_seq(payload), err)
+
+    def _announce_reject(self, robot: str, reason: str, seq: int | None, detail) -> None:
+        """frame_rejected on the robot's events key: its camera learns that the frame will not
+        be answered, and why."""
+        text = "" if detail is None else str(detail)
+        self.publish(self.keys.events(robot), protocol.encode_event(
+            robot, "frame_rejected", reason=reason, seq=seq, detail=text[:300]))
 
     def admit(self, robot: str, calibration: Calibration,
                classes: tuple[str, ...] | None = None) -> RobotSession | None:
@@ -241,8 +257,11 @@ class SlamService:
                 limits = protocol.Limits(self.limits.max_message_bytes, self.limits.max_width,
                                          self.limits.max_height, size=(cam.width, cam.height),
                                          classes=len(classes if classes is not None else protocol.DEFAULT_CLASSES))
+                events = self.keys.events(robot)
                 s = RobotSession(robot, self.config, calibration, limits,
-                                 lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result, classes=classes)
+                                 lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result, classes=classes,
+                                 on_event=lambda kind, data, r=robot, k=events: self.publish(
+                                     k, protocol.encode_event(r, kind, **data)))
                 self._release_held(robot, s)  # before the slot is visible: frames stay in order
                 self.sessions[robot] = s
             if s is None:

@@ -4,10 +4,14 @@ runs the pipeline, and the counters the REST API shows.
 A robot gets a session (a slot) only once its camera's calibration is known, so frames are
 decoded against the calibration's image size and nothing a robot sends is held before it.
 Frames arrive from Zenoh's callback thread (`submit`); a frame whose stamp does not increase
-is rejected and counted; when the pipeline falls behind, the queue (bounded in frames and in
-decoded bytes) drops its *oldest* frame (a camera wants the freshest pose, not a growing
-backlog) and counts the drop. The bytes counted are every array the frame holds: image, depth,
-right image and the arrays in `frame.extras` (a label image sent with the frame).
+is rejected and counted, unless its stamp is more than `service.restart_gap` seconds older
+than the last one: that is a camera (or clock) restart, and the robot's session ends
+("restarted") and a new one starts with that frame (the frames queued before it still go to
+the old session, which is closed on a thread of its own); when the pipeline falls behind,
+the queue (bounded in frames and in decoded bytes) drops its *oldest* frame (a camera wants
+the freshest pose, not a growing backlog) and counts the drop. The bytes counted are every
+array the frame holds: image, depth, right image and the arrays in `frame.extras` (a label
+image sent with the frame).
 """
 from __future__ import annotations
 
@@ -44,6 +48,7 @@ class SessionStats:
     fps: float = 0.0  # processed frames per second over the last few seconds
     position: tuple | None = None  # map-frame camera position of the last tracked frame (REST: where the robot is)
     node_id: int | None = None  # its latest keyframe in the map
+    restarts: int = 0  # camera restarts (stamps back by more than service.restart_gap): sessions ended "restarted"
 
 
 class RobotSession:
@@ -55,7 +60,8 @@ class RobotSession:
     def __init__(self, robot: str, config: Config, calibration: Calibration, limits: Limits,
                  make_pipeline: Callable[[Calibration], Pipeline],
                  on_result: Callable[["RobotSession", Frame, FrameResult], None],
-                 classes: tuple[str, ...] | None = None):
+                 classes: tuple[str, ...] | None = None,
+                 on_event: Callable[[str, dict], None] | None = None):
         self.robot = robot
         self.config = config
         self.calibration = calibration
@@ -66,9 +72,14 @@ class RobotSession:
         self.last_active = time.monotonic()  # last frame (or the calibration) received
         self._make_pipeline = make_pipeline
         self._on_result = on_result
-        self._queue: deque[tuple[int, Frame, int]] = deque()  # (seq, frame, decoded bytes)
+        self._on_event = on_event or (lambda kind, data: None)  # the robot's events (session_ended)
+        self._queue: deque[tuple[int, Frame, int, int]] = deque()  # (seq, frame, decoded bytes, generation)
         self._queued_bytes = 0
         self._last_stamp: float | None = None  # of the last frame accepted
+        self._generation = 0  # the camera's run: +1 at each restart; a queued frame carries the one it came in
+        self._pipeline_generation = 0  # the run of `pipeline`
+        self._ending: dict[threading.Thread, Pipeline] = {}  # sessions of earlier runs being closed
+        self._ended_progress = (0, 0)  # map_progress of the sessions of earlier runs, once closed
         self._cond = threading.Condition()
         self._stopping = False
         self._rate_window: deque[float] = deque(maxlen=60)
@@ -102,15 +113,25 @@ class RobotSession:
         arrays = (frame.image, frame.depth, frame.right, *frame.extras.values())
         return sum(a.nbytes for a in arrays if hasattr(a, "nbytes"))
 
-    def submit(self, seq: int, frame: Frame) -> None:
-        """Queue a decoded frame; a stamp that does not increase is rejected ("stamp_order")."""
+    def submit(self, seq: int, frame: Frame) -> str | None:
+        """Queue a decoded frame. A stamp that does not increase is rejected ("stamp_order",
+        returned; None when queued), unless it is more than `service.restart_gap` seconds older
+        than the last: a camera restart, the frame starts the robot's next session."""
         size = self.frame_bytes(frame)
         limit = self.config.service.queue_mb * 1024 * 1024
+        gap = self.config.service.restart_gap
         with self._cond:
             self.last_active = time.monotonic()
             if self._last_stamp is not None and not frame.stamp > self._last_stamp:
-                self.reject("stamp_order")  # (the condition's lock is reentrant)
-                return
+                if not (gap > 0 and frame.stamp < self._last_stamp - gap):
+                    self.reject("stamp_order")  # (the condition's lock is reentrant)
+                    return "stamp_order"
+                self._generation += 1
+                self.stats.restarts += 1
+                log.warning("camera restart robot=%s session=%s last_stamp=%.3f stamp=%.3f back_s=%.3f "
+                            "restart_gap=%.1f restarts=%d: the session ends (restarted), a new one starts",
+                            self.robot, self.session_id, self._last_stamp, frame.stamp,
+                            self._last_stamp - frame.stamp, gap, self.stats.restarts)
             self._last_stamp = frame.stamp
             self.stats.received += 1
             self.stats.labelled += "labels" in frame.extras
@@ -118,9 +139,10 @@ class RobotSession:
                                    or self._queued_bytes + size > limit):
                 self._queued_bytes -= self._queue.popleft()[2]
                 self.stats.dropped_queue += 1
-            self._queue.append((seq, frame, size))
+            self._queue.append((seq, frame, size, self._generation))
             self._queued_bytes += size
             self._cond.notify()
+        return None
 
     def reject(self, reason: str) -> None:
         with self._cond:
@@ -133,8 +155,45 @@ class RobotSession:
             self._stopping = True
             self._cond.notify()
         self._thread.join(timeout)
+        for t in list(self._ending):  # sessions of earlier runs still closing
+            t.join()
         if self.pipeline is not None:
-            self.pipeline.close(reason)
+            self._end(self.pipeline, reason)
+
+    def _end(self, pipeline: Pipeline, reason: str, announce: bool = True) -> None:
+        """Close a pipeline's session for `reason`, announced first (session_ended: it takes no
+        more frames; its map update then finishes the keyframes it was given)."""
+        session_id = pipeline.session_id
+        if announce:
+            self._on_event("session_ended", {"session_id": session_id, "reason": reason})
+        pipeline.close(reason)
+        log.info("session ended robot=%s session=%s reason=%s", self.robot, session_id, reason)
+
+    def _restart(self, generation: int) -> None:
+        """(worker thread) The camera restarted: the current session ends ("restarted") on a
+        thread of its own (its map update finishes meanwhile, tracking goes on), and the next
+        frame makes the new one."""
+        old, self.pipeline, self._pipeline_generation = self.pipeline, None, generation
+        if old is None:
+            return
+        self._on_event("session_ended", {"session_id": old.session_id, "reason": "restarted"})
+
+        def end() -> None:
+            try:
+                self._end(old, "restarted", announce=False)
+            except Exception:
+                log.exception("robot %s: ending session %s failed", self.robot, old.session_id)
+            finally:
+                mapped, submitted = old.map_progress
+                with self._cond:
+                    done = self._ended_progress
+                    self._ended_progress = (done[0] + mapped, done[1] + submitted)
+                    del self._ending[thread]
+
+        thread = threading.Thread(target=end, name=f"end-{self.robot}-{old.session_id}", daemon=True)
+        with self._cond:
+            self._ending[thread] = old
+        thread.start()
 
     # -- worker thread -----------------------------------------------------------------
     def _run(self) -> None:
@@ -144,9 +203,11 @@ class RobotSession:
                     self._cond.wait()
                 if self._stopping:
                     return
-                seq, frame, size = self._queue.popleft()
+                seq, frame, size, generation = self._queue.popleft()
                 self._queued_bytes -= size
             try:
+                if generation != self._pipeline_generation:
+                    self._restart(generation)
                 self._process(seq, frame)
             except Exception:  # never let one frame kill the robot's session
                 log.exception("robot %s: frame %d failed", self.robot, seq)
@@ -179,6 +240,10 @@ class RobotSession:
     def snapshot(self) -> dict:
         s = self.stats
         mapped, submitted = self.pipeline.map_progress if self.pipeline else (0, 0)
+        with self._cond:  # and the sessions of earlier runs (camera restarts): closed, or still closing
+            for p in [*self._ending.values(), self._ended_progress]:
+                m, n = p if isinstance(p, tuple) else p.map_progress
+                mapped, submitted = mapped + m, submitted + n
         return {
             "robot": self.robot, "state": self.state, "queue_depth": self.queue_depth,
             "queue_mb": round(self._queued_bytes / 2**20, 1),
@@ -192,4 +257,5 @@ class RobotSession:
             # and those still waiting (0 = the map served over REST includes every keyframe)
             "keyframes_mapped": mapped,
             "map_backlog": submitted - mapped,
+            "restarts": s.restarts,
         }

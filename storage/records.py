@@ -22,7 +22,9 @@ Encodings:
 - images: JPEG colour, PNG-16 depth in millimetres (both optional).
 - JSON text for session calibration / config and per-node statistics.
 - sessions: `ended_at` (wall time) and `end_reason` once ended: "stopped" for a normal
-  end, "crashed" for one the service found still open when it started again.
+  end, "idle" (the robot sent nothing for service.idle_timeout), "restarted" (its camera
+  restarted: stamps back by more than service.restart_gap), "crashed" for one the service
+  found still open when it started again.
 - objects (v4): `histogram` K float32 (posterior over the source's class table),
   `centroid` 3 float64 in the anchor node's camera frame, `extent` 3 float64 (m, map axes),
   `keyframes` int64 ids of the observing keyframes (the most recent `MAX_OBJECT_KEYFRAMES`).
@@ -121,7 +123,9 @@ class SessionRecord:
     ended_at: float | None
     calibration: Calibration
     config: dict | None
-    end_reason: str | None = None  # "stopped" (normal end), "crashed" (found open at start-up), None while running
+    # "stopped" (normal end), "idle", "restarted" (a camera restart), "crashed" (found open at
+    # start-up), None while running
+    end_reason: str | None = None
 
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}

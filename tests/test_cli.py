@@ -287,3 +287,87 @@ def test_demo_noise_is_the_paths_own_model_where_it_has_one():
 
     assert _has_noise("fastrot") and not _has_noise("loop") and not _has_noise("figure8")
     assert not _has_noise("no-such-path")
+
+
+# -- rough edges of a first use (issue 24) ------------------------------------------------------
+
+def _cli(*args, cwd, **kw) -> subprocess.Popen:
+    """`mnemoslam ...` (this checkout's) as a user runs it, in the folder `cwd`."""
+    return subprocess.Popen([sys.executable, "-m", "service.cli", *args], cwd=cwd, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT)), **kw)
+
+
+def test_demo_runs_from_an_empty_folder(tmp_path):
+    """`mnemoslam demo` outside the checkout: it makes its output folder where it runs and
+    says where the map is (it failed: "the folder out/demo does not exist"). --frames keeps it
+    short; `make demo` streams the whole path."""
+    proc = _cli("demo", "--frames", "45", "-q", cwd=tmp_path)
+    try:
+        out, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out + err
+    db = tmp_path / "out" / "demo" / "map.db"
+    lines = out.splitlines()
+    assert lines[0] == f"demo: starting the service (database {db})"
+    assert lines[1].startswith("demo: streaming synthetic-loop (45 frames) over Zenoh")
+    assert lines[2].startswith("demo: service processed 45 frames (45 tracked, ")
+    assert re.match(r"demo: keyframe ATE RMSE [0-9.]+ cm over \d+ keyframes", lines[3])
+    assert lines[4].startswith("demo: REST GET /sessions/1/nodes?bbox=")
+    assert lines[-1] == f"demo: service stopped (exit 0); map in {db}"
+    assert db.is_file() and (tmp_path / "out" / "demo" / "service.log").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_stream_to_an_address_where_nothing_listens_fails_fast(tmp_path):
+    """Nothing listens at the address: `stream` exits non-zero within ~10 s naming it (it
+    streamed on at ~1.6 s a frame and failed only at the end)."""
+    address = f"tcp/127.0.0.1:{free_port()}"
+    t0 = time.monotonic()
+    proc = _cli("stream", "synthetic:loop", "--max-frames", "100", "--connect", address, "-q", cwd=tmp_path)
+    try:
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    took = time.monotonic() - t0
+    assert proc.returncode != 0 and took < 12, (took, out, err)
+    assert f"nothing listens at {address}" in err and "--wait" in err and "streamed" not in out
+
+
+def test_stream_wait_waits_for_a_service_started_later(tmp_path):
+    """`stream --wait`: a camera started before the service says that it waits, then streams
+    once the service is up."""
+    from service.demo import ServiceProcess
+
+    svc = ServiceProcess(tmp_path / "map.db", {"service": {"idle_timeout": 3600.0}})
+    proc = _cli("stream", "synthetic:loop", "--robot", "early", "--max-frames", "10", "--connect", svc.endpoint,
+                "--wait", "-q", cwd=tmp_path)
+    try:
+        sel = selectors.DefaultSelector()
+        sel.register(proc.stderr, selectors.EVENT_READ)
+        line = proc.stderr.readline() if sel.select(timeout=30) else ""
+        sel.close()
+        assert line.startswith(f"stream: waiting for the service at {svc.endpoint} (nothing subscribes to "
+                               f"mnemoslam/early/camera/frame yet)"), line
+        time.sleep(6.0)  # longer than the wait without --wait
+        assert proc.poll() is None
+        svc.start()
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, out + err
+        assert "streamed 10 frames" in out and "the service answered 10" in out
+        assert svc.wait_processed("early", 10)["frames_processed"] == 10
+    finally:
+        proc.kill()
+        svc.stop()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--wait", "synthetic:loop"], "expected seconds, got 'synthetic:loop'"),
+    (["synthetic:loop", "--wait", "-1"], "expected seconds >= 0"),
+    (["synthetic:loop", "--max-rejected", "0"], "expected a share in (0, 1]"),
+])
+def test_stream_wait_and_max_rejected_arguments(capsys, argv, message):
+    with pytest.raises(SystemExit) as e:
+        main(["stream", *argv, "--max-frames", "1", "--connect", f"tcp/127.0.0.1:{free_port()}", "-q"])
+    assert e.value.code == 2 and message in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """The service end to end: `mnemoslam serve` in its own process, camera clients streaming
 over a real Zenoh session on loopback, the real SQLite file, the real uvicorn server."""
+import dataclasses
 import signal
 import sqlite3
 import struct
@@ -263,3 +264,118 @@ def test_rest_bad_parameters_are_clear_4xx(service_with_p1, path, status):
     with pytest.raises(ApiError) as e:
         service.api.get(path)
     assert e.value.status == status and e.value.detail
+
+
+# -- rough edges of a first use (issue 24) ------------------------------------------------------
+
+def test_camera_restart_ends_the_session_and_the_same_sequence_maps_again(service):
+    """The same sequence streamed twice under one robot id (its stamps start again from 0, as
+    after a camera or clock restart, more than service.restart_gap = 5 s back): the first
+    session ends "restarted", a second one maps the second pass; the camera hears of it
+    (session_ended, session_started). A small step back stays a refused frame (stamp_order)."""
+    from client.streamer import CameraStreamer
+
+    ds = synthetic("loop", rate=5, max_frames=35)  # stamps 0 .. 6.8 s: the second pass starts 6.8 s back
+    events = []
+    z = open_session(_settings(service))
+    sub = z.declare_subscriber(protocol.KeySpace().events("again"), lambda s: events.append(
+        protocol.decode_event(s.payload.to_bytes())))
+    try:
+        first = stream_dataset(ds, "again", _settings(service), rate=None, progress=False, wait_for_subscriber=10.0)
+        service.wait_processed("again", len(ds))
+        second = stream_dataset(ds, "again", _settings(service), rate=None, progress=False, wait_for_subscriber=10.0)
+        robot = service.wait_processed("again", 2 * len(ds))
+        # jitter: a frame 0.5 s before the last one is refused, and the camera is told why
+        with CameraStreamer(z, "again", ds.calibration, color="png", depth="png") as cam:
+            assert cam.wait_for_subscriber(10.0)
+            last = ds.frame(len(ds) - 1)
+            cam.send(dataclasses.replace(last, stamp=last.stamp - 0.5), 0)
+            deadline = time.monotonic() + 20
+            while not getattr(cam, "rejected", None) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            rejected = dict(getattr(cam, "rejected", {}))
+            detail = getattr(cam, "rejected_detail", {}).get("stamp_order", "")
+        robot = service.wait_mapped("again", timeout=120)
+    finally:
+        sub.undeclare()
+        z.close()
+    sessions = [s for s in service.api.sessions() if s["robot"] == "again"]
+    assert [s["end_reason"] for s in sessions] == ["restarted", None]  # (the second pass was refused: one session)
+    assert robot["frames_processed"] == 2 * len(ds) and robot["restarts"] == 1
+    assert robot["frames_rejected"] == {"stamp_order": 1}
+    assert rejected == {"stamp_order": 1} and "restart_gap" in detail
+    assert first.rejected_total == 0 and second.rejected_total == 0 and second.answered == len(ds)
+    old, new = (s["id"] for s in sessions)
+    assert robot["session_id"] == new and second.restarts == 1 and second.sessions == [new]
+    for sid in (old, new):  # both passes mapped: as many keyframes each
+        assert service.api.nodes(sid, limit=1)["total"] >= 5
+    assert service.api.nodes(old, limit=1)["total"] == service.api.nodes(new, limit=1)["total"]
+    kinds = [(e.kind, e.get("session_id"), e.get("reason")) for e in events
+             if e.kind in ("session_started", "session_ended")]
+    assert kinds == [("session_started", old, None), ("session_ended", old, "restarted"),
+                     ("session_started", new, None)]
+    assert "camera restart robot=again" in service.log_path.read_text()
+    assert 'mnemoslam_robot_restarts_total{robot="again"} 1.0' in service.api.get("/metrics")
+    assert load_config().service.restart_gap == 5.0  # the default, which the service ran with
+
+
+def test_stream_whose_frames_are_all_refused_says_so_and_exits_1(service, capsys):
+    """A short sequence streamed twice under one robot id: its stamps step back by less than
+    service.restart_gap, so the service refuses the second pass (stamp_order); `stream`
+    prints the refusals, names the reason and exits 1 instead of 0."""
+    from service.cli import main
+
+    args = ["stream", "synthetic:loop", "--robot", "twice", "--connect", service.endpoint, "--max-frames", "12", "-q"]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert "the service answered 12 and dropped 0" in out and "rejected" not in out
+    assert main(args) == 1
+    out, err = capsys.readouterr()
+    assert "the service answered 0 and dropped 0, rejected 12 (stamp_order: 12)" in out
+    assert "stream: error: the service refused 12 of 12 frames (stamp_order: 12): stamp_order" in err
+    assert service.api.robot("twice")["frames_rejected"] == {"stamp_order": 12}
+
+
+def test_stream_labels_of_a_dataset_without_labels_leaves_no_robot(service, tmp_path):
+    """`stream <real dataset> --labels` fails before its camera is announced: the service
+    admits no robot that would wait for frames."""
+    from service.cli import main
+    from tests.test_datasets import make_tum
+
+    tum = make_tum(tmp_path)
+    assert main(["stream", str(tum), "--robot", "ghost", "--connect", service.endpoint, "--labels", "-q"]) == 2
+    time.sleep(2.0)  # a camera info would have reached the service by now
+    assert [r["robot"] for r in service.api.robots()] == []
+    assert service.api.sessions() == []
+
+
+def test_sessions_filter_by_robot_and_keep_their_config_apart(service_with_p1):
+    service = service_with_p1
+    (p1,) = service.api.get("/sessions", robot="p1")
+    assert service.api.get("/sessions", robot="nobody") == []
+    assert "config" not in p1 and p1["robot"] == "p1" and p1["calibration"]["width"] == 640
+    one = service.api.get(f"/sessions/{p1['id']}")
+    assert one["config"]["service"]["restart_gap"] == 5.0 and {**one, "config": None} == {**p1, "config": None}
+    with pytest.raises(ApiError) as e:
+        service.api.get("/sessions/999")
+    assert e.value.status == 404
+
+
+def test_config_hides_the_environment_token_and_no_lock_file_stays(tmp_path, monkeypatch):
+    """/config shows the token as *** when it comes from MNEMOSLAM_API_TOKEN; after a clean
+    stop nothing but the database is left beside it (no <db>-mapping.lock)."""
+    monkeypatch.setenv("MNEMOSLAM_API_TOKEN", "secret-from-env")
+    svc = ServiceProcess(tmp_path / "map.db").start()
+    try:
+        assert svc.api.get("/config")["api"]["token"] == "***"
+        stream_dataset(open_dataset("synthetic:loop", max_frames=5), "lk", _settings(svc), rate=None,
+                       progress=False, wait_for_subscriber=10.0)
+        svc.wait_processed("lk", 5)
+        lock = tmp_path / "map.db-mapping.lock"  # the mapping process holds it while it runs
+        deadline = time.monotonic() + 60
+        while not lock.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert lock.exists()
+    finally:
+        assert svc.stop() == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.db"]

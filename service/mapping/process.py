@@ -60,22 +60,42 @@ def map_update_lock(db_path, timeout: float = LOCK_WAIT_S) -> Iterator[bool]:
     (service.recovery) while it runs, so only one of them writes the map's words, links and
     statistics at a time: a child of a killed service that is still finishing its last
     update is waited for. Yields whether the lock was acquired within `timeout` seconds
-    (the caller decides what to do without it)."""
-    fd = os.open(f"{db_path}-mapping.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    (the caller decides what to do without it).
+
+    A holder removes the file when it lets go (while it still holds the lock), so nothing is
+    left beside the database after a clean stop (a kill leaves it, harmless); one who locked
+    a file that was removed meanwhile locks the new one instead (the inode under the name is
+    checked after each lock)."""
+    path = f"{db_path}-mapping.lock"
+    deadline = time.monotonic() + timeout
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    acquired = False
     try:
-        deadline = time.monotonic() + timeout
         while True:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                acquired = True
-                break
-            except BlockingIOError:
-                if time.monotonic() >= deadline:
-                    acquired = False
+                try:
+                    same = os.path.samestat(os.fstat(fd), os.stat(path))
+                except FileNotFoundError:
+                    same = False
+                if same:
+                    acquired = True
                     break
-                time.sleep(0.05)
+                os.close(fd)  # its holder removed it after we opened it: lock the current one
+                fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+                continue
+            except BlockingIOError:
+                pass
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(0.05)
         yield acquired
     finally:
+        if acquired:
+            try:
+                os.unlink(path)  # still held: whoever opens the name next makes a new file
+            except OSError:
+                pass
         os.close(fd)  # releases the lock
 
 
