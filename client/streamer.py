@@ -48,8 +48,19 @@ import time
 from dataclasses import dataclass
 
 from .frames import Calibration, DatasetError, Frame
-from .protocol import (DEFAULT_CLASSES, DEFAULT_PREFIX, KINDS, LABEL_ENCODINGS, KeySpace, ProtocolError,
-                       decode_event, decode_pose, encode_frame, encode_info, frame_kind)
+from .protocol import (
+    DEFAULT_CLASSES,
+    DEFAULT_PREFIX,
+    KINDS,
+    LABEL_ENCODINGS,
+    KeySpace,
+    ProtocolError,
+    decode_event,
+    decode_pose,
+    encode_frame,
+    encode_info,
+    frame_kind,
+)
 from .transport import DEFAULT_ENDPOINT, MODES, ZenohSettings, open_session, undeclare_all
 
 log = logging.getLogger(__name__)
@@ -336,7 +347,8 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
     at k / rate seconds after the first (real time at that rate; late frames are sent at once,
     never skipped); with `adapt`, each time the service reports new drops the rate is lowered by
     10 %. `color` / `depth` "auto": raw to a service on this host, JPEG / PNG otherwise
-    (`resolve_encodings`). At the end it waits up to `answer_timeout` for the last answer. `wait_for_subscriber` seconds: wait
+    (`resolve_encodings`). At the end it waits up to `answer_timeout` for the last answer.
+    `wait_for_subscriber` seconds: wait
     that long for a subscriber on the frame key before the first frame (then stream anyway).
     seq counts frames from 0. `kind` defaults to the dataset's `kind` attribute if it has one
     (CaptureSource: "mono"), else its calibration's.
@@ -433,7 +445,8 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
                 if bar is not None:
                     bar.update(1)
                     if sent % 10 == 0:
-                        bar.set_postfix_str(f"{streamer.bytes_sent * 8 / 1e6 / max(time.perf_counter() - t0, 1e-9):.0f} Mbit/s")
+                        mbit = streamer.bytes_sent * 8 / 1e6 / max(time.perf_counter() - t0, 1e-9)
+                        bar.set_postfix_str(f"{mbit:.0f} Mbit/s")
             seconds = time.perf_counter() - t0
             matched = streamer.has_subscriber
             if sent and matched:
@@ -488,7 +501,8 @@ def add_stream_arguments(parser):
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("dataset", nargs="?", help="dataset folder (TUM, EuRoC, KITTI, 7-Scenes), ROS bag (rosbag2 "
                                                 "folder, .db3, .mcap, ROS 1 .bag) or synthetic[:loop|...]")
-    src.add_argument("--camera", metavar="DEVICE_OR_VIDEO", help="stream a camera device (index, e.g. 0) or a video file instead")
+    src.add_argument("--camera", metavar="DEVICE_OR_VIDEO",
+                     help="stream a camera device (index, e.g. 0) or a video file instead")
     parser.add_argument("--format", choices=list(FORMATS), help="override dataset layout detection")
     parser.add_argument("--topics", action="append", metavar="ROLE=TOPIC,...", help=TOPICS_HELP)
     parser.add_argument("--robot", default="robot1", help="robot id, [A-Za-z0-9_-]{1,64} (default robot1)")
@@ -612,7 +626,8 @@ def stream_main(args) -> int:
                                prefix=prefix, progress=want_progress(quiet), max_frames=max_frames,
                                wait_for_subscriber=wait, require_subscriber=wait > 0,
                                on_wait=say_waiting if wait > 5.0 else None,
-                               window=max(1, int(getattr(args, "window", 4))), adapt=bool(getattr(args, "adapt", False)),
+                               window=max(1, int(getattr(args, "window", 4))),
+                               adapt=bool(getattr(args, "adapt", False)),
                                labels=labels)
     finally:
         close = getattr(dataset, "release", None)

@@ -294,7 +294,8 @@ def _parse_bbox(text: str | None):
     try:
         v = [float(p) for p in parts]
     except ValueError:
-        raise HTTPException(400, f"bbox must be 6 comma-separated numbers xmin,ymin,zmin,xmax,ymax,zmax; got {text!r}")
+        raise HTTPException(
+            400, f"bbox must be 6 comma-separated numbers xmin,ymin,zmin,xmax,ymax,zmax; got {text!r}") from None
     if len(v) != 6 or not all(math.isfinite(x) for x in v):
         raise HTTPException(400, f"bbox must be 6 finite numbers xmin,ymin,zmin,xmax,ymax,zmax; got {text!r}")
     lo, hi = v[:3], v[3:]
@@ -585,8 +586,8 @@ def graph(session: SessionDep, store: StoreDep):
     nodes = store.nodes(session_id=session.id, limit=10**9, offset=0)
     links = store.links(session_id=session.id)
     return {"nodes": [_node_json(n) for n in nodes],
-            "links": [{"from": l.from_id, "to": l.to_id, "type": link_name(l.type),
-                       "transform": _pose_list(l.transform)} for l in links]}
+            "links": [{"from": lk.from_id, "to": lk.to_id, "type": link_name(lk.type),
+                       "transform": _pose_list(lk.transform)} for lk in links]}
 
 
 @read_routes.get("/nodes/{node_id}/statistics", response_model=dict[str, Any], responses=_errors(404))

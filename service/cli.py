@@ -114,7 +114,8 @@ def serve_banner(config, rest_port: int | None) -> str:
         rest = f"REST http://{f'[{host}]' if ':' in host else host}:{rest_port}"
     ros = ""
     if config.ros.enabled:
-        ros = f"ROS 2 robots {', '.join(str(r.get('robot')) for r in config.ros.robots if isinstance(r, dict)) or 'none'}; "
+        robots = ', '.join(str(r.get('robot')) for r in config.ros.robots if isinstance(r, dict))
+        ros = f"ROS 2 robots {robots or 'none'}; "
     return (f"mnemoslam serve: {rest}; Zenoh {z.mode} listen {', '.join(z.listen) or 'none'}, "
             f"connect {', '.join(z.connect) or 'none'}, prefix {z.prefix}; {ros}"
             f"database {Path(config.storage.path).resolve()}")
@@ -211,10 +212,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)
     r.set_defaults(func=_cmd_run)
 
-    d = sub.add_parser("demo", help="start the service, stream the synthetic scene into it over Zenoh, report ATE and a REST query")
-    d.add_argument("--trajectory", default="loop", help="synthetic camera path (loop, figure8, walk_a, walk_b, straight)")
+    d = sub.add_parser("demo", help="start the service, stream the synthetic scene into it over Zenoh, "
+                                    "report ATE and a REST query")
+    d.add_argument("--trajectory", default="loop",
+                   help="synthetic camera path (loop, figure8, walk_a, walk_b, straight)")
     d.add_argument("--rate", type=float, default=15.0, help="frames per second of the synthetic camera")
-    d.add_argument("--no-noise", action="store_true", help="exact depth instead of Kinect-like noise (the path's own model where it has one: fastrot's disparity noise)")
+    d.add_argument("--no-noise", action="store_true",
+                   help="exact depth instead of Kinect-like noise (the path's own model where it has one: "
+                        "fastrot's disparity noise)")
     d.add_argument("--out", default="out/demo", help="output folder, made when missing (default out/demo in the "
                                                     "current folder): the map database and the service's log")
     d.add_argument("--frames", type=positive_int, metavar="N",
@@ -226,14 +231,16 @@ def build_parser() -> argparse.ArgumentParser:
     sv = sub.add_parser("serve", help="run the SLAM service: Zenoh ingest, SQLite map, REST API")
     sv.add_argument("--config", help="YAML config file (default: built-in defaults)")
     sv.add_argument("--db", help="SQLite database (overrides storage.path)")
-    sv.add_argument("--listen", action="append", help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    sv.add_argument("--listen", action="append",
+                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     sv.add_argument("--port", type=int, help="REST port (overrides api.port; 0 = a free port, printed at start)")
     _add_set(sv)
     sv.set_defaults(func=_cmd_serve)
 
     from client.streamer import add_stream_arguments
 
-    add_stream_arguments(sub.add_parser("stream", help="stream a dataset, the synthetic scene or a camera to the service over Zenoh"))
+    add_stream_arguments(sub.add_parser(
+        "stream", help="stream a dataset, the synthetic scene or a camera to the service over Zenoh"))
 
     db = sub.add_parser("db", help="inspect or export a map database")
     dbs = db.add_subparsers(dest="db_command", required=True)
@@ -260,7 +267,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from client.frames import DatasetError
-
     from storage import StoreError
 
     from .config import ConfigError

@@ -85,7 +85,8 @@ class ServiceProcess:
     def wait_processed(self, robot: str, frames: int, timeout: float = 300.0) -> dict:
         """Until every frame sent by `robot` was processed, dropped or rejected."""
         def done(r: dict) -> bool:
-            seen = r.get("frames_processed", 0) + r.get("frames_dropped", 0) + sum(r.get("frames_rejected", {}).values())
+            seen = (r.get("frames_processed", 0) + r.get("frames_dropped", 0)
+                    + sum(r.get("frames_rejected", {}).values()))
             return seen >= frames and r.get("queue_depth", 1) == 0
         return self._wait(robot, done, timeout)
 
@@ -214,7 +215,8 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
         p.unlink(missing_ok=True)
     # noise: the path's own sensor model where it has one (fastrot: Kinect disparity noise and
     # blur), else the axial model; none with --no-noise
-    dataset = open_dataset(f"synthetic:{trajectory}", rate=rate, noise=None if noise and _has_noise(trajectory) else noise,
+    dataset = open_dataset(f"synthetic:{trajectory}", rate=rate,
+                           noise=None if noise and _has_noise(trajectory) else noise,
                            **({"max_frames": frames} if frames else {}))
     print(f"demo: starting the service (database {db})")
     log_path = out_dir / "service.log"

@@ -69,7 +69,8 @@ class SlamService:
     def start(self) -> "SlamService":
         z = self.config.zenoh
         self.store = MapStore(self.config.storage.path)
-        recover(self.config)  # sessions a kill left open end "crashed"; their map backlog is done, before any writer starts
+        # sessions a kill left open end "crashed"; their map backlog is done, before any writer starts
+        recover(self.config)
         if self.config.loop.enabled and self.config.loop.process:
             self.mapping = MappingProcess(self.config.storage.path, self.config.loop, self.config.memory)
         self.semantics = build_semantics(self.store, self.config, background=True)
@@ -334,7 +335,8 @@ class SlamService:
     # -- per-frame output (worker threads) ---------------------------------------------
     def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:
         events = self.keys.events(robot)
-        on_event = lambda kind, data: self.publish(events, protocol.encode_event(robot, kind, **data))
+        def on_event(kind, data):
+            self.publish(events, protocol.encode_event(robot, kind, **data))
         pipeline = build_pipeline(self.store, robot, calibration, self.config, mapping=self.mapping,
                                   background=True, on_event=on_event, semantics=self.semantics)
         on_event("session_started", {"session_id": pipeline.session_id})
@@ -351,7 +353,8 @@ class SlamService:
             self.publish(self.keys.events(robot), protocol.encode_event(
                 robot, "keyframe_added", node_id=result.node_id, seq=frame.index, stamp=frame.stamp))
         if result.status == "lost" and session.stats.previous_status != "lost":
-            self.publish(self.keys.events(robot), protocol.encode_event(robot, "tracking_lost", seq=frame.index, stamp=frame.stamp))
+            self.publish(self.keys.events(robot),
+                         protocol.encode_event(robot, "tracking_lost", seq=frame.index, stamp=frame.stamp))
         if self.ros is not None:  # a ROS robot's pose key: CDR PoseStamped
             self.ros.on_result(robot, frame, result.pose)
 

@@ -17,7 +17,9 @@ from client.transport import ZenohSettings
 from service.demo import ServiceProcess
 
 FRAMES = 30
-EXAMPLES = 40  # per operation, generation mode and id choice (plus every boundary case): ~1,000 requests, ~30 s on a quiet 2-core machine
+# per operation, generation mode and id choice (plus every boundary case): ~1,000 requests, ~30 s on a quiet 2-core
+# machine
+EXAMPLES = 40
 
 
 @pytest.fixture(scope="module")
@@ -89,8 +91,9 @@ def test_openapi_fuzz_finds_no_server_error(service):
         op = operation.label
         both = [GenerationMode.POSITIVE, GenerationMode.NEGATIVE]
         coverage = schema.config.generation_for(operation=operation, phase="coverage")
-        run(f"{op} coverage", lambda: [call_and_check(case) for case in schema.iter_coverage_cases(
-            operation, generation_modes=both, generation_config=coverage)])
+        # run() calls the lambda at once, in this iteration: the loop variables are the current ones
+        run(f"{op} coverage", lambda: [call_and_check(case) for case in schema.iter_coverage_cases(  # noqa: B023
+            operation, generation_modes=both, generation_config=coverage)])  # noqa: B023
         fixed = {p.name: real_ids[p.name] for p in operation.path_parameters if p.name in real_ids}
         plans = [(mode, {}) for mode in (both if operation.path_parameters or operation.query else both[:1])]
         if fixed:  # with a real id: nothing left to make invalid unless the operation has a query

@@ -19,7 +19,6 @@ from client.transport import ZenohSettings, open_session
 from service.config import load_config
 from service.demo import ServiceProcess, keyframe_trajectory
 from service.evaluation import evaluate
-from service.pipeline import Pipeline
 from service.runner import run_dataset
 
 from conftest import FIGURE8, synthetic
@@ -112,9 +111,9 @@ def test_loop_closed_and_map_corrected_events_are_published(service):
     corrected = [e for e in events if e.kind == "map_corrected"]
     assert corrected and all(isinstance(e["nodes"], int) and e["nodes"] > 0 for e in corrected)
     graph = service.api.get(f"/sessions/{service.session_of('ev')}/graph")
-    loops = {(l["from"], l["to"]) for l in graph["links"] if l["type"] in ("loop", "proximity")}
+    loops = {(lk["from"], lk["to"]) for lk in graph["links"] if lk["type"] in ("loop", "proximity")}
     assert loops == {(e["from"], e["to"]) for e in closed if e["link"] != "merged"}
-    merged = {(l["from"], l["to"]) for l in graph["links"] if l["type"] == "merged"}
+    merged = {(lk["from"], lk["to"]) for lk in graph["links"] if lk["type"] == "merged"}
     assert {(e["from"], e["to"]) for e in closed if e["link"] == "merged"} <= merged
 
 
@@ -122,7 +121,8 @@ def test_three_robots_three_sessions_no_cross_talk(service):
     paths = {"alpha": "loop", "bravo": "walk_a", "charlie": "walk_b"}
     datasets = {r: open_dataset(f"synthetic:{p}", max_frames=45) for r, p in paths.items()}
     threads = [threading.Thread(target=stream_dataset, args=(ds, r, _settings(service)),
-                                kwargs=dict(rate=None, color="jpeg", depth="png", progress=False, wait_for_subscriber=10.0))
+                                kwargs=dict(rate=None, color="jpeg", depth="png", progress=False,
+                                            wait_for_subscriber=10.0))
                for r, ds in datasets.items()]
     for t in threads:
         t.start()

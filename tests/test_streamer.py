@@ -333,7 +333,8 @@ def test_stream_without_subscriber_reports_it():
     port = free_port()
     lonely = open_session(ZenohSettings.service([endpoint(port)]))  # nobody subscribes
     try:
-        stats = stream_dataset(open_dataset("synthetic:loop", max_frames=2), "alone", ZenohSettings.client([endpoint(port)]),
+        stats = stream_dataset(open_dataset("synthetic:loop", max_frames=2), "alone",
+                               ZenohSettings.client([endpoint(port)]),
                                prefix=f"none{uuid.uuid4().hex[:6]}", progress=False, wait_for_subscriber=0.2)
         assert stats.frames == 2 and not stats.subscriber
     finally:
