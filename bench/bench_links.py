@@ -35,6 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from run_sequences import print_table  # noqa: E402  (bench/, the script's folder)
+
 from client.datasets import open_dataset  # noqa: E402
 from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
 from service.evaluation import LINK_KINDS, evaluate, evaluate_links  # noqa: E402
@@ -205,24 +207,18 @@ def main() -> int:
                 tables.append((name, link_table(ds, out_dir / "map.db", rec.rows)))
             if args.links and variant in ("off", "default"):
                 consistency.extend((name, *row) for row in consistency_table(ds, out_dir / "map.db", variant))
-    _table(("sequence", "variant", "ATE cm", "kf", "loop+prox links", "beyond 5 cm/3 deg", "dropped", "path links"),
-           rows)
+    print_table(("sequence", "variant", "ATE cm", "kf", "loop+prox links", "beyond 5 cm/3 deg", "dropped",
+                 "path links"), rows)
     if consistency:
         print("\nlinks of the map against the ground truth and the σ their information claims (medians, cm / deg)")
-        _table(("sequence", "variant", "link type", "links", "error", "σ claimed", "error / σ"), consistency)
+        print_table(("sequence", "variant", "link type", "links", "error", "σ claimed", "error / σ"), consistency)
     for name, t in tables:
         print(f"\n{name}: loop / proximity links of the default run (cm / deg)")
         if t:
             print(reduction(t))
-            _table(("link", "stored as", "verified", "error before", "error after", "σ estimated", "σ claimed",
+            print_table(("link", "stored as", "verified", "error before", "error after", "σ estimated", "σ claimed",
                     "inliers", "decision"), t)
     return 0
-
-
-def _table(head, rows) -> None:
-    widths = [max(len(str(r[i])) for r in rows + [head]) for i in range(len(head))]
-    for r in [head] + rows:
-        print("  ".join(str(v).rjust(wd) for v, wd in zip(r, widths)))
 
 
 if __name__ == "__main__":

@@ -95,15 +95,16 @@ def main() -> int:
     head = ("sequence", "size", "frames", "tracked", "lost", "kf", "merged", "ATE odom cm", "ATE cm", "ATE %path",
             "ATE Sim3 cm (scale)", "fps e2e",
             "fps e2e+loops", "fps pipeline", "peak MB")
-    _table(head, rows)
+    print_table(head, rows)
     if link_rows:  # the run with loop closure: its graph's links against the true relative poses
         print()
-        _table(("sequence", "link type", "links", "median cm", "median deg", "worst cm", "worst deg",
+        print_table(("sequence", "link type", "links", "median cm", "median deg", "worst cm", "worst deg",
                 "beyond 5 cm/3 deg"), link_rows)
     return 0
 
 
-def _table(head, rows) -> None:
+def print_table(head, rows) -> None:
+    """Rows of values as right-aligned columns under `head` (bench/bench_links.py prints its tables so too)."""
     widths = [max(len(str(r[i])) for r in rows + [head]) for i in range(len(head))]
     for r in [head] + rows:
         print("  ".join(str(v).rjust(wd) for v, wd in zip(r, widths)))
