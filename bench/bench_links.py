@@ -35,9 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from run_sequences import print_table  # noqa: E402  (bench/, the script's folder)
+from run_sequences import opened, print_table  # noqa: E402  (bench/, the script's folder)
 
-from client.datasets import open_dataset  # noqa: E402
 from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
 from service.evaluation import LINK_KINDS, evaluate, evaluate_links  # noqa: E402
 from service.mapping import mapper as mapper_module  # noqa: E402
@@ -184,13 +183,7 @@ def main() -> int:
     overrides = parse_sets(args.set)
     variants = [v for v in args.variants.split(",") if v]
     rows, tables, consistency = [], [], []
-    for name, path, opts in sequences(data, args.synthetic_frames):
-        if args.only and args.only not in name:
-            continue
-        if not str(path).startswith("synthetic") and not Path(path).exists():
-            print(f"skip {name}: {path} not found", file=sys.stderr)
-            continue
-        ds = open_dataset(path, **opts)
+    for name, ds in opened(sequences(data, args.synthetic_frames), args.only):
         for variant in variants:
             config = load_config(overrides=merge_overrides(overrides, variant_overrides(variant)))
             out_dir = Path(os.environ.get("TMPDIR", "/tmp")) / "mnemoslam-bench-links"

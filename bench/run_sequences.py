@@ -48,6 +48,18 @@ def sequences(data: Path, synthetic_frames: int):
     yield "synthetic fastrot", "synthetic:fastrot", {}
 
 
+def opened(entries, only: str | None = None):
+    """(name, dataset) of the `entries` ((name, path, options), as `sequences` gives them) whose
+    name contains `only`; a missing folder is skipped with a line on stderr."""
+    for name, path, opts in entries:
+        if only and only not in name:
+            continue
+        if not str(path).startswith("synthetic") and not Path(path).exists():
+            print(f"skip {name}: {path} not found", file=sys.stderr)
+            continue
+        yield name, open_dataset(path, **opts)
+
+
 def pipeline_fps(ds, config, limit=300) -> float:
     """Frames/s of the pipeline alone on pre-decoded frames."""
     frames = [ds.frame(i) for i in range(min(limit, len(ds)))]
@@ -69,13 +81,7 @@ def main() -> int:
     config = load_config(overrides=overrides)
     odometry_only = load_config(overrides=merge_overrides(overrides, {"loop": {"enabled": False}}))
     rows, link_rows = [], []
-    for name, path, opts in sequences(data, args.synthetic_frames):
-        if args.only and args.only not in name:
-            continue
-        if not str(path).startswith("synthetic") and not Path(path).exists():
-            print(f"skip {name}: {path} not found", file=sys.stderr)
-            continue
-        ds = open_dataset(path, **opts)
+    for name, ds in opened(sequences(data, args.synthetic_frames), args.only):
         odom = run_dataset(ds, odometry_only, progress=True)
         out = run_dataset(ds, config, progress=True)
         ev = evaluate(ds.ground_truth, out.trajectory) if ds.ground_truth is not None else None
