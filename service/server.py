@@ -258,11 +258,9 @@ class SlamService:
                 limits = protocol.Limits(self.limits.max_message_bytes, self.limits.max_width,
                                          self.limits.max_height, size=(cam.width, cam.height),
                                          classes=len(classes if classes is not None else protocol.DEFAULT_CLASSES))
-                events = self.keys.events(robot)
                 s = RobotSession(robot, self.config, calibration, limits,
                                  lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result, classes=classes,
-                                 on_event=lambda kind, data, r=robot, k=events: self.publish(
-                                     k, protocol.encode_event(r, kind, **data)))
+                                 on_event=self._event_publisher(robot))
                 self._release_held(robot, s)  # before the slot is visible: frames stay in order
                 self.sessions[robot] = s
             if s is None:
@@ -333,10 +331,17 @@ class SlamService:
                     s.stop(reason="idle")
 
     # -- per-frame output (worker threads) ---------------------------------------------
-    def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:
+    def _event_publisher(self, robot: str):
+        """on_event(kind, data) publishing the robot's events on its events key (the session's
+        and the pipeline's)."""
         events = self.keys.events(robot)
-        def on_event(kind, data):
+
+        def on_event(kind: str, data: dict) -> None:
             self.publish(events, protocol.encode_event(robot, kind, **data))
+        return on_event
+
+    def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:
+        on_event = self._event_publisher(robot)
         pipeline = build_pipeline(self.store, robot, calibration, self.config, mapping=self.mapping,
                                   background=True, on_event=on_event, semantics=self.semantics)
         on_event("session_started", {"session_id": pipeline.session_id})
