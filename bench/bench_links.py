@@ -180,7 +180,7 @@ def main() -> int:
     ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="config override (repeatable)")
     args = ap.parse_args()
     data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
-    overrides = parse_sets(args.set)
+    overrides = merge_overrides({"semantics": {"enabled": False}}, parse_sets(args.set))  # SLAM alone
     variants = [v for v in args.variants.split(",") if v]
     rows, tables, consistency = [], [], []
     for name, ds in opened(sequences(data, args.synthetic_frames), args.only):

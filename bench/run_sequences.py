@@ -77,7 +77,8 @@ def main() -> int:
     ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="config override (repeatable)")
     args = ap.parse_args()
     data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
-    overrides = parse_sets(args.set)
+    # SLAM alone: semantics (on by default; their cost: bench/bench_semantics.py) only with --set
+    overrides = merge_overrides({"semantics": {"enabled": False}}, parse_sets(args.set))
     config = load_config(overrides=overrides)
     odometry_only = load_config(overrides=merge_overrides(overrides, {"loop": {"enabled": False}}))
     rows, link_rows = [], []

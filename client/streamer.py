@@ -518,8 +518,9 @@ def add_stream_arguments(parser):
                              "on this host, else png)")
     parser.add_argument("--labels", action="store_true",
                         help="also send each frame's per-pixel class ids (synthetic datasets: their exact ADE20K-32 "
-                             "labels) and the class table in the camera info, for a service with "
-                             "semantics.source=camera; labels travel lossless like the depth (--depth-encoding). "
+                             "labels) and the class table in the camera info; a service with the default "
+                             "semantics.source (auto) uses them instead of its model; labels travel lossless like the "
+                             "depth (--depth-encoding). "
                              "An error for sources without labels (real datasets, --camera)")
     parser.add_argument("--connect", action="append", metavar="ENDPOINT",
                         help=f"zenoh endpoint of the service, repeatable (default {DEFAULT_ENDPOINT})")

@@ -248,9 +248,13 @@ class SemanticsOut(Open):
     source: str | None = None
     model: str | None = None
     reason: str | None = Field(None, description="why semantics are off")
+    model_reason: str | None = Field(None, description="why there is no model (source auto: the camera's labels "
+                                     "only; unlabelled keyframes stay unsegmented)")
     classes: list[str] = []
-    worker: dict | None = Field(None, description="the map's semantic worker: keyframes processed, dropped, "
-                                "failed and skipped, objects")
+    coverage: dict | None = Field(None, description="the map's keyframes, those segmented (in the semantic map), "
+                                  "those skipped (nothing to segment) and the share segmented")
+    worker: dict | None = Field(None, description="the map's semantic worker: keyframes processed, deferred to the "
+                                "back-fill (queue full), back-filled, dropped, failed and skipped; objects")
     workers: dict[str, dict] = Field({}, description="the same counts of each connected robot's keyframes")
 
 

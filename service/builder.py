@@ -4,13 +4,14 @@ update runs is the caller's choice: inline (offline runs stay reproducible), on 
 in the service's mapping child process."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Callable
 
 from client.frames import Calibration
 from storage import MapStore
 
-from .config import Config
+from .config import Config, SemanticsConfig
 from .mapping.mapper import Mapper
 from .mapping.process import MappingProcess
 from .memory.long_term import Memory
@@ -24,14 +25,24 @@ log = logging.getLogger("mnemoslam.builder")
 def build_semantics(store: MapStore, config: Config, *,
                     background: bool = False) -> tuple[SemanticWorker | None, str | None]:
     """The semantic worker of the map `store` when `config.semantics.enabled` (on its own
-    thread with `background`, else inline), or None and why not (e.g. the model is missing)."""
-    if not config.semantics.enabled:
-        return None, "semantics.enabled is false"
+    thread with `background`, else inline), or None and why not (e.g. the model is missing).
+    Semantics keys set while semantics end up off are named in a warning (they do nothing)."""
     segmenter, off = make_segmenter(config.semantics)
     if segmenter is None:
-        log.warning("semantics are off: %s", off)
+        unused = unused_semantics_keys(config.semantics)
+        log.warning("semantics are off: %s%s", off, f" (set but unused: {', '.join(unused)})" if unused else "")
         return None, off
-    return SemanticWorker(store, segmenter, config.semantics, background=background), None
+    worker = SemanticWorker(store, segmenter, config.semantics, background=background)
+    log.info("semantics: source %s (%s)%s", worker.source, segmenter.name,
+             ", back-fill from stored images" if worker.backfills else "")
+    return worker, None
+
+
+def unused_semantics_keys(config: SemanticsConfig) -> list[str]:
+    """The `semantics.*` keys set to other than their defaults (but `enabled`)."""
+    default = SemanticsConfig()
+    return [f"semantics.{f.name}" for f in dataclasses.fields(SemanticsConfig)
+            if f.name != "enabled" and getattr(config, f.name) != getattr(default, f.name)]
 
 
 def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config: Config, *,

@@ -209,8 +209,8 @@ class ApiConfig:
 
 @dataclass
 class SemanticsConfig:
-    enabled: bool = False  # fuse semantic labels of keyframes into 3-D objects with class histograms (issue 14)
-    source: str = "model"  # model (segment keyframes with the ONNX model below) | camera (labels sent with each frame)
+    enabled: bool = True  # fuse semantic labels of keyframes into 3-D objects with class histograms (issues 14, 24)
+    source: str = "auto"  # auto (the camera's labels when a frame carries them, else the ONNX model below when it is found) | model (always the model) | camera (only labels sent with the frames)
     model: str = "deeplabv3_mnv2_ade20k32.onnx"  # file name under MNEMOSLAM_MODELS (default ../shared/models next to the repository) or a path
     model_input: str = "MobilenetV2/MobilenetV2/input"  # the model adapter: input tensor name ...
     model_size: int = 512  # ... square input side (px): the longer image side is resized to it, the rest padded ...
@@ -229,9 +229,11 @@ class SemanticsConfig:
     box_depth_band: float = 0.15  # a box labels only its pixels whose depth is within this share of the box centre's median depth (the object, not the wall behind it); 0 = the whole box
     classes: list = field(default_factory=list)  # the model's class names by id; empty = ADE20K-32 (service/semantics/classes.py)
     threads: int = 1  # onnxruntime intra-op threads (must not steal the tracking core)
-    queue_size: int = 4  # keyframes waiting for the semantic worker; when full the newest is dropped (and counted)
+    queue_size: int = 4  # keyframes waiting for the semantic worker; when full the newest waits in the store for the back-fill (counted as deferred)
+    backfill: bool = True  # segment the keyframes the worker could not take (and any of the map not segmented yet) later, newest first, from their stored images (storage.keep_images) with the model, when the queue is empty
+    idle_after: float = 2.0  # s without a new keyframe after which the robots count as idle: the worker then back-fills without resting (max_duty applies while they map)
     nice: int = 10  # the semantic worker thread's nice increment (lower CPU priority than tracking); 0 = same priority
-    max_duty: float = 0.5  # the semantic worker rests after each keyframe so that it is busy at most this share of the time (on 2 cores it slows tracking in proportion; keyframes that arrive meanwhile queue, then drop and are counted); 1 = no rest
+    max_duty: float = 0.5  # the semantic worker rests after each keyframe so that it is busy at most this share of the time (on 2 cores it slows tracking in proportion; keyframes that arrive meanwhile queue, then wait for the back-fill); 1 = no rest
     dynamic: list = field(default_factory=lambda: ["person", "car"])  # classes that move (people, animals, vehicles: of ADE20K-32 person and car; name other tables' own, e.g. bus, dog): their segments never become objects, nor vote in one; a keyframe showing one counts in the worker's `dynamic`; [] = they map like any thing
     ignore: list = field(default_factory=lambda: ["other", "wall", "building", "sky", "floor", "ceiling", "road", "grass", "sidewalk", "earth", "mountain", "water", "sea", "field", "rug"])  # classes that never become objects ("stuff": surfaces without an extent)
     stride: int = 4  # label / depth pixels used: every stride-th of each row and column

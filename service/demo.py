@@ -203,10 +203,12 @@ def run_demo(trajectory: str = "loop", rate: float = 15.0, noise: bool = True, o
     when `progress`. `out` (made with its parents when missing) holds the database and the
     service's log, relative to the current folder; `frames`: stream only the path's first
     frames (default: all of it)."""
-    # semantics from the synthetic camera's labels, unless the caller says otherwise
-    service_config = merge_overrides({"semantics": {"enabled": True, "source": "camera"}}, overrides or {})
+    # semantics from the synthetic camera's labels (the default source, auto, takes them), unless
+    # the caller says otherwise
+    service_config = dict(overrides or {})
     _check_overrides(service_config)
-    labels = load_config(None, service_config).semantics.source == "camera"
+    semantics = load_config(None, service_config).semantics
+    labels = semantics.enabled and semantics.source in ("camera", "auto")
     prefix = load_config(None, service_config).zenoh.prefix
     out_dir = Path(out).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,8 @@ Metric names (prefix `mnemoslam_`; counters end in `_total`):
 - per robot, from the map: `map_update_seconds` (histogram), `memory_nodes{memory="stm|wm|ltm"}`,
   `vocabulary_words` (after its latest map update), `loop_closures_total{link="loop|proximity"}`
   (the link types' names, `storage.LINK_NAMES`);
+- the semantic map: `semantic_keyframes{state="keyframes|segmented|skipped"}`, `semantic_coverage`
+  (segmented / keyframes);
 - REST: `http_request_duration_seconds{method, route, status}` (histogram);
 - the process (prometheus_client's): `process_resident_memory_bytes`, `process_cpu_seconds_total`, ...
 """
@@ -221,6 +223,25 @@ class ServiceCollector(Collector):
             except StoreError as e:  # the store closed under the scrape (service stopping)
                 log.debug("metrics: map statistics not read: %s", e)
         yield from (update, memory, words, loops)
+        if store is not None:
+            yield from self._coverage(store)
+
+    def _coverage(self, store):
+        """The semantic map's coverage: the map's keyframes, those segmented, those skipped."""
+        try:
+            c = store.segmentation_coverage()
+        except StoreError as e:  # the store closed under the scrape (service stopping)
+            log.debug("metrics: semantic coverage not read: %s", e)
+            return
+        family = GaugeMetricFamily(PREFIX + "semantic_keyframes", "the map's keyframes (all), those whose labels are "
+                                   "in the semantic map (segmented) and those with nothing to segment (skipped)",
+                                   labels=["state"])
+        for state in ("keyframes", "segmented", "skipped"):
+            family.add_metric([state], float(c[state]))
+        yield family
+        if c["keyframes"]:
+            yield GaugeMetricFamily(PREFIX + "semantic_coverage", "share of the map's keyframes in the semantic map",
+                                    value=c["segmented"] / c["keyframes"])
 
 
 class RequestTimer:

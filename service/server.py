@@ -20,7 +20,7 @@ from collections import Counter, deque
 from client import protocol
 from client.frames import Calibration, Frame
 from client.transport import ZenohSettings, open_session, undeclare_all
-from storage import MapStore
+from storage import MapStore, StoreError
 
 from .builder import build_pipeline, build_semantics
 from .config import Config, to_dict
@@ -396,14 +396,21 @@ class SlamService:
         return worker.delete(object_id)
 
     def semantics_status(self) -> dict:
-        """{"enabled", "source", "model", "reason" (why off, or None), "classes"} of the
-        semantic map, plus "worker": the map's semantic worker's counts (keyframes processed,
-        dropped, failed; objects), and "workers": the same counts of each connected robot's
-        keyframes."""
+        """{"enabled", "source", "model", "reason" (why off, or None), "model_reason",
+        "classes"} of the semantic map, plus "coverage": {"keyframes" of the map, "segmented"
+        (in the semantic map), "skipped" (nothing to segment), "share"}, "worker": the map's
+        semantic worker's counts (keyframes processed, deferred, back-filled, failed;
+        objects), and "workers": the same counts of each connected robot's keyframes."""
         from .semantics.segmentation import semantics_status
 
         out = semantics_status(self.config.semantics)
         worker = self.semantics[0]
+        if self.store is not None:  # coverage: what share of the map's keyframes the semantic map has taken
+            try:
+                c = self.store.segmentation_coverage()
+                out["coverage"] = {**c, "share": c["segmented"] / c["keyframes"] if c["keyframes"] else None}
+            except StoreError as e:  # a store closing under a stopping service
+                log.debug("semantic coverage: %s", e)
         out["worker"] = worker.stats() if worker is not None else None
         out["workers"] = {robot: worker.stats(robot) for robot in list(self.sessions)} if worker is not None else {}
         return out

@@ -21,7 +21,8 @@ update carries only what changed since the previous one:
                             link places it in another's frame; when it changed)}],
      "objects": {"total", "items": [{"id", "label", "confidence", "position", "extent",
                                      "observations"}], "labels": [[label, count], ...]}
-                 (only when the object index changed; the first `Limits.max_objects` by id)}
+                 (only when the object index changed; the first `Limits.max_objects` by id),
+     "coverage": {"keyframes", "segmented", "skipped"} of the semantic map (when it changed)}
 
 Trajectories are sent whole (decimated) on a stream's first update, then each live session
 gets its new nodes appended, and its whole trajectory again when its loop / proximity links
@@ -119,6 +120,7 @@ class ViewerFeed:
         self._sessions: list = []  # the sessions shown (SessionRecord)
         self._listed_at = -math.inf
         self._objects_snapshot = None
+        self._coverage: dict | None = None  # the semantic coverage last sent
 
     def next(self) -> dict | None:
         """The next update; None when the service has stopped (no store)."""
@@ -129,6 +131,7 @@ class ViewerFeed:
         reset = self.seq == 0 or store is not self._store
         if store is not self._store:
             self._store, self._sent, self._listed_at, self._objects_snapshot = store, {}, -math.inf, None
+            self._coverage = None
         robots = [{k: r.get(k) for k in ROBOT_KEYS} for r in self.service.robots()]
         live = {r["session_id"] for r in robots if isinstance(r["session_id"], int)}
         out = {"seq": self.seq, "t": time.time(), "reset": reset, "robots": robots,
@@ -136,6 +139,9 @@ class ViewerFeed:
         objects = self._object_update(store)
         if objects is not None:
             out["objects"] = objects
+        coverage = self._coverage_update(store)
+        if coverage is not None:
+            out["coverage"] = coverage
         self.seq += 1
         return out
 
@@ -239,6 +245,20 @@ class ViewerFeed:
         return latest
 
     # -- objects ------------------------------------------------------------------------------
+    def _coverage_update(self, store) -> dict | None:
+        """The semantic map's coverage ({"keyframes", "segmented", "skipped"}) when it changed."""
+        if self.objects is None:
+            return None
+        try:
+            c = store.segmentation_coverage()
+        except StoreError as e:
+            log.debug("viewer: coverage not read: %s", e)
+            return None
+        if c == self._coverage:
+            return None
+        self._coverage = c
+        return c
+
     def _object_update(self, store) -> dict | None:
         if self.objects is None:
             return None

@@ -92,6 +92,38 @@ class Objects(Connection):
         with self._read() as c:
             return c.execute("SELECT COUNT(*) FROM objects").fetchone()[0]
 
+    # -- which keyframes the semantic map has taken (schema v6) ------------------------------------
+    def mark_segmented(self, node_ids: Iterable[int], source: str, status: str = "fused") -> int:
+        """Record that the semantic worker dealt with these nodes (`source` "camera" or "model";
+        `status` "fused" or "skipped"); a node already recorded is overwritten, an unknown one
+        (deleted meanwhile) ignored. Returns the rows written."""
+        js = json.dumps([_as_int(i, "node id") for i in node_ids])
+        with self._write("mark_segmented") as c:
+            return c.execute(
+                "INSERT OR REPLACE INTO segmentations (node_id, source, status, at) "
+                "SELECT id, ?, ?, ? FROM nodes WHERE id IN (SELECT value FROM json_each(?))",
+                (str(source), str(status), time.time(), js)).rowcount
+
+    def unsegmented_nodes(self, limit: int = 8) -> list[int]:
+        """The newest map nodes (not merged by rehearsal) with stored colour and depth that the
+        semantic worker has not dealt with, newest first: what it back-fills from the store."""
+        with self._read() as c:
+            rows = c.execute(
+                "SELECT n.id FROM nodes n JOIN images i ON i.node_id = n.id WHERE n.merged_into IS NULL "
+                "AND i.color IS NOT NULL AND i.depth IS NOT NULL "
+                "AND NOT EXISTS (SELECT 1 FROM segmentations s WHERE s.node_id = n.id) ORDER BY n.id DESC LIMIT ?",
+                (max(0, int(limit)),)).fetchall()
+        return [r[0] for r in rows]
+
+    def segmentation_coverage(self) -> dict[str, int]:
+        """{"keyframes": the map's nodes (not merged by rehearsal), "segmented": those whose
+        labels are in the semantic map, "skipped": those dealt with but with nothing to fuse}."""
+        with self._read(snapshot=True) as c:
+            keyframes = c.execute("SELECT COUNT(*) FROM nodes WHERE merged_into IS NULL").fetchone()[0]
+            by = dict(c.execute("SELECT s.status, COUNT(*) FROM segmentations s JOIN nodes n ON n.id = s.node_id "
+                                "WHERE n.merged_into IS NULL GROUP BY s.status").fetchall())
+        return {"keyframes": keyframes, "segmented": by.get("fused", 0), "skipped": by.get("skipped", 0)}
+
     def object_arrays(self, label: str | None = None) -> dict[str, np.ndarray]:
         """The objects (of `label`) as columns, ordered by id, for a query index: `id` (N,)
         int64, `class_id` (N,) int64, `position` (N, 3) float64 (world: anchor pose @

@@ -147,9 +147,20 @@ def m005_rtree_map_nodes(db: sqlite_utils.Database) -> None:
         WHEN new.merged_into IS NOT NULL BEGIN DELETE FROM nodes_rtree WHERE id = new.id; END""")
 
 
+def m006_segmentations(db: sqlite_utils.Database) -> None:
+    """v6: `segmentations`, which keyframes the semantic map has taken (issue 24): one row per
+    node the semantic worker has dealt with, `source` ("camera" labels or "model"), `status`
+    ("fused": its labels are in the objects; "skipped": nothing to segment (no depth, no
+    image, no model for an unlabelled keyframe)), `at` (UNIX time). A keyframe without a row
+    is not segmented yet: the worker back-fills it from its stored images, and coverage is
+    the share of the map's nodes with a "fused" row."""
+    _create(db, "segmentations", {"node_id": int, "source": str, "status": str, "at": float}, pk="node_id",
+            not_null=["source", "status", "at"], foreign_keys=[_fk("segmentations", "node_id", "nodes")])
+
+
 #: Applied in order: MIGRATIONS[i] upgrades schema version i to i + 1.
 MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason, m003_merged_nodes, m004_objects,
-                                      m005_rtree_map_nodes)
+                                      m005_rtree_map_nodes, m006_segmentations)
 
 #: Tables a v1 database has (for "is this a mnemoslam database" checks).
 TABLES = ("admin", "sessions", "nodes", "links", "features", "words", "images", "statistics")

@@ -23,6 +23,15 @@ def data_dir() -> Path:
     return root
 
 
+def slam_config(overrides: dict | None = None):
+    """The default configuration (plus `overrides`) with semantics off: the real-data SLAM
+    tests check tracking and the map, and with the model found the default (`semantics.source:
+    auto`) would segment each of their keyframes (~0.3 s) for nothing they assert."""
+    from service.config import load_config, merge_overrides
+
+    return load_config(overrides=merge_overrides({"semantics": {"enabled": False}}, overrides or {}))
+
+
 def require(path: Path) -> Path:
     """A sequence inside the data folder, skipped (or failed in CI) when missing."""
     if not path.exists():

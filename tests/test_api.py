@@ -26,7 +26,9 @@ EXAMPLES = 40
 def service(tmp_path_factory):
     # idle_timeout: p1 must stay listed while the fuzz (longer than the default 60 s) runs before
     # the tests that read it
-    svc = ServiceProcess(tmp_path_factory.mktemp("api") / "map.db", {"service": {"idle_timeout": 3600.0}}).start()
+    # semantics off: the object endpoints' answers without a semantic map
+    svc = ServiceProcess(tmp_path_factory.mktemp("api") / "map.db",
+                         {"service": {"idle_timeout": 3600.0}, "semantics": {"enabled": False}}).start()
     try:
         stream_dataset(open_dataset("synthetic:loop", max_frames=FRAMES), "p1", ZenohSettings(connect=[svc.endpoint]),
                        rate=None, progress=False, wait_for_subscriber=10.0)
@@ -115,7 +117,7 @@ def test_openapi_fuzz_finds_no_server_error(service):
 
 
 def test_semantic_endpoints_on_the_real_service(service):
-    """The streamed robot reports where it is; with semantics off (the default) and no objects
+    """The streamed robot reports where it is; with semantics off and no objects
     the object endpoints say so; without a configured token nothing can change the map."""
     r = service.api.robot("p1")
     assert len(r["position"]) == 3 and isinstance(r["node_id"], int)

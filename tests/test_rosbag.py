@@ -15,12 +15,11 @@ from client.frames import DatasetError
 from client.geometry import rot_to_quat
 from client.trajectory import read_tum
 from service.cli import main
-from service.config import load_config
 from service.demo import ServiceProcess, keyframe_trajectory
 from service.evaluation import evaluate
 from service.runner import run_dataset
 
-from conftest import require
+from conftest import require, slam_config
 
 # 7-Scenes redkitchen, 30 Hz: its first 3.3 s. Measured 2026-11-25: ATE 0.978 cm over 100 frames
 # from the folder and from each bag (the same trajectory files); streamed from the ROS 1 bag
@@ -178,7 +177,7 @@ def kitchen(data_dir, tmp_path_factory):
             w.add_pose(stamp, T)
     for w in writers.values():
         w.close()
-    out = run_dataset(ds, load_config(), root / "folder_run", progress=False)
+    out = run_dataset(ds, slam_config(), root / "folder_run", progress=False)
     return path, ds, out, evaluate(ds.ground_truth, out.trajectory), {n: root / n for n in BAGS}
 
 
@@ -225,7 +224,7 @@ def test_run_cli_on_rosbag2_sqlite3_gives_the_folder_ate(kitchen, tmp_path, caps
 def test_run_on_mcap_and_ros1_bags_gives_the_folder_ate(kitchen, name):
     _, ds, out, ev, bags = kitchen
     bag = open_dataset(bags[name])
-    run = run_dataset(bag, load_config(), progress=False)
+    run = run_dataset(bag, slam_config(), progress=False)
     bev = evaluate(bag.ground_truth, run.trajectory)
     assert run.summary.tracked == out.summary.tracked and run.summary.keyframes == out.summary.keyframes
     np.testing.assert_allclose(run.trajectory.poses, out.trajectory.poses, atol=1e-9)

@@ -16,13 +16,19 @@ from client.datasets import open_dataset
 from client.frames import PinholeCamera
 from client.synthetic import SyntheticDataset
 from client.synthetic.scene import get_scene
-from service.builder import build_pipeline
+from service.builder import build_pipeline, build_semantics
 from service.config import SemanticsConfig, load_config
 from service.evaluation import associate_stamps, umeyama
 from service.runner import run_dataset
 from service.semantics.classes import ADE20K32
 from service.semantics.objects import ObjectFusion, bayes_update
-from service.semantics.segmentation import OnnxSegmenter, make_segmenter, model_path, semantics_status
+from service.semantics.segmentation import (
+    CameraLabels,
+    OnnxSegmenter,
+    make_segmenter,
+    model_path,
+    semantics_status,
+)
 from storage import MapStore
 
 from conftest import require
@@ -194,7 +200,20 @@ def test_semantics_off_when_the_model_is_missing(tmp_path, monkeypatch):
         pipeline.close()
     out = run_dataset(ds, cfg, tmp_path / "run", progress=False)
     assert out.summary.tracked == 20 and not (tmp_path / "run" / "objects.json").exists()
-    assert semantics_status(load_config().semantics)["reason"] == "semantics.enabled is false"
+    # the default (source auto) without a model: on, with the camera's labels alone, and says why
+    default = load_config().semantics
+    seg, why = make_segmenter(default)
+    assert isinstance(seg, CameraLabels) and why is None
+    status = semantics_status(default)
+    assert status["enabled"] is True and status["source"] == "auto" and status["model"] is None
+    assert "not found" in status["model_reason"]
+
+
+def test_semantics_keys_set_while_off_are_named(caplog):
+    cfg = load_config(None, {"semantics": {"enabled": False, "source": "camera", "stride": 2}})
+    with caplog.at_level("WARNING", logger="mnemoslam.builder"):
+        assert build_semantics(None, cfg) == (None, "semantics.enabled is false")
+    assert "semantics.source" in caplog.text and "semantics.stride" in caplog.text
 
 
 # -- the real model on real images ----------------------------------------------------------
@@ -228,6 +247,94 @@ def test_real_model_on_redkitchen_finds_table_and_cabinet(segmenter, data_dir):
     assert not {"car", "sky", "mountain", "sea", "bed"} & set(found)
 
 
+def _stored_keyframes(store, ds, frames) -> list[int]:
+    """Keyframes of `ds` stored as the keyframe writer stores them (JPEG colour, PNG-16 depth
+    in mm) at their ground-truth poses, linked in a chain, with no features: what the back-fill
+    reads."""
+    from client.geometry import invert
+    from storage import KeyframeRecord
+
+    sid = store.begin_session("r1", ds.calibration)
+    ids, previous = [], None
+    for i in frames:
+        f, pose = ds.frame(i), ds.ground_truth.poses[i]
+        link = None if previous is None else (ids[-1], invert(previous) @ pose, None)
+        depth = np.clip(np.rint(np.nan_to_num(f.depth) * 1000.0), 0, 65535).astype(np.uint16)
+        ids.append(store.add_keyframe(KeyframeRecord(
+            session_id=sid, stamp=f.stamp, pose=pose, odom_link=link, keypoints=np.zeros((0, 2), np.float32),
+            descriptors=np.zeros((0, 32), np.uint8), points=np.zeros((0, 3), np.float32),
+            image_jpeg=cv2.imencode(".jpg", f.image)[1].tobytes(), depth_png=cv2.imencode(".png", depth)[1].tobytes())))
+        previous = pose
+    return ids
+
+
+def test_keyframes_the_worker_could_not_take_are_backfilled(segmenter, data_dir, tmp_path):
+    """Issue 24: keyframes handed over faster than the model segments them find the queue
+    full; they wait in the store and the worker back-fills them (newest first) from their
+    stored images, so the whole map ends up segmented and the objects are those of the
+    images. Without the back-fill the same run leaves most keyframes unsegmented."""
+    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+
+    ds = open_dataset(require(data_dir / "7scenes_redkitchen"))
+    frames = list(range(0, 400, 40))  # the 10 keyframes of the test above
+    images = {i: ds.frame(i) for i in frames}
+    for backfill in (False, True):
+        config = SemanticsConfig(enabled=True, queue_size=1, backfill=backfill, max_duty=1.0, idle_after=0.5)
+        with MapStore(tmp_path / f"map-{backfill}.db") as store:
+            ids = _stored_keyframes(store, ds, frames)
+            worker = SemanticWorker(store, segmenter, config, background=True)
+            for n, i in zip(ids, frames):
+                f = images[i]
+                worker.submit(SemanticKeyframe(n, ds.ground_truth.poses[i], f.image, f.depth, None,
+                                               ds.calibration.camera))
+            live = worker.stats()
+            assert live["deferred" if backfill else "dropped"] >= 5, live  # one in the model, one queued
+            deadline = time.monotonic() + 180
+            while backfill and store.segmentation_coverage()["segmented"] < len(ids) and time.monotonic() < deadline:
+                time.sleep(0.2)
+            worker.close()
+            coverage, stats = store.segmentation_coverage(), worker.stats()
+            labels = {o.label for o in store.objects()}
+        if not backfill:
+            assert coverage["segmented"] == stats["processed"] < len(ids) / 2, (coverage, stats)
+            continue
+        assert coverage == {"keyframes": len(ids), "segmented": len(ids), "skipped": 0}, (coverage, stats)
+        assert stats["backfilled"] == stats["deferred"] and stats["processed"] == len(ids), stats
+        assert {"table", "cabinet"} <= labels, labels
+
+
+def test_deferred_camera_labels_wait_for_the_backfill(tmp_path):
+    """The camera's labels are not stored: a keyframe with labels that finds the queue full
+    keeps them (PNG) until the back-fill fuses it with its stored depth, so a camera's labels
+    cover the whole map with no model at all; with the back-fill off they are dropped."""
+    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+
+    ds = open_dataset("synthetic:loop", rate=10)
+    frames = list(range(0, 240, 12))
+    images = {i: ds.frame(i) for i in frames}
+    for backfill in (False, True):
+        config = SemanticsConfig(enabled=True, source="camera", queue_size=1, backfill=backfill, idle_after=0.1)
+        with MapStore(tmp_path / f"map-{backfill}.db") as store:
+            ids = _stored_keyframes(store, ds, frames)
+            worker = SemanticWorker(store, CameraLabels(config), config, background=True)
+            for n, i in zip(ids, frames):
+                f = images[i]
+                worker.submit(SemanticKeyframe(n, ds.ground_truth.poses[i], f.image, f.depth, f.extras["labels"],
+                                               ds.calibration.camera))
+            deadline = time.monotonic() + 120
+            while backfill and store.segmentation_coverage()["segmented"] < len(ids) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            worker.close()
+            coverage, stats = store.segmentation_coverage(), worker.stats()
+            labels = {o.label for o in store.objects()}
+        assert stats["deferred" if backfill else "dropped"] >= len(ids) / 2, stats
+        if backfill:
+            assert coverage["segmented"] == len(ids) and stats["backfilled"] == stats["deferred"], (coverage, stats)
+            assert "door" in labels, labels
+        else:
+            assert coverage["segmented"] == stats["processed"] <= len(ids) / 2, (coverage, stats)
+
+
 def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
     import threading
 
@@ -242,7 +349,7 @@ def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
             release.wait(10)
             raise RuntimeError("model exploded")
 
-    config = SemanticsConfig(enabled=True, queue_size=2)
+    config = SemanticsConfig(enabled=True, queue_size=2, backfill=False)  # (the back-fill: its own test)
     cam = PinholeCamera(50.0, 50.0, 15.5, 11.5, 32, 24)
     kf = SemanticKeyframe(1, np.eye(4), np.zeros((24, 32, 3), np.uint8), np.ones((24, 32), np.float32), None, cam)
     with MapStore(tmp_path / "map.db") as store:

@@ -11,24 +11,23 @@ import pytest
 
 from client.datasets import open_dataset
 from client.trajectory import Trajectory
-from service.config import load_config
 from service.evaluation import evaluate, evaluate_map_links, evaluate_map_loops
 from service.runner import run_dataset
 
-from conftest import require
+from conftest import require, slam_config
 
 pytestmark = pytest.mark.data
 
 
 def _run(path, **options):
     ds = open_dataset(path, **options)
-    out = run_dataset(ds, load_config(), progress=False)
+    out = run_dataset(ds, slam_config(), progress=False)
     return ds, out, evaluate(ds.ground_truth, out.trajectory)
 
 
 def test_7scenes_redkitchen_no_frame_lost_and_revisits_closed(data_dir, tmp_path):
     ds = open_dataset(require(data_dir / "7scenes_redkitchen"))
-    cfg = load_config()
+    cfg = slam_config()
     out = run_dataset(ds, cfg, tmp_path, progress=False)
     assert out.summary.frames == 1000 and out.summary.lost == 0 and out.summary.segments == 1
     ev = evaluate(ds.ground_truth, out.trajectory)
@@ -67,8 +66,8 @@ def test_tum_fr1_desk_loops_help_and_link_refinement_never_hurts(data_dir):
     covariance as the links' information (its σ 5-20x below their real errors) 7-Scenes went
     3.20 -> 4.71 cm, worse than odometry alone (3.68), and an evaluation sequence 3.43 -> 5.40."""
     ds = open_dataset(require(data_dir / "rgbd_dataset_freiburg1_desk"))
-    out = run_dataset(ds, load_config(), progress=False)
-    off = run_dataset(ds, load_config(overrides={"loop": {"link_refine": False}}), progress=False)
+    out = run_dataset(ds, slam_config(), progress=False)
+    off = run_dataset(ds, slam_config({"loop": {"link_refine": False}}), progress=False)
     assert out.summary.tracked == len(ds) and out.summary.lost == 0
     ate, ate_off, ate_odometry = (evaluate(ds.ground_truth, t).ate_rmse
                                   for t in (out.trajectory, off.trajectory, _odometry(out)))
@@ -84,7 +83,7 @@ def cabinet(data_dir, tmp_path_factory):
     path = require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes")
     out_dir = tmp_path_factory.mktemp("cabinet")
     ds = open_dataset(path)
-    return path, ds, run_dataset(ds, load_config(), out_dir, progress=False), out_dir
+    return path, ds, run_dataset(ds, slam_config(), out_dir, progress=False), out_dir
 
 
 def test_tum_cabinet_keyframes_all_tracked(cabinet):
@@ -103,10 +102,10 @@ def test_tum_cabinet_loop_back_to_the_start_is_closed(cabinet, tmp_path):
     from storage import LinkType, MapStore
 
     path, ds, out, out_dir = cabinet  # loop closure on (the default configuration)
-    cfg = load_config()
+    cfg = slam_config()
     assert cfg.loop.enabled
     runs, dirs = {True: out}, {True: out_dir, False: tmp_path / "False"}
-    off = load_config(overrides={"loop": {"enabled": False}})
+    off = slam_config({"loop": {"enabled": False}})
     runs[False] = run_dataset(open_dataset(path), off, dirs[False], progress=False)
     ate = {enabled: evaluate(ds.ground_truth, runs[enabled].keyframes).ate_rmse for enabled in (False, True)}
     # tracking never reads the map update: the odometry of a run with loop closure is the
@@ -139,8 +138,8 @@ def test_euroc_stereo_still_vehicle(data_dir):
 
 def test_same_input_same_trajectory_bit_for_bit(data_dir):
     path = require(data_dir / "7scenes_redkitchen")
-    a = run_dataset(open_dataset(path, max_frames=120), load_config(), progress=False).trajectory
-    b = run_dataset(open_dataset(path, max_frames=120), load_config(), progress=False).trajectory
+    a = run_dataset(open_dataset(path, max_frames=120), slam_config(), progress=False).trajectory
+    b = run_dataset(open_dataset(path, max_frames=120), slam_config(), progress=False).trajectory
     assert len(a) == 120
     assert np.array_equal(a.poses, b.poses) and np.array_equal(a.stamps, b.stamps)
 

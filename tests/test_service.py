@@ -21,7 +21,7 @@ from service.demo import ServiceProcess, keyframe_trajectory
 from service.evaluation import evaluate
 from service.runner import run_dataset
 
-from conftest import FIGURE8, synthetic
+from conftest import FIGURE8, slam_config, synthetic
 
 FRAMES = 90
 
@@ -57,7 +57,7 @@ class _Decoded:
 def _offline_keyframes(dataset, color="png", depth="png"):
     """The same frames through the same codec and an offline run in this process (map update
     inline): the keyframes' stamps and final map poses."""
-    out = run_dataset(_Decoded(dataset, color, depth), load_config(), progress=False)
+    out = run_dataset(_Decoded(dataset, color, depth), slam_config(), progress=False)
     return out.keyframes.stamps, out.keyframes.poses
 
 

@@ -7,7 +7,9 @@ paints its class over the pixels at the depth of the box's centre (`box_depth_ba
 boxes over larger ones; pixels outside every box get the out-of-table id `len(classes)`
 (never an object). `CameraLabels` takes the labels a camera sent with the
 frame (`frame.extras["labels"]`). `make_segmenter` builds the configured one, or returns
-None with the reason semantics are off (e.g. the model file is missing)."""
+None with the reason semantics are off (e.g. the model file is missing); with `source: auto`
+(the default) the worker takes the camera's labels where a frame carries them and the model
+(`LazyModel`, loaded when first needed) for the rest."""
 from __future__ import annotations
 
 import logging
@@ -194,41 +196,79 @@ class CameraLabels:
 
 
 def make_segmenter(config: SemanticsConfig) -> tuple[Segmenter | None, str | None]:
-    """(the configured segmenter, None) or (None, why semantics are off)."""
+    """(the configured segmenter, None) or (None, why semantics are off). With `source: auto`
+    the model when it can run (loaded when first needed: a camera sending labels never
+    loads it), else the camera's labels alone (`model_reason` says why there is no model)."""
     if not config.enabled:
         return None, "semantics.enabled is false"
     if config.source == "camera":
         return CameraLabels(config), None
-    if config.source != "model":
-        return None, f"unknown semantics.source {config.source!r} (model | camera)"
+    if config.source not in ("model", "auto"):
+        return None, f"unknown semantics.source {config.source!r} (auto | model | camera)"
+    why = model_reason(config)
+    if config.source == "auto":
+        if why is not None:
+            log.warning("semantics: only the camera's labels (no model: %s)", why)
+            return CameraLabels(config), None
+        return LazyModel(model_path(config.model), config), None
+    if why is not None:
+        return None, why
+    try:
+        return OnnxSegmenter(model_path(config.model), config), None
+    except Exception as e:  # a broken or foreign model file
+        return None, f"cannot load model {model_path(config.model)}: {e}"
+
+
+def model_reason(config: SemanticsConfig) -> str | None:
+    """Why the configured model cannot run (file missing, no onnxruntime), or None."""
     path = model_path(config.model)
     if not path.is_file():
-        return None, f"model {path} not found (set semantics.model or MNEMOSLAM_MODELS)"
+        return f"model {path} not found (set semantics.model or MNEMOSLAM_MODELS)"
     try:
-        return OnnxSegmenter(path, config), None
+        import onnxruntime  # noqa: F401
     except ImportError as e:
-        return None, f"onnxruntime is not installed ({e})"
-    except Exception as e:  # a broken or foreign model file
-        return None, f"cannot load model {path}: {e}"
+        return f"onnxruntime is not installed ({e})"
+    return None
+
+
+class LazyModel:
+    """`source: auto`'s model: an `OnnxSegmenter` built on the first keyframe that needs it
+    (one without the camera's labels). A model that cannot load raises then, every time."""
+
+    def __init__(self, path: Path, config: SemanticsConfig):
+        self.path, self.config = Path(path), config
+        self.name = self.path.name
+        self.classes = class_table(config.classes)
+        self._model: OnnxSegmenter | None = None
+        self._error: Exception | None = None
+
+    def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+        if self._model is None:
+            if self._error is not None:
+                raise self._error
+            try:
+                self._model = OnnxSegmenter(self.path, self.config)
+            except Exception as e:
+                self._error = RuntimeError(f"cannot load model {self.path}: {e}")
+                raise self._error from e
+        return self._model.segment(rgb, depth)
 
 
 def semantics_status(config: SemanticsConfig) -> dict:
     """What `SlamService.semantics_status()` reports, without loading the model: {"enabled",
-    "source", "model" (the model file, None for camera labels), "reason" (why off, or None),
-    "classes"}. `enabled` is true only when the configured source can run."""
+    "source", "model" (the model file the service segments with, None when it has none),
+    "reason" (why off, or None), "model_reason" (why there is no model, or None), "classes"}.
+    `enabled` is true only when the configured source can run (`auto` always can: the
+    camera's labels)."""
     classes = list(class_table(config.classes))
-    model = str(model_path(config.model)) if config.source == "model" else None
+    why = model_reason(config) if config.source in ("model", "auto") else None
+    model = str(model_path(config.model)) if config.source in ("model", "auto") and why is None else None
     reason = None
     if not config.enabled:
         reason = "semantics.enabled is false"
-    elif config.source not in ("model", "camera"):
-        reason = f"unknown semantics.source {config.source!r} (model | camera)"
+    elif config.source not in ("model", "camera", "auto"):
+        reason = f"unknown semantics.source {config.source!r} (auto | model | camera)"
     elif config.source == "model":
-        if not Path(model).is_file():
-            reason = f"model {model} not found (set semantics.model or MNEMOSLAM_MODELS)"
-        else:
-            try:
-                import onnxruntime  # noqa: F401
-            except ImportError as e:
-                reason = f"onnxruntime is not installed ({e})"
-    return {"enabled": reason is None, "source": config.source, "model": model, "reason": reason, "classes": classes}
+        reason = why
+    return {"enabled": reason is None, "source": config.source, "model": model, "reason": reason,
+            "model_reason": why, "classes": classes}

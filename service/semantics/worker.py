@@ -2,12 +2,22 @@
 
 The pipeline hands each keyframe (`SemanticKeyframe`: node id, map pose, image, depth,
 the camera's labels or None, camera) to `SemanticWorker.submit`, which only enqueues it
-(bounded queue; when full the keyframe is dropped and counted). The worker's thread
-segments it when the source is a model, fuses it (`objects.ObjectFusion`) with the anchors'
-current poses read from the map database, and writes the confirmed objects that changed
-(`MapStore.save_objects`). Dynamic classes (`semantics.dynamic`: people, cars) make no
-objects; the keyframes that showed one are counted (`dynamic`). Errors are logged and
-counted, never raised into tracking.
+(bounded queue). The worker's thread takes the camera's labels, or segments the image with
+the model (`source: auto` takes the labels where a frame carries them), fuses it
+(`objects.ObjectFusion`) with the anchors' current poses read from the map database, writes
+the confirmed objects that changed (`MapStore.save_objects`) and records the keyframe as
+segmented (`MapStore.mark_segmented`). Dynamic classes (`semantics.dynamic`: people, cars)
+make no objects; the keyframes that showed one are counted (`dynamic`). Errors are logged
+and counted, never raised into tracking.
+
+Coverage: a keyframe that finds the queue full is not lost. It waits in the store
+(`deferred`), and whenever the queue is empty the worker back-fills the newest map keyframe
+not segmented yet from its stored images with the model (`semantics.backfill`): the
+deferred ones, and those of a map made while semantics were off. It rests after each
+keyframe so as to be busy at most `max_duty` of the time while robots map, and works
+without rest once no keyframe came for `idle_after` seconds. The map's coverage (keyframes
+segmented / keyframes) is `MapStore.segmentation_coverage`.
+
 Without `background` (offline runs) `submit` does the work at once, so runs are
 reproducible.
 
@@ -32,6 +42,7 @@ import numpy as np
 from client.frames import PinholeCamera
 
 from ..config import SemanticsConfig
+from ..memory.long_term import decode_images
 from .connectivity import MapConnectivity
 from .objects import ObjectFusion
 from .segmentation import CameraLabels, Segmenter
@@ -49,9 +60,11 @@ class SemanticKeyframe:
     camera: PinholeCamera
     label_names: tuple | None = None  # the camera's class table, when not the configured one
     robot: str = ""  # whose keyframe (the per-robot counts in `stats`)
+    backfill: bool = False  # read back from the store by the back-fill (not handed over live)
 
 
 _STOP = object()
+WAITING_LABELS = 512  # deferred keyframes whose camera labels wait in RAM for the back-fill (~5-50 kB each)
 
 
 class SemanticWorker:
@@ -66,6 +79,15 @@ class SemanticWorker:
         self.fusion.load(store.objects())
         self.connectivity = MapConnectivity()
         self.processed = self.dropped = self.errors = self.skipped = 0
+        self.deferred = 0  # keyframes that found the queue full: left to the back-fill
+        self.backfilled = 0  # keyframes segmented by the back-fill (of `processed`)
+        self.backfills = bool(config.backfill) and background
+        self._model = not isinstance(segmenter, CameraLabels)  # the back-fill of unlabelled keyframes needs it
+        self._queued: set[int] = set()  # node ids in the queue (the back-fill leaves them)
+        # deferred keyframes' camera labels (not stored): node id -> (PNG, label names, camera, robot)
+        self._waiting: collections.OrderedDict[int, tuple] = collections.OrderedDict()
+        self._cameras: dict[int, PinholeCamera] = {}  # session id -> camera (back-fill)
+        self._last_keyframe = -float("inf")  # time.monotonic() of the last keyframe handed over
         self.dynamic = 0  # keyframes processed that showed a dynamic-class thing (left out of the map)
         self._per_robot: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         self.last_error: str | None = None
@@ -80,19 +102,42 @@ class SemanticWorker:
 
     @property
     def source(self) -> str:
-        return "camera" if isinstance(self.segmenter, CameraLabels) else "model"
+        """The configured source: "camera", "model" or "auto" (camera labels, else the model)."""
+        if isinstance(self.segmenter, CameraLabels):
+            return "camera"
+        return "auto" if self.config.source == "auto" else "model"
 
     def submit(self, kf: SemanticKeyframe) -> bool:
-        """Hand a keyframe over; False when it was dropped (queue full)."""
+        """Hand a keyframe over; False when the queue was full (then it waits in the store for
+        the back-fill: `deferred`, or is `dropped` when there is no back-fill)."""
+        self._last_keyframe = time.monotonic()
         if self._queue is None:
             self._process(kf)
             return True
         try:
+            self._queued.add(kf.node_id)
             self._queue.put_nowait(kf)
             return True
         except queue.Full:
-            self._count(kf, "dropped")
+            self._queued.discard(kf.node_id)
+            self._count(kf, "deferred" if self._defer(kf) else "dropped")
             return False
+
+    def _defer(self, kf: SemanticKeyframe) -> bool:
+        """Leave a keyframe that found the queue full to the back-fill: its images are in the
+        store; the camera's labels (not stored) wait here, lossless PNG (a few kB), at most
+        `WAITING_LABELS` of them. False when the back-fill cannot take it."""
+        if not self.backfills:
+            return False
+        if kf.labels is None or self.config.source == "model":
+            return self._model
+        if len(self._waiting) >= WAITING_LABELS:
+            return False
+        ok, png = cv2.imencode(".png", kf.labels)
+        if not ok:
+            return False
+        self._waiting[kf.node_id] = (png.tobytes(), kf.label_names, kf.camera, kf.robot)
+        return True
 
     def close(self, timeout: float = 60.0) -> None:
         """Finish the queued keyframes and write the objects (idempotent)."""
@@ -114,10 +159,10 @@ class SemanticWorker:
         """Keyframes processed, dropped, failed and skipped, and those processed that showed a
         dynamic-class thing (a person: `dynamic`, not mapped) (of `robot`'s keyframes when
         given, else of all), and the map's objects."""
+        keys = ("processed", "dropped", "deferred", "backfilled", "errors", "skipped", "dynamic")
         counts = self._per_robot.get(robot, collections.Counter()) if robot is not None else {
-            "processed": self.processed, "dropped": self.dropped, "errors": self.errors, "skipped": self.skipped,
-            "dynamic": self.dynamic}
-        out = {k: counts.get(k, 0) for k in ("processed", "dropped", "errors", "skipped", "dynamic")}
+            k: getattr(self, k) for k in keys}
+        out = {k: counts.get(k, 0) for k in keys}
         return {**out, "objects": len(self.fusion.confirmed()), "last_error": self.last_error,
                 "ms_per_keyframe": 1e3 * self.seconds / self.processed if self.processed else None}
 
@@ -135,20 +180,72 @@ class SemanticWorker:
                 log.info("semantic worker keeps its priority: %s", e)
         duty = min(1.0, max(0.05, float(self.config.max_duty)))
         while True:
-            kf = self._queue.get()
+            try:
+                kf = self._queue.get(timeout=0.5 if self.backfills else None)
+            except queue.Empty:
+                kf = self._next_backfill()
+                if kf is None:
+                    continue
             if kf is _STOP:
                 return
+            self._queued.discard(kf.node_id)
             t = time.perf_counter()
             self._process(kf)
-            if duty < 1.0:  # rest in proportion: busy at most `max_duty` of the time (a stop waits for it)
+            mapping = time.monotonic() - self._last_keyframe < float(self.config.idle_after)
+            if duty < 1.0 and mapping:  # rest in proportion: busy at most `max_duty` of the time (a stop waits)
                 time.sleep((time.perf_counter() - t) * (1.0 / duty - 1.0))
+
+    def _next_backfill(self) -> SemanticKeyframe | None:
+        """The next keyframe to back-fill, read back from the store (pose, images): the newest
+        deferred one with the camera's labels, else (with a model) the newest map keyframe not
+        segmented yet and not queued. A keyframe whose images cannot be decoded is recorded
+        as skipped."""
+        try:
+            labels = None
+            if self._waiting:
+                node_id, labels = self._waiting.popitem(last=True)
+            elif self._model:
+                busy = self._queued | set(self._waiting)
+                ids = [n for n in self.store.unsegmented_nodes(limit=len(busy) + 4) if n not in busy]
+                if not ids:
+                    return None
+                node_id = ids[0]
+            else:
+                return None
+            nodes = self.store.get_nodes([node_id])
+            if not nodes:
+                return None  # deleted meanwhile
+            node = nodes[0]
+            try:
+                image, depth = decode_images(*self.store.load_images(node.id))
+            except ValueError as e:
+                log.warning("semantics: keyframe %d's stored images are not usable: %s", node.id, e)
+                self.store.mark_segmented([node.id], "camera" if labels else "model", "skipped")
+                return None
+            if labels is not None:
+                png, names, camera, robot = labels
+                return SemanticKeyframe(node.id, node.pose, image, depth,
+                                        cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED), camera,
+                                        names, robot, backfill=True)
+            if node.session_id not in self._cameras:
+                self._cameras[node.session_id] = self.store.calibration(node.session_id).camera
+            return SemanticKeyframe(node.id, node.pose, image, depth, None, self._cameras[node.session_id],
+                                    robot=node.robot, backfill=True)
+        except Exception as e:  # the store closing under a stopping service, a deleted node: try again later
+            log.debug("semantics: back-fill: %s", e)
+            return None
 
     def _process(self, kf: SemanticKeyframe) -> None:
         t = time.perf_counter()
+        source = "camera" if kf.labels is not None and self.config.source != "model" else "model"
         try:
-            labels = self._labels(kf)
+            labels = self._labels(kf) if kf.depth is not None else None  # (no depth: no model run for nothing)
             if labels is None or kf.depth is None:
                 self._count(kf, "skipped")
+                # nothing to segment, ever (no depth, no image); an unlabelled keyframe without a
+                # model stays unsegmented: a model configured later back-fills it
+                if kf.depth is None or kf.image is None or not isinstance(self.segmenter, CameraLabels):
+                    self.store.mark_segmented([kf.node_id], source, "skipped")
                 return
             with self._lock:
                 self.connectivity.refresh(self.store)  # the links stored since the last keyframe
@@ -158,27 +255,33 @@ class SemanticWorker:
                 self.fusion.fuse(kf.node_id, kf.pose, labels, kf.depth, kf.camera, poses)
                 moving = self.fusion.dynamic_segments
             self.flush()
+            self.store.mark_segmented([kf.node_id], source, "fused")
             self._count(kf, "processed")
+            if kf.backfill:
+                self._count(kf, "backfilled")
             if moving:
                 self._count(kf, "dynamic")
         except Exception as e:  # never into tracking: log, count, go on
             self._count(kf, "errors")
             self.last_error = f"{type(e).__name__}: {e}"
             log.exception("semantics: keyframe %d failed", kf.node_id)
+            if kf.backfill:  # the back-fill does not try it again (a live one gets one more try)
+                try:
+                    self.store.mark_segmented([kf.node_id], source, "skipped")
+                except Exception:  # pragma: no cover - the store is closing
+                    pass
         finally:
             self.seconds += time.perf_counter() - t
 
     def _labels(self, kf: SemanticKeyframe) -> np.ndarray | None:
-        if self.source == "camera":
-            if kf.labels is None:
-                return None
+        if kf.labels is not None and self.config.source != "model":  # the camera's labels (camera, auto)
             if kf.label_names and tuple(kf.label_names) != self.classes:  # the camera's table -> ours, by name
                 index = {n: i for i, n in enumerate(self.classes)}
                 lut = np.array([index.get(n, len(self.classes)) for n in kf.label_names] + [len(self.classes)],
                                np.int64)
                 return lut[np.minimum(kf.labels.astype(np.int64), len(lut) - 1)]
             return kf.labels
-        if kf.image is None:
+        if kf.image is None or isinstance(self.segmenter, CameraLabels):
             return None
         # frames are BGR (or grey), the project's convention; the models take RGB
         rgb = cv2.cvtColor(kf.image, cv2.COLOR_BGR2RGB if kf.image.ndim == 3 else cv2.COLOR_GRAY2RGB)
