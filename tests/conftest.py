@@ -39,6 +39,18 @@ def require(path: Path) -> Path:
     return path
 
 
+def require_model() -> Path:
+    """The default segmentation model (`semantics.model` under MNEMOSLAM_MODELS, default
+    ../shared/models) and onnxruntime: skipped when missing, failed in CI."""
+    from service.config import SemanticsConfig
+    from service.semantics.segmentation import model_path, model_reason
+
+    why = model_reason(SemanticsConfig())
+    if why is not None:
+        _missing(why)
+    return model_path(SemanticsConfig().model)
+
+
 def _missing(msg: str):
     if os.environ.get("MNEMOSLAM_REQUIRE_DATA"):
         pytest.fail(msg + " and MNEMOSLAM_REQUIRE_DATA is set")

@@ -26,12 +26,11 @@ from service.semantics.segmentation import (
     CameraLabels,
     OnnxSegmenter,
     make_segmenter,
-    model_path,
     semantics_status,
 )
 from storage import MapStore
 
-from conftest import require
+from conftest import require, require_model
 
 DOOR = 15
 # 601 frames; the loop sees door_1..3 whole (figure-8 sees door_3 half, behind a corner)
@@ -221,11 +220,7 @@ def test_semantics_keys_set_while_off_are_named(caplog):
 
 @pytest.fixture(scope="module")
 def segmenter():
-    path = model_path(SemanticsConfig().model)
-    if not path.is_file():
-        pytest.skip(f"segmentation model {path} not found (set MNEMOSLAM_MODELS)")
-    pytest.importorskip("onnxruntime")
-    return OnnxSegmenter(path, SemanticsConfig(enabled=True))
+    return OnnxSegmenter(require_model(), SemanticsConfig(enabled=True))  # (fails in CI when missing)
 
 
 def test_real_model_on_redkitchen_finds_table_and_cabinet(segmenter, data_dir):
