@@ -38,7 +38,8 @@ def _model(path, outputs: dict, size: int = SIZE) -> str:
 
 
 def _config(path, **kw) -> SemanticsConfig:
-    return SemanticsConfig(enabled=True, model=path, model_input="image", model_size=SIZE, classes=list(CLASSES), **kw)
+    return SemanticsConfig(enabled=True, source="model", model=path, model_input="image", model_size=SIZE,
+                           classes=list(CLASSES), **kw)
 
 
 def _assert_one_door(seg, rows: slice, cols: slice) -> None:

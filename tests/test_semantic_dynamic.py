@@ -90,7 +90,7 @@ class _Map:
     """The map a worker reads and writes: keyframes 1–3 at the origin, linked in a chain."""
 
     def __init__(self):
-        self.saved = {}
+        self.saved, self.segmented = {}, {}
 
     def objects(self):
         return []
@@ -108,6 +108,10 @@ class _Map:
 
     def delete_objects(self, ids):
         return sum(self.saved.pop(i, None) is not None for i in ids)
+
+    def mark_segmented(self, node_ids, source, status="fused"):
+        self.segmented.update({int(n): status for n in node_ids})
+        return len(node_ids)
 
 
 def _keyframe(node: int) -> SemanticKeyframe:
@@ -128,6 +132,7 @@ def test_dynamic_segments_are_counted_per_keyframe_never_fused(dynamic):
         worker.submit(_keyframe(node))
     stats = worker.stats()
     assert stats["processed"] == 3 and worker.stats("r1")["dynamic"] == stats["dynamic"]
+    assert store.segmented == {1: "fused", 2: "fused", 3: "fused"}
     if dynamic:
         assert sorted(store.saved.values()) == ["chair"] and stats["dynamic"] == 3 and stats["objects"] == 1
     else:
