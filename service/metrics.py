@@ -1,4 +1,4 @@
-"""Prometheus metrics of the service, served as GET /metrics (service/api.py).
+"""Prometheus metrics of the service, served as GET /metrics (service/api/routes/service.py).
 
 Nothing here keeps counts of its own beside the service's: a collector reads, at scrape time,
 what the REST API already shows — the service's counters (`SlamService.status()`), each

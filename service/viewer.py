@@ -1,4 +1,4 @@
-"""The live web viewer (GET /viewer, service/api.py): one static page
+"""The live web viewer (GET /viewer, service/api/routes/viewer.py): one static page
 (service/static/viewer.html: canvas 2D, vanilla JS, no build step) and its live feed, GET
 /viewer/events, a server-sent event stream of compact JSON updates built here.
 
