@@ -175,6 +175,7 @@ class ZenohConfig:
     connect: list = field(default_factory=list)  # e.g. a router's endpoint in deployments
     multicast_scouting: bool = False  # off: processes on one host must not find each other by accident
     gossip_scouting: bool = False
+    shared_memory: bool = False  # zenoh shared memory from cameras on this host; off: zenoh 1.10 keeps each sender's 16 MB pool mapped after it left (issue 24)
     prefix: str = "mnemoslam"  # key expressions: <prefix>/<robot>/camera/frame, .../pose, ...
 
 

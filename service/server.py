@@ -75,7 +75,7 @@ class SlamService:
             self.mapping = MappingProcess(self.config.storage.path, self.config.loop, self.config.memory)
         self.semantics = build_semantics(self.store, self.config, background=True)
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
-                                                z.multicast_scouting, z.gossip_scouting))
+                                                z.multicast_scouting, z.gossip_scouting, z.shared_memory))
         self._subscribers = [
             self.zenoh.declare_subscriber(self.keys.frames_wildcard(), self._on_frame_sample),
             self.zenoh.declare_subscriber(self.keys.info_wildcard(), self._on_info_sample),
