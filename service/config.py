@@ -189,6 +189,7 @@ class ServiceConfig:
     max_image_side: int = 4096  # px; larger claimed sizes are rejected before decoding
     max_robots: int = 32  # robot slots; a robot gets one when its camera info arrives, frames of others are rejected
     idle_timeout: float = 60.0  # s without frames after which a robot's slot is freed (its session ends)
+    malloc_trim_s: float = 10.0  # s between malloc_trim(0) calls: glibc gives the freed frame buffers' pages back (issue 24); 0: never
     restart_gap: float = 5.0  # s; a frame whose stamp is this much older than the robot's last is a camera (clock) restart: its session ends ("restarted") and a new one starts; smaller steps back are refused (stamp_order); 0 = never
 
 
