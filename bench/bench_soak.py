@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import tempfile
 import threading
@@ -140,6 +141,7 @@ def main() -> int:
     ap.add_argument("--service-env", action="append", default=[], metavar="KEY=VALUE",
                     help="environment variable of the service's process (e.g. MALLOC_ARENA_MAX=2)")
     args = ap.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # (the service is stopped on the way out)
     options = {"max_frames": args.max_frames} if args.max_frames else {}
     dataset = open_dataset(args.dataset, **options)
     overrides = parse_sets(args.set)

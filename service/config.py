@@ -137,6 +137,7 @@ class LoopConfig:
     link_refine_drop: bool = True  # a link whose σ is beyond link_max_sigma_* (or that cannot be refined) is dropped
     process: bool = True  # service: every robot's map update in one child process (its own GIL), so a slow update never slows tracking; false = a thread of the service (offline runs are always inline)
     process_nice: int = 10  # that child's nice increment (lower CPU priority than tracking); 0 = same priority
+    backlog_images: int = 30  # keyframes waiting for the map update with their images (1.6 MB each at 640x480); beyond, they go without (no dense refinement at them) so a map update that falls behind costs no more memory (issue 24)
     # Local bundle adjustment (service/mapping/local_ba.py): each keyframe's odometry link
     # becomes the relative pose a windowed BA of the newest keyframes and their shared points
     # gives (GTSAM, robust reprojection + a depth term weighted by the sensor's depth σ).
