@@ -95,6 +95,7 @@ class Tally:
         self.svc = svc
         self.last: dict[str, dict] = {}
         self.connected = 0
+        self.backlog = 0  # keyframes waiting for the map update, over the connected robots
         self.rejected_before_slot = 0  # messages refused before reaching a session (/status)
         self._lock = threading.Lock()
 
@@ -108,6 +109,7 @@ class Tally:
             for r in robots:
                 self.last[r["robot"]] = r
             self.connected = len(robots)
+            self.backlog = sum(int(r.get("map_backlog") or 0) for r in robots)
             self.rejected_before_slot = int(status.get("rejected_total", self.rejected_before_slot) or 0)
 
     def totals(self) -> dict:
@@ -117,7 +119,7 @@ class Tally:
                     "processed": sum(r["frames_processed"] for r in rs),
                     "dropped": sum(r["frames_dropped"] for r in rs),
                     "rejected": sum(sum(r["frames_rejected"].values()) for r in rs),
-                    "connected": self.connected}
+                    "connected": self.connected, "backlog": self.backlog}
 
 
 def slope_per_minute(ts: list[float], mb: list[float]) -> float:
@@ -171,7 +173,7 @@ def main() -> int:
                   f"shared memory {rss_mb(pid, 'RssShmem') or 0:.0f}), {kid_text}; /dev/shm zenoh {shm_mb():.0f} MB; "
                   f"robots {tot['robots']} "
                   f"({tot['connected']} connected), frames processed {tot['processed']}, dropped {tot['dropped']}, "
-                  f"rejected {tot['rejected']}", flush=True)
+                  f"rejected {tot['rejected']}; map backlog {tot['backlog']} keyframes", flush=True)
 
         def watch() -> None:
             next_line = 0.0
