@@ -23,7 +23,13 @@ until then. Sessions opened with `zenoh.open` directly get no such help.
 A peer whose `connect` endpoint is not up yet opens anyway and keeps retrying in the
 background (so a camera may start before the service); a "client"-mode session fails at once
 with `TransportError` instead. Shared memory is used automatically between processes on one
-host for payloads above 3 KiB (zenoh's default).
+host for payloads above 3 KiB (zenoh's default) when BOTH sessions have it on
+(`shared_memory`). Measured with eclipse-zenoh 1.10.2: each session that sends such payloads
+makes a 16 MB shared-memory pool (`/dev/shm/<n>.zenoh`), and a receiver maps the pool of every
+peer that sent it one and never unmaps it, even after that peer closed: a service receiving
+frames from a new camera session every 30 s grew 16 MB of resident memory for each (issue 24).
+The service therefore turns shared memory off for its session (`zenoh.shared_memory: false`);
+frames then come over the socket (loopback on one host).
 """
 from __future__ import annotations
 
@@ -58,6 +64,7 @@ class ZenohSettings:
     connect: list[str] = field(default_factory=list)
     multicast_scouting: bool = False
     gossip_scouting: bool = False
+    shared_memory: bool = True  # zenoh's shared-memory transport (both ends must have it on to use it)
 
     @classmethod
     def service(cls, listen: list[str] | None = None) -> "ZenohSettings":
@@ -96,6 +103,7 @@ class ZenohSettings:
         conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(self.multicast_scouting)))
         conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(self.gossip_scouting)))
+        conf.insert_json5("transport/shared_memory/enabled", json.dumps(bool(self.shared_memory)))
         return conf
 
 

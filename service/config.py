@@ -137,6 +137,7 @@ class LoopConfig:
     link_refine_drop: bool = True  # a link whose σ is beyond link_max_sigma_* (or that cannot be refined) is dropped
     process: bool = True  # service: every robot's map update in one child process (its own GIL), so a slow update never slows tracking; false = a thread of the service (offline runs are always inline)
     process_nice: int = 10  # that child's nice increment (lower CPU priority than tracking); 0 = same priority
+    backlog_images: int = 30  # keyframes waiting for the map update with their images (1.6 MB each at 640x480); beyond, they go without (no dense refinement at them) so a map update that falls behind costs no more memory (issue 24)
     # Local bundle adjustment (service/mapping/local_ba.py): each keyframe's odometry link
     # becomes the relative pose a windowed BA of the newest keyframes and their shared points
     # gives (GTSAM, robust reprojection + a depth term weighted by the sensor's depth σ).
@@ -175,6 +176,7 @@ class ZenohConfig:
     connect: list = field(default_factory=list)  # e.g. a router's endpoint in deployments
     multicast_scouting: bool = False  # off: processes on one host must not find each other by accident
     gossip_scouting: bool = False
+    shared_memory: bool = False  # zenoh shared memory from cameras on this host; off: zenoh 1.10 keeps each sender's 16 MB pool mapped after it left (issue 24)
     prefix: str = "mnemoslam"  # key expressions: <prefix>/<robot>/camera/frame, .../pose, ...
 
 
@@ -188,6 +190,7 @@ class ServiceConfig:
     max_image_side: int = 4096  # px; larger claimed sizes are rejected before decoding
     max_robots: int = 32  # robot slots; a robot gets one when its camera info arrives, frames of others are rejected
     idle_timeout: float = 60.0  # s without frames after which a robot's slot is freed (its session ends)
+    malloc_trim_s: float = 10.0  # s between malloc_trim(0) calls: glibc gives the freed frame buffers' pages back (issue 24); 0: never
     restart_gap: float = 5.0  # s; a frame whose stamp is this much older than the robot's last is a camera (clock) restart: its session ends ("restarted") and a new one starts; smaller steps back are refused (stamp_order); 0 = never
 
 

@@ -3,6 +3,7 @@ extract → track → decide keyframe → remember it (memory, loop closure, opt
 fuse its semantics (handed to the semantic worker, off the tracking thread)."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -59,6 +60,7 @@ class Pipeline:
         self.odometry = Odometry(calibration.camera, config.odometry, seed=config.seed, stereo=config.stereo,
                                  baseline=calibration.baseline)
         self.keyframes = KeyframePolicy(config.keyframe)
+        self.images_withheld = 0  # keyframes handed to the map update without images (its backlog was full)
 
     @property
     def session_id(self) -> int | None:
@@ -114,6 +116,17 @@ class Pipeline:
         node_id = self.memory.add_keyframe(frame, features, tracked.pose, tracked.inliers, tracked.segment)
         if self.mapper is not None:
             link = self.memory.last_link
+            mapped, submitted = self.map_progress
+            if features.depth is not None and submitted - mapped >= self.config.loop.backlog_images:
+                # the map update is this far behind (a loaded machine): the keyframe waits without
+                # its images (97 % of an update's 1.6 MB at 640x480), so the backlog's memory stays
+                # bounded; the map update then makes no dense view of it (issue 24)
+                features = dataclasses.replace(features, depth=None, grey=None)
+                self.images_withheld += 1
+                if self.images_withheld == 1 or self.images_withheld % 100 == 0:
+                    log.warning("robot %s: the map update is %d keyframes behind (loop.backlog_images %d): "
+                                "keyframes go to it without images, %d so far", self.robot, submitted - mapped,
+                                self.config.loop.backlog_images, self.images_withheld)
             self.mapper.submit(KeyframeUpdate(node_id, frame.stamp, tracked.pose, features,
                                               *(link if link else (None, None, None)), tracked.point_ids))
         return node_id

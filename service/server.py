@@ -22,6 +22,7 @@ from client.frames import Calibration, Frame
 from client.transport import ZenohSettings, open_session, undeclare_all
 from storage import MapStore, StoreError
 
+from . import malloc
 from .builder import build_pipeline, build_semantics
 from .config import Config, to_dict
 from .mapping.process import MappingProcess
@@ -75,7 +76,7 @@ class SlamService:
             self.mapping = MappingProcess(self.config.storage.path, self.config.loop, self.config.memory)
         self.semantics = build_semantics(self.store, self.config, background=True)
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
-                                                z.multicast_scouting, z.gossip_scouting))
+                                                z.multicast_scouting, z.gossip_scouting, z.shared_memory))
         self._subscribers = [
             self.zenoh.declare_subscriber(self.keys.frames_wildcard(), self._on_frame_sample),
             self.zenoh.declare_subscriber(self.keys.info_wildcard(), self._on_info_sample),
@@ -313,9 +314,14 @@ class SlamService:
 
     def _expire_idle(self) -> None:
         """Free the slots of robots that sent nothing for idle_timeout seconds: their session
-        ends (the pipeline finishes its map update and closes its database session)."""
+        ends (the pipeline finishes its map update and closes its database session). Also gives
+        the C heap's free pages back every `service.malloc_trim_s` (service/malloc.py)."""
+        last_trim = time.monotonic()
         while not self._stopped.wait(min(1.0, self.config.service.idle_timeout / 4, self.config.service.info_timeout)):
             now = time.monotonic()
+            if 0 < self.config.service.malloc_trim_s <= now - last_trim:  # the C heap's free pages back (issue 24)
+                malloc.trim()
+                last_trim = now
             with self._lock:  # held frames of robots whose camera never answered
                 for robot in [r for r, (t, _) in self._held.items()
                               if now - t > self.config.service.info_timeout + 1.0]:

@@ -27,7 +27,9 @@ def mapped(tmp_path_factory, figure8_run):
     in-process mapper it is compared with is the session's offline run of the same frames
     (`figure8_run`: the same tracking, so the same keyframes and updates, mapped inline)."""
     ds = synthetic("figure8", **FIGURE8)  # rendered once for the session (tests/conftest.py)
-    cfg = load_config()
+    # every keyframe goes to the child with its images however far behind it falls (frames are fed
+    # as fast as tracking goes): the comparison with the inline run needs them all
+    cfg = load_config(overrides={"loop": {"backlog_images": 10**9}})
     db = tmp_path_factory.mktemp("mp") / "map.db"
     store = MapStore(db)
     events = []

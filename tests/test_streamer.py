@@ -87,6 +87,13 @@ def test_settings_defaults():
     assert '"tcp/127.0.0.1:1234"' in conf.get_json("connect/endpoints")
     assert conf.get_json("scouting/multicast/enabled") == "false"
     assert conf.get_json("scouting/gossip/enabled") == "false"
+    assert conf.get_json("transport/shared_memory/enabled") == "true"  # zenoh's default for cameras
+    # the service's session has shared memory off (issue 24: zenoh 1.10 kept every camera
+    # session's 16 MB pool mapped in the service after the camera left)
+    from service.config import Config
+
+    assert Config().zenoh.shared_memory is False
+    assert ZenohSettings(shared_memory=False).to_config().get_json("transport/shared_memory/enabled") == "false"
     with pytest.raises(ValueError):
         ZenohSettings(mode="server").validate()
     with pytest.raises(ValueError):
