@@ -99,7 +99,8 @@ def test_a_second_session_closes_loops_to_the_first_sessions_map(first, tmp_path
     to_old = [lk for lk in links if lk.from_id in old and lk.to_id in set(ids)]
     assert len(to_old) >= 3, (len(links), len(to_old))
     assert max(st["memory"]["wm"] for st in stats) <= WM + 2  # + nodes linked to STM / the loop node
-    # in the old map's frame, as accurate (measured: 7.8 mm from the old keyframes unaligned; keyframe
-    # ATE 3.95 cm against the first session's 3.89 cm)
-    assert evaluate(before, trajectory, align="none").ate_rmse < 0.02
+    # in the old map's frame, as accurate (measured: 2.1 cm from the old keyframes unaligned since the
+    # session joins by appearance only (issue 22); 7.8 mm when proximity joined it by coordinates, which
+    # coincide here by construction: both sessions start at the identity, at the same place)
+    assert evaluate(before, trajectory, align="none").ate_rmse < 0.03
     assert evaluate(ds.ground_truth, trajectory).ate_rmse < evaluate(ds.ground_truth, before).ate_rmse + 0.005

@@ -388,7 +388,8 @@ class Mapper:
         walked, one keyframe spacing apart (merging a keyframe into the one before replaces
         odometry by a registration: 7-Scenes 4.15 -> 5.43 cm); a revisit finds older ones."""
         mc = self.memory_config
-        ram = [n for n in self.memory.tiers.wm if n in self.vocabulary]
+        # in the keyframe's own map: another map's coordinates coincide with its own by chance
+        ram = self.memory.same_map(u.odom_from, [n for n in self.memory.tiers.wm if n in self.vocabulary])
         if not ram:
             return None
         where = self.graph.pose(u.odom_from) @ u.transform
@@ -415,7 +416,10 @@ class Mapper:
         one (looking the same way) and link the first that passes (`verified`: a candidate
         verified already, by rehearsal)."""
         c = self.config
-        ids = np.fromiter(sorted(candidates - set(self.memory.neighbours[u.node_id])), np.int64)
+        # in the keyframe's own map only: maps join by appearance (a new session's frame starts at
+        # the identity, numerically where the old map's nodes are, and relates to nothing there)
+        ids = np.array(sorted(self.memory.same_map(u.node_id, candidates - set(self.memory.neighbours[u.node_id]))),
+                       np.int64)
         if not len(ids):
             return
         poses = {i: self.graph.pose(i) for i in ids.tolist() + [u.node_id]}  # WM only, not the whole graph

@@ -48,6 +48,7 @@ class MemoryManager:
         # or stored keyframe's are decoded from its stored images when first needed)
         self.views: dict[int, DenseView] = _StoredViews(store, camera) if store is not None else {}
         self.neighbours: dict[int, list[int]] = {}
+        self._root: dict[int, int] = {}  # union-find of the graph's connected parts (`same_map`)
         self.merged: dict[int, tuple[int, np.ndarray]] = {}
         self._order: list[int] = []
         self._stamps: dict[int, float] = {}
@@ -76,9 +77,30 @@ class MemoryManager:
             self.views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
 
     def link(self, a: int, b: int) -> None:
-        """Nodes `a` and `b` are linked in the graph (odometry, loop closure, rehearsal)."""
+        """Nodes `a` and `b` are linked in the graph (odometry, loop closure, rehearsal): one
+        map from now on."""
         self.neighbours.setdefault(a, []).append(b)
         self.neighbours.setdefault(b, []).append(a)
+        ra, rb = self._map_of(a), self._map_of(b)
+        if ra != rb:
+            self._root[max(ra, rb)] = min(ra, rb)
+
+    def _map_of(self, node: int) -> int:
+        """The oldest node of `node`'s connected part of the graph (union-find, paths halved)."""
+        root = self._root
+        while root.setdefault(node, node) != node:
+            root[node] = root.setdefault(root[node], root[node])
+            node = root[node]
+        return node
+
+    def same_map(self, node: int, nodes) -> list[int]:
+        """Those of `nodes` that links join to `node` (directly or not): the nodes whose map
+        coordinates mean something to it. A new session or a segment after tracking was lost
+        starts a map of its own, whose coordinates coincide numerically with the others' but
+        relate to nothing there until an appearance link joins it (RTAB-Map bounds proximity
+        by graph depth for the same reason)."""
+        here = self._map_of(node)
+        return [n for n in nodes if self._map_of(n) == here]
 
     def loop_closed(self, node: int) -> None:
         """A loop closure to `node` was accepted: it stays in WM, and the nodes that enter WM
@@ -221,6 +243,8 @@ class MemoryManager:
         box = (tuple(pose[:3, 3] - r), tuple(pose[:3, 3] + r))
         # the map's nodes only: keyframes merged by rehearsal keep their rows (and their place in
         # the R*Tree), and a patrolled place holds ever more of them
+        # (another map's too: brought back, they are candidates for an appearance link, never for
+        # proximity; see same_map)
         nodes = [n for n in self.store.nodes(bbox=box, limit=None, merged=False) if n.id in self.tiers.ltm]
         if not nodes:
             return []

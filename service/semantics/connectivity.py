@@ -24,11 +24,14 @@ class MapConnectivity:
     def __init__(self):
         self._parent: dict[int, int] = {}
         self._rowid = 0  # the newest links row seen
+        self.joins = 0  # links read so far that joined two parts both known before (maps joined)
 
     def refresh(self, store) -> int:
         """Join the nodes of the links stored since the last call; returns how many were read."""
         self._rowid, pairs = store.links_after(self._rowid)
         for a, b in pairs.tolist():
+            if self.knows(a) and self.knows(b) and self.find(a) != self.find(b):
+                self.joins += 1  # two existing parts, not a new keyframe joining its own
             self.union(a, b)
         return len(pairs)
 

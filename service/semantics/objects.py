@@ -272,6 +272,11 @@ class ObjectFusion:
                 if all(t is not o for t in touched):
                     touched.append(o)
 
+    def merge_duplicates(self, anchor_poses: Mapping[int, np.ndarray]) -> None:
+        """Merge the duplicates among the objects anchored at `anchor_poses`' nodes (after two
+        parts of the map were joined: each made its own object of a thing both saw)."""
+        self._merge_duplicates([o for o in self.objects if o.node_id in anchor_poses], anchor_poses)
+
     def _merge_duplicates(self, touched: list[FusedObject], anchor_poses: Mapping[int, np.ndarray]) -> None:
         """Merge an object into another that holds most of its voxels (one thing seen from two
         sides first became two objects): histograms multiply (independent evidence over a

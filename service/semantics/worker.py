@@ -64,6 +64,7 @@ class SemanticKeyframe:
 
 
 _STOP = object()
+MERGE_AFTER_JOIN = 10  # keyframes after a join of two parts of the map that merge twin objects in theirs
 WAITING_LABELS = 512  # deferred keyframes whose camera labels wait in RAM for the back-fill (~5-50 kB each)
 
 
@@ -88,6 +89,7 @@ class SemanticWorker:
         self._waiting: collections.OrderedDict[int, tuple] = collections.OrderedDict()
         self._cameras: dict[int, PinholeCamera] = {}  # session id -> camera (back-fill)
         self._last_keyframe = -float("inf")  # time.monotonic() of the last keyframe handed over
+        self._merge_after_join = 0  # keyframes that still look for twin objects after parts joined
         self.dynamic = 0  # keyframes processed that showed a dynamic-class thing (left out of the map)
         self._per_robot: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         self.last_error: str | None = None
@@ -248,12 +250,19 @@ class SemanticWorker:
                     self.store.mark_segmented([kf.node_id], source, "skipped")
                 return
             with self._lock:
+                joins = self.connectivity.joins
                 self.connectivity.refresh(self.store)  # the links stored since the last keyframe
+                if self.connectivity.joins > joins:  # parts of the map joined: their objects' twins merge
+                    self._merge_after_join = MERGE_AFTER_JOIN
                 anchors = np.array(sorted(self.fusion.anchors()), np.int64)
                 anchors = anchors[self.connectivity.roots(anchors) == self.connectivity.find(kf.node_id)].tolist()
                 poses = {n.id: n.pose for n in self.store.get_nodes(anchors)} if anchors else {}
                 self.fusion.fuse(kf.node_id, kf.pose, labels, kf.depth, kf.camera, poses)
                 moving = self.fusion.dynamic_segments
+                if self._merge_after_join > 0:
+                    # (over the next keyframes too: the join's corrected poses reach the store after its link)
+                    self._merge_after_join -= 1
+                    self.fusion.merge_duplicates(poses)
             self.flush()
             self.store.mark_segmented([kf.node_id], source, "fused")
             self._count(kf, "processed")
