@@ -54,7 +54,7 @@ def main() -> int:
             print(f"{ds.name}: {len(ds)} frames at {args.rate:g} Hz; semantics source {status['source']}, "
                   f"model {status['model']}; load average {os.getloadavg()[0]:.1f}", flush=True)
             t0 = time.monotonic()
-            stream_dataset(ds, "r1", ZenohSettings(connect=[svc.endpoint]), rate=args.rate, progress=True,
+            stream_dataset(ds, "r1", ZenohSettings(connect=[svc.endpoint]), rate=args.rate, progress=False,
                            wait_for_subscriber=10.0)
             end = time.monotonic()
             svc.wait_processed("r1", len(ds), timeout=120)
