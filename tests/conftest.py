@@ -60,8 +60,9 @@ from client.synthetic import SyntheticDataset  # noqa: E402 (after the sys.path 
 _RENDERED: dict = {}
 
 
-class _RenderedOnce(SyntheticDataset):
-    """The synthetic dataset, each frame rendered once per test session (see `synthetic`)."""
+class RenderedOnce(SyntheticDataset):
+    """The synthetic dataset, each frame rendered once per test session (see `synthetic`); a
+    test's own subclass (tests/test_semantics.py `_Recording`) shares the frames too."""
 
     def frame(self, i: int):
         key = (self.trajectory, self.path.duration, self.rate, self.camera, self.noise, self.exposure, self.seed,
@@ -81,9 +82,10 @@ def synthetic(trajectory: str, **options) -> SyntheticDataset:
     Rendering is deterministic by (seed, frame index), so the frames are those a fresh dataset
     renders; every `frame` call returns its own copy of the arrays, so a consumer that writes
     into a frame cannot change another test's input. Meant for the sequences several tests
-    play (figure-8 at 10 Hz in 40 s: its 401 frames hold ~1.5 GB)."""
+    play (figure-8 at 10 Hz in 40 s: its 401 frames hold ~1.5 GB; the loop at 10 Hz, 601 frames
+    with or without depth noise, ~2.2 GB each). A frame costs ~30 ms of CPU to render."""
     assert "scene" not in options, "the cache is keyed on the default scene of the seed"
-    return _RenderedOnce(trajectory=trajectory, **options)
+    return RenderedOnce(trajectory=trajectory, **options)
 
 
 # ------------------------------------------------------------------------------------------
@@ -101,12 +103,11 @@ def loop_run(tmp_path_factory):
     default configuration (loop closure on): `(dataset, RunOutput, config, out_dir)`.
     tests/test_loop_closure.py (loop closure) and tests/test_synthetic_run.py (tracking,
     outputs) check the same run instead of each playing the loop again. Read-only."""
-    from client.datasets import open_dataset
     from service.config import load_config
     from service.runner import run_dataset
 
     out_dir = tmp_path_factory.mktemp("loop_run")
-    ds = open_dataset("synthetic:loop", **LOOP_NOISY)
+    ds = synthetic("loop", **LOOP_NOISY)  # the frames tests/test_semantics.py's run plays too
     cfg = load_config()
     return ds, run_dataset(ds, cfg, out_dir, progress=False), cfg, out_dir
 
@@ -124,3 +125,4 @@ def figure8_run(tmp_path_factory):
     ds = synthetic("figure8", **FIGURE8)
     cfg = load_config()
     return ds, run_dataset(ds, cfg, out_dir, progress=False), cfg, out_dir
+

@@ -14,7 +14,6 @@ import pytest
 
 from client.datasets import open_dataset
 from client.frames import PinholeCamera
-from client.synthetic import SyntheticDataset
 from client.synthetic.scene import get_scene
 from service.builder import build_pipeline
 from service.config import SemanticsConfig, load_config
@@ -25,7 +24,7 @@ from service.semantics.objects import ObjectFusion, bayes_update
 from service.semantics.segmentation import OnnxSegmenter, make_segmenter, model_path, semantics_status
 from storage import MapStore
 
-from conftest import require
+from conftest import RenderedOnce, require
 
 DOOR = 15
 # 601 frames; the loop sees door_1..3 whole (figure-8 sees door_3 half, behind a corner)
@@ -34,9 +33,11 @@ CAMERA = {"semantics": {"enabled": True, "source": "camera"}, "memory": {"max_wm
 S = 4  # the recording keeps every S-th label / depth pixel: what the fusion uses (semantics.stride)
 
 
-class _Recording(SyntheticDataset):
+class _Recording(RenderedOnce):
     """The synthetic dataset, keeping every frame's labels and depth at the fusion's stride
-    (for replaying the run's keyframes through the fusion without rendering them again)."""
+    (for replaying the run's keyframes through the fusion without rendering them again). Its
+    frames are rendered once for the session (tests/conftest.py `synthetic`): LOOP is the
+    session's `loop_run` sequence (conftest LOOP_NOISY)."""
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
