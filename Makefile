@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint venv browser bench clean
+.PHONY: demo test check lint venv browser bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -21,6 +21,11 @@ demo: $(STAMP)
 ## The test suite (real-data tests read MNEMOSLAM_DATA, default ../shared/data).
 test: $(STAMP) browser
 	$(BIN)/python -m pytest -q
+
+## The fast tier for the edit loop: the suite without the tests marked slow (whole sequences,
+## long streams through the service, the viewer's browser test: tests/conftest.py SLOW). No Chromium.
+check: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
 
 ## The linter (ruff, pinned in the test extras; its rules in pyproject.toml). CI runs it before the tests.
 lint: $(STAMP)
