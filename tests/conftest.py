@@ -174,9 +174,45 @@ def _check_slow_names():
                 raise pytest.UsageError(f"tests/conftest.py SLOW names {module}::{name}, which does not exist")
 
 
+# With pytest-xdist's workers (`make test`: `-n 2 --dist loadfile`) each module runs on one worker,
+# so that its module-scoped fixtures run once, and the modules of a group in XDIST_GROUPS share a
+# worker: they check the same session-scoped runs (`loop_run`, `figure8_run`) or play the same
+# frames rendered once (`synthetic`), which a second worker would compute again. The groups and
+# modules in XDIST_FIRST start first, longest first (measured), so that no long one is left for
+# the end while the other worker idles; the rest follow in collection order.
+XDIST_GROUPS = {
+    "test_loop_closure.py": "shared-runs", "test_synthetic_run.py": "shared-runs",
+    "test_mapping_process.py": "shared-runs", "test_semantics.py": "shared-runs",
+}
+XDIST_FIRST = ["shared-runs", "test_recovery.py", "test_sequences.py", "test_service.py", "test_semantic_service.py",
+               "test_streamer.py", "test_viewer.py", "test_memory_crash.py", "test_cli.py"]
+
+
+def _xdist_group(path: Path) -> str:
+    return XDIST_GROUPS.get(path.name, path.name)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """`--dist loadfile` with the modules of an XDIST_GROUPS group as one file."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class _ByGroup(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _xdist_group(Path(nodeid.split("::", 1)[0]))
+
+    config.option.loadscopereorder = False  # the collection's order: XDIST_FIRST first
+    return _ByGroup(config, log)
+
+
 def pytest_collection_modifyitems(config, items):
     _check_slow_names()
     for item in items:
         names = SLOW.get(item.path.name)
         if names == "*" or (names and getattr(item, "originalname", item.name) in names):
             item.add_marker(pytest.mark.slow)
+    if hasattr(config, "workerinput"):  # an xdist worker: the long groups first (a stable sort)
+        rank = {g: i for i, g in enumerate(XDIST_FIRST)}
+        items.sort(key=lambda item: rank.get(_xdist_group(item.path), len(rank)))
