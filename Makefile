@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint venv browser bench clean
+.PHONY: demo test check lint venv browser bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -18,9 +18,18 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/mnemoslam demo
 
-## The test suite (real-data tests read MNEMOSLAM_DATA, default ../shared/data).
+## The test suite (real-data tests read MNEMOSLAM_DATA, default ../shared/data), on two pytest-xdist
+## workers: each test module on one worker, the modules that share the session's runs on the same
+## one (tests/conftest.py XDIST_GROUPS). TEST_WORKERS=0 runs it in this one process.
+TEST_WORKERS ?= 2
 test: $(STAMP) browser
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+
+## The fast tier for the edit loop: the suite without the tests marked slow (whole sequences,
+## long streams through the service, the viewer's browser test: tests/conftest.py SLOW), on the
+## same workers. No Chromium.
+check: $(STAMP)
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow"
 
 ## The linter (ruff, pinned in the test extras; its rules in pyproject.toml). CI runs it before the tests.
 lint: $(STAMP)

@@ -81,8 +81,9 @@ from client.synthetic import SyntheticDataset  # noqa: E402 (after the sys.path 
 _RENDERED: dict = {}
 
 
-class _RenderedOnce(SyntheticDataset):
-    """The synthetic dataset, each frame rendered once per test session (see `synthetic`)."""
+class RenderedOnce(SyntheticDataset):
+    """The synthetic dataset, each frame rendered once per test session (see `synthetic`); a
+    test's own subclass (tests/test_semantics.py `_Recording`) shares the frames too."""
 
     def frame(self, i: int):
         key = (self.trajectory, self.path.duration, self.rate, self.camera, self.noise, self.exposure, self.seed,
@@ -102,9 +103,10 @@ def synthetic(trajectory: str, **options) -> SyntheticDataset:
     Rendering is deterministic by (seed, frame index), so the frames are those a fresh dataset
     renders; every `frame` call returns its own copy of the arrays, so a consumer that writes
     into a frame cannot change another test's input. Meant for the sequences several tests
-    play (figure-8 at 10 Hz in 40 s: its 401 frames hold ~1.5 GB)."""
+    play (figure-8 at 10 Hz in 40 s: its 401 frames hold ~1.5 GB; the loop at 10 Hz, 601 frames
+    with or without depth noise, ~2.2 GB each). A frame costs ~30 ms of CPU to render."""
     assert "scene" not in options, "the cache is keyed on the default scene of the seed"
-    return _RenderedOnce(trajectory=trajectory, **options)
+    return RenderedOnce(trajectory=trajectory, **options)
 
 
 # ------------------------------------------------------------------------------------------
@@ -122,12 +124,11 @@ def loop_run(tmp_path_factory):
     default configuration (loop closure on): `(dataset, RunOutput, config, out_dir)`.
     tests/test_loop_closure.py (loop closure) and tests/test_synthetic_run.py (tracking,
     outputs) check the same run instead of each playing the loop again. Read-only."""
-    from client.datasets import open_dataset
     from service.config import load_config
     from service.runner import run_dataset
 
     out_dir = tmp_path_factory.mktemp("loop_run")
-    ds = open_dataset("synthetic:loop", **LOOP_NOISY)
+    ds = synthetic("loop", **LOOP_NOISY)  # the frames tests/test_semantics.py's run plays too
     cfg = load_config()
     return ds, run_dataset(ds, cfg, out_dir, progress=False), cfg, out_dir
 
@@ -145,3 +146,113 @@ def figure8_run(tmp_path_factory):
     ds = synthetic("figure8", **FIGURE8)
     cfg = load_config()
     return ds, run_dataset(ds, cfg, out_dir, progress=False), cfg, out_dir
+
+
+# ------------------------------------------------------------------------------------------
+# Tiers: `make test` runs every test; `make check` (`pytest -m "not slow"`) is the fast tier for
+# the edit loop. Slow are the tests marked `@pytest.mark.slow` in their module and those named
+# here (kept in one place so that the modules need no edit): what plays a whole sequence through
+# the pipeline, streams a long one through the service, or drives the viewer's browser (so
+# `make check` needs no Chromium). A module's name with "*" marks every test in it. Measured
+# 2026-11-27 on the 2 cores under load (avg ~8): `make check` 454 tests in 130 s wall, 103 s CPU
+# (before the rosbag stream test joined SLOW, 15 s of it).
+SLOW: dict[str, str | set[str]] = {
+    "test_loop_closure.py": "*", "test_synthetic_run.py": "*", "test_mapping_process.py": "*",
+    "test_recovery.py": "*", "test_semantic_service.py": "*", "test_semantic_robots.py": "*",
+    "test_memory_crash.py": "*", "test_rehearsal.py": "*", "test_startup.py": "*", "test_semantic_dynamic.py": "*",
+    "test_sequences.py": {"test_7scenes_redkitchen_no_frame_lost_and_revisits_closed",
+                          "test_tum_fr1_desk_loops_help_and_link_refinement_never_hurts",
+                          "test_tum_cabinet_keyframes_all_tracked", "test_tum_cabinet_loop_back_to_the_start_is_closed",
+                          "test_kitti_stereo", "test_euroc_stereo_still_vehicle",
+                          "test_same_input_same_trajectory_bit_for_bit"},
+    "test_semantics.py": {"test_doors_seen_are_door_objects_at_their_place",
+                          "test_objects_persist_and_survive_their_anchor_moving_to_ltm",
+                          "test_an_object_moves_with_its_anchor_when_poses_are_corrected",
+                          "test_labels_survive_30_percent_corrupted_frames",
+                          "test_real_model_on_redkitchen_finds_table_and_cabinet",
+                          "test_service_fuses_streamed_labels_into_stored_objects"},
+    "test_service.py": {"test_loop_closed_and_map_corrected_events_are_published",
+                        "test_sigkill_mid_stream_keeps_every_reported_keyframe",
+                        "test_three_robots_three_sessions_no_cross_talk",
+                        "test_camera_restart_ends_the_session_and_the_same_sequence_maps_again",
+                        "test_streamed_run_matches_offline_run_and_every_keyframe_is_stored",
+                        "test_malformed_flood_is_counted_and_valid_robot_unaffected",
+                        "test_config_hides_the_environment_token_and_no_lock_file_stays"},
+    "test_viewer.py": {"test_viewer_shows_the_stream_live_in_chromium", "test_viewer_pans_and_zooms_in_chromium"},
+    "test_working_memory.py": {"test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them"},
+    "test_detection_models.py": {"test_a_perfect_detector_on_the_synthetic_scene_finds_the_doors"},
+    "test_synthetic_fastrot.py": {"test_fastrot_tracked_without_loss",
+                                  "test_kinect_depth_noise_grows_with_z_squared_in_disparity_steps"},
+    "test_streamer.py": {"test_stream_synthetic_loop", "test_capture_source_streams_over_zenoh",
+                         "test_stream_synthetic_labels"},
+    "test_api.py": {"test_openapi_fuzz_finds_no_server_error"},
+    "test_cli.py": {"test_stream_wait_waits_for_a_service_started_later", "test_demo_runs_from_an_empty_folder",
+                    "test_stream_to_an_address_where_nothing_listens_fails_fast"},
+    "test_vocabulary.py": {"test_offline_run_leaves_the_live_vocabulary_in_map_db"},
+    "test_admission.py": {"test_slots_are_bounded_and_idle_ones_expire",
+                          "test_frames_of_unknown_robots_take_no_slot_and_a_camera_then_maps_normally",
+                          "test_the_camera_sees_the_services_drops_and_flow_control_avoids_them"},
+    "test_local_ba.py": {"test_map_update_runs_local_ba_on_a_synthetic_run"},
+    "test_stereo_odometry.py": {"test_kitti_every_frame_tracked"},
+    "test_loop_detection.py": {"test_revisit_accepted_and_no_false_accepts"},
+    "test_ros2.py": {"test_ros_robots_map_exactly_as_the_native_robot"},
+    "test_rosbag.py": {"test_stream_bag_through_the_service_maps_like_the_folder_run"},
+}
+
+
+def _check_slow_names():
+    """Each name in SLOW is a module of tests/ with that test function (a renamed test would
+    otherwise fall into the fast tier unnoticed)."""
+    here = Path(__file__).parent
+    for module, names in SLOW.items():
+        path = here / module
+        if not path.is_file():
+            raise pytest.UsageError(f"tests/conftest.py SLOW names {module}, which does not exist")
+        text = path.read_text()
+        for name in sorted(names) if names != "*" else ():
+            if f"def {name}(" not in text:
+                raise pytest.UsageError(f"tests/conftest.py SLOW names {module}::{name}, which does not exist")
+
+
+# With pytest-xdist's workers (`make test`: `-n 2 --dist loadfile`) each module runs on one worker,
+# so that its module-scoped fixtures run once, and the modules of a group in XDIST_GROUPS share a
+# worker: they check the same session-scoped runs (`loop_run`, `figure8_run`) or play the same
+# frames rendered once (`synthetic`), which a second worker would compute again. The groups and
+# modules in XDIST_FIRST start first, longest first (measured), so that no long one is left for
+# the end while the other worker idles; the rest follow in collection order.
+XDIST_GROUPS = {
+    "test_loop_closure.py": "shared-runs", "test_synthetic_run.py": "shared-runs",
+    "test_mapping_process.py": "shared-runs", "test_semantics.py": "shared-runs",
+}
+XDIST_FIRST = ["shared-runs", "test_recovery.py", "test_sequences.py", "test_service.py", "test_semantic_service.py",
+               "test_streamer.py", "test_viewer.py", "test_memory_crash.py", "test_cli.py"]
+
+
+def _xdist_group(path: Path) -> str:
+    return XDIST_GROUPS.get(path.name, path.name)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """`--dist loadfile` with the modules of an XDIST_GROUPS group as one file."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class _ByGroup(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _xdist_group(Path(nodeid.split("::", 1)[0]))
+
+    config.option.loadscopereorder = False  # the collection's order: XDIST_FIRST first
+    return _ByGroup(config, log)
+
+
+def pytest_collection_modifyitems(config, items):
+    _check_slow_names()
+    for item in items:
+        names = SLOW.get(item.path.name)
+        if names == "*" or (names and getattr(item, "originalname", item.name) in names):
+            item.add_marker(pytest.mark.slow)
+    if hasattr(config, "workerinput"):  # an xdist worker: the long groups first (a stable sort)
+        rank = {g: i for i, g in enumerate(XDIST_FIRST)}
+        items.sort(key=lambda item: rank.get(_xdist_group(item.path), len(rank)))

@@ -126,10 +126,10 @@ def test_a_perfect_detector_on_the_synthetic_scene_finds_the_doors():
     their depth and fused with the true poses: each door seen in ≥ 10 of the frames is one
     door object within 0.2 m of its centroid, and no door object is farther than 0.5 m
     from a true door (what the segmentation path is held to, tests/test_semantics.py)."""
-    from client.synthetic import SyntheticDataset
+    from conftest import LOOP_NOISY, synthetic
 
     door = 15
-    ds = SyntheticDataset("loop", rate=10, noise=True)
+    ds = synthetic("loop", **LOOP_NOISY)  # the frames the session's loop runs play (rendered once)
     config = dataclasses.replace(SemanticsConfig(enabled=True), classes=["other", "door"])
     fusion = ObjectFusion(config.classes, config)
     true_doors = {o.instance_id: o for o in ds.scene.objects_of_class(door)}

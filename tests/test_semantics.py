@@ -14,7 +14,6 @@ import pytest
 
 from client.datasets import open_dataset
 from client.frames import PinholeCamera
-from client.synthetic import SyntheticDataset
 from client.synthetic.scene import get_scene
 from service.builder import build_pipeline, build_semantics
 from service.config import SemanticsConfig, load_config
@@ -30,7 +29,7 @@ from service.semantics.segmentation import (
 )
 from storage import MapStore
 
-from conftest import require, require_model
+from conftest import RenderedOnce, require, require_model
 
 DOOR = 15
 # 601 frames; the loop sees door_1..3 whole (figure-8 sees door_3 half, behind a corner)
@@ -39,9 +38,11 @@ CAMERA = {"semantics": {"enabled": True, "source": "camera"}, "memory": {"max_wm
 S = 4  # the recording keeps every S-th label / depth pixel: what the fusion uses (semantics.stride)
 
 
-class _Recording(SyntheticDataset):
+class _Recording(RenderedOnce):
     """The synthetic dataset, keeping every frame's labels and depth at the fusion's stride
-    (for replaying the run's keyframes through the fusion without rendering them again)."""
+    (for replaying the run's keyframes through the fusion without rendering them again). Its
+    frames are rendered once for the session (tests/conftest.py `synthetic`): LOOP is the
+    session's `loop_run` sequence (conftest LOOP_NOISY)."""
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
