@@ -72,8 +72,8 @@ from service.mapping.graph import PoseGraph  # noqa: E402
 from service.mapping.mapper import Mapper  # noqa: E402
 from service.mapping.process import MappingProcess  # noqa: E402
 from service.mapping.verification import verify  # noqa: E402
-from service.mapping.vocabulary import Vocabulary  # noqa: E402
 from service.memory.long_term import Memory  # noqa: E402
+from service.memory.vocabulary import Vocabulary  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
 from service.tracking.matching import match_descriptors as _match  # noqa: E402
 from storage import LinkType, MapStore  # noqa: E402

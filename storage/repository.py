@@ -54,7 +54,7 @@ class MapRepository(Protocol):
 
     def set_label(self, node_id: int, label: str | None) -> None: ...  # service.api
 
-    # -- visual words (service.mapping.vocabulary, service.mapping.mapper) --------------------
+    # -- visual words (service.memory.vocabulary, service.mapping.mapper) --------------------
     def save_node_words(self, node_id: int, word_ids: np.ndarray, new_word_ids: np.ndarray | None = None,
                         new_descriptors: np.ndarray | None = None) -> None: ...
 

@@ -8,7 +8,7 @@ from service.builder import build_pipeline
 from service.config import load_config
 from service.evaluation import evaluate
 from service.mapping.mapper import Mapper
-from service.mapping.vocabulary import Vocabulary
+from service.memory.vocabulary import Vocabulary
 from storage import LinkType, MapStore
 
 from conftest import synthetic

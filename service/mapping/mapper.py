@@ -29,6 +29,7 @@ from storage import LinkType, MapStore, UnknownIdError
 from ..config import LoopConfig, MemoryConfig
 from ..memory.long_term import decode_images
 from ..memory.manager import MemoryManager, series_information
+from ..memory.vocabulary import Vocabulary
 from ..tracking.features import FrameFeatures
 from ..tracking.matching import match_descriptors
 from .graph import PoseGraph
@@ -37,7 +38,6 @@ from .local_ba import LocalBundleAdjustment
 from .loop_detection import LoopDetector
 from .proximity import nearby
 from .verification import Verification, refine, register_dense, verify
-from .vocabulary import Vocabulary
 
 log = logging.getLogger("mnemoslam.mapping")
 

@@ -22,9 +22,9 @@ from ..mapping.graph import LoopOutcome, PoseGraph
 from ..mapping.loop_detection import LoopDetector
 from ..mapping.proximity import nearby
 from ..mapping.verification import DenseView
-from ..mapping.vocabulary import Vocabulary
 from ..tracking.features import FrameFeatures
 from .long_term import decode_images
+from .vocabulary import Vocabulary
 from .working_memory import WorkingMemory
 
 log = logging.getLogger("mnemoslam.memory")
