@@ -21,9 +21,8 @@ from ..config import LoopConfig, MemoryConfig
 from ..mapping.graph import LoopOutcome, PoseGraph
 from ..mapping.loop_detection import LoopDetector
 from ..mapping.proximity import nearby
-from ..mapping.verification import DenseView
 from ..tracking.features import FrameFeatures
-from .long_term import decode_images
+from .views import DenseView, StoredViews
 from .vocabulary import Vocabulary
 from .working_memory import WorkingMemory
 
@@ -46,7 +45,7 @@ class MemoryManager:
         self.features: dict[int, FrameFeatures] = {}  # the features of the keyframes in STM and WM
         # reduced depth + grey of RGB-D keyframes in RAM, for dense link refinement (a retrieved
         # or stored keyframe's are decoded from its stored images when first needed)
-        self.views: dict[int, DenseView] = _StoredViews(store, camera) if store is not None else {}
+        self.views: dict[int, DenseView] = StoredViews(store, camera) if store is not None else {}
         self.neighbours: dict[int, list[int]] = {}
         self.merged: dict[int, tuple[int, np.ndarray]] = {}
         self._order: list[int] = []
@@ -263,7 +262,7 @@ class MemoryManager:
                 missing = self.vocabulary.missing_words(word_ids[word_ids >= 0])
                 self.vocabulary.reload_node(node, word_ids, descriptors=self.store.load_words(missing) if len(missing)
                                             else None)
-        if isinstance(self.views, _StoredViews):
+        if isinstance(self.views, StoredViews):
             self.views.defer(node)
         return True
 
@@ -293,7 +292,7 @@ class MemoryManager:
         for n in wm:
             kp, desc, pts, _ = features[n]
             self.features[n] = FrameFeatures(kp, desc, pts, np.zeros(len(kp), np.int8))
-            if self.loop_config.refine_dense and isinstance(self.views, _StoredViews):
+            if self.loop_config.refine_dense and isinstance(self.views, StoredViews):
                 self.views.defer(n)
         self._index_words({n: features[n][3] for n in wm})
         in_ram = set(wm)
@@ -409,42 +408,3 @@ def series_information(a: np.ndarray | None, b: np.ndarray) -> np.ndarray:
     if a is None:
         return b
     return np.linalg.inv(np.linalg.inv(a) + np.linalg.inv(b))
-
-
-class _StoredViews(dict):
-    """Dense views ({node: DenseView}) of which those of stored keyframes are decoded from
-    their stored images when first asked for (`in` or `[]`), so that a resumed session or a
-    retrieved node costs a decode only when it becomes a loop candidate."""
-
-    def __init__(self, store: MapStore, camera: PinholeCamera):
-        super().__init__()
-        self._store, self._camera, self._stored = store, camera, set()
-
-    def defer(self, node_id) -> None:
-        """Decode this node's view from the store when it is first asked for."""
-        if not super().__contains__(node_id):
-            self._stored.add(node_id)
-
-    def pop(self, node_id, default=None):
-        self._stored.discard(node_id)
-        return super().pop(node_id, default)
-
-    def _load(self, node_id) -> None:
-        if node_id not in self._stored:
-            return
-        self._stored.discard(node_id)
-        try:
-            image, depth = decode_images(*self._store.load_images(node_id))
-        except Exception as e:  # a bad image costs the dense refinement of this keyframe only
-            log.warning("node %d: stored images not usable for dense registration: %s", node_id, e)
-            return
-        if image is not None and depth is not None:
-            self[node_id] = DenseView(depth, image, self._camera)
-
-    def __contains__(self, node_id) -> bool:
-        self._load(node_id)
-        return super().__contains__(node_id)
-
-    def __getitem__(self, node_id):
-        self._load(node_id)
-        return super().__getitem__(node_id)
