@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from client.frames import PinholeCamera
-from client.geometry import invert, rotation_angle
+from client.geometry import invert, nearby, rotation_angle
 from storage import LinkType, MapStore, UnknownIdError
 
 from ..config import LoopConfig, MemoryConfig
@@ -36,7 +36,6 @@ from .graph import PoseGraph
 from .link_refinement import refine_link
 from .local_ba import LocalBundleAdjustment
 from .loop_detection import LoopDetector
-from .proximity import nearby
 from .verification import Verification, refine, register_dense, verify
 
 log = logging.getLogger("mnemoslam.mapping")
@@ -411,9 +410,13 @@ class Mapper:
 
     def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics,
                       verified: tuple[int, Verification] | None = None) -> None:
-        """Proximity detection: verify the nearest older keyframes the graph places around this
-        one (looking the same way) and link the first that passes (`verified`: a candidate
-        verified already, by rehearsal)."""
+        """Proximity detection (RTAB-Map's RGBD/ProximityBySpace): verify the nearest older
+        keyframes the graph places around this one (looking the same way) and link the first
+        that passes (`verified`: a candidate verified already, by rehearsal). Appearance fails
+        where there is little texture or where the same view comes back from a slightly
+        different angle; a keyframe the graph places close to an older one is worth a
+        geometric check, the same as for appearance hypotheses, so a wrong guess costs time,
+        never a false link."""
         c = self.config
         ids = np.fromiter(sorted(candidates - set(self.memory.neighbours[u.node_id])), np.int64)
         if not len(ids):

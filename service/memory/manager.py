@@ -14,13 +14,12 @@ import gtsam
 import numpy as np
 
 from client.frames import PinholeCamera
-from client.geometry import invert, rotation_angle
+from client.geometry import invert, nearby, rotation_angle
 from storage import LinkType, MapStore, UnknownIdError
 
 from ..config import LoopConfig, MemoryConfig
 from ..mapping.graph import LoopOutcome, PoseGraph
 from ..mapping.loop_detection import LoopDetector
-from ..mapping.proximity import nearby
 from ..tracking.features import FrameFeatures
 from .views import DenseView, StoredViews
 from .vocabulary import Vocabulary
