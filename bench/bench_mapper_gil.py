@@ -226,8 +226,9 @@ def run_scenario(name: str, kind: str, calibration, frames, config: Config, rate
             else:
                 mapper = Mapper(calibration.camera, config.loop, store, background=True)
                 if kind == "large":
-                    mapper.vocabulary, mapper.graph = large()
+                    mapper.memory._vocabulary, mapper.graph = large()  # memory owns the vocabulary
                     mapper.detector.vocabulary = mapper.vocabulary
+                    mapper.merge_links.graph = mapper.graph
             pipeline = Pipeline(calibration, config, memory, mapper)
             wall, cpu, runq = np.zeros(len(frames)), np.zeros(len(frames)), np.zeros(len(frames))
             kf, late = 0, 0

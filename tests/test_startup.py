@@ -65,7 +65,7 @@ def test_a_new_session_starts_with_the_last_nodes_in_wm_and_the_others_in_ltm(fi
 
         # an old LTM node comes back: features, words, a graph node at its stored pose
         old = ids[2]
-        assert m.memory.retrieve([old]) == [old]
+        assert m.retrieve([old]) == [old]
         assert m.memory.tiers.in_wm(old) and old in m.vocabulary and old in m.memory.features
         assert np.array_equal(m.graph.pose(old), stored[old])
         assert m.vocabulary.node_words(old)[0].tolist() == full.node_words(old)[0].tolist()
