@@ -30,7 +30,7 @@ from client.geometry import invert, nearby, rotation_angle
 from storage import LinkType, MapStore, UnknownIdError
 
 from ..config import LoopConfig, MemoryConfig
-from ..memory.long_term import decode_images
+from ..memory.keyframes import decode_images
 from ..memory.manager import Memory, series_information
 from ..memory.vocabulary import Vocabulary
 from ..tracking.features import FrameFeatures

@@ -13,7 +13,7 @@ from client.frames import PinholeCamera
 from storage import MapStore
 
 from ..tracking import icp
-from .long_term import decode_images
+from .keyframes import decode_images
 
 log = logging.getLogger("mnemoslam.memory")
 
