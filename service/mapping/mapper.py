@@ -148,7 +148,7 @@ class Mapper:
         self.submitted = 0  # keyframe updates handed to the map update ...
         self.mapped = 0  # ... and done (the difference is the backlog)
         if store is not None and previous_map:
-            self.graph.add_anchored(self.memory.load_previous())  # the previous map's WM, where it is
+            self._place(self.memory.load_previous())  # the previous map's WM nodes, where they are
         if background:
             self._queue = queue.Queue()
             self._thread = threading.Thread(target=self._run, name="mapper", daemon=True)
