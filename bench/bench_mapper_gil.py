@@ -72,8 +72,8 @@ from service.mapping.graph import PoseGraph  # noqa: E402
 from service.mapping.mapper import Mapper  # noqa: E402
 from service.mapping.process import MappingProcess  # noqa: E402
 from service.mapping.verification import verify  # noqa: E402
-from service.mapping.vocabulary import Vocabulary  # noqa: E402
-from service.memory.long_term import Memory  # noqa: E402
+from service.memory.keyframes import KeyframeWriter  # noqa: E402
+from service.memory.vocabulary import Vocabulary  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
 from service.tracking.matching import match_descriptors as _match  # noqa: E402
 from storage import LinkType, MapStore  # noqa: E402
@@ -214,7 +214,7 @@ def run_scenario(name: str, kind: str, calibration, frames, config: Config, rate
     with tempfile.TemporaryDirectory(prefix="bench-gil-") as tmp:
         store = MapStore(Path(tmp) / "map.db")
         try:
-            memory = Memory(store, "bench", calibration, config)
+            memory = KeyframeWriter(store, "bench", calibration, config)
             if kind == "tracking":
                 mapper = KeyframeRecorder()
             elif kind == "process":
@@ -226,8 +226,9 @@ def run_scenario(name: str, kind: str, calibration, frames, config: Config, rate
             else:
                 mapper = Mapper(calibration.camera, config.loop, store, background=True)
                 if kind == "large":
-                    mapper.vocabulary, mapper.graph = large()
+                    mapper.memory._vocabulary, mapper.graph = large()  # memory owns the vocabulary
                     mapper.detector.vocabulary = mapper.vocabulary
+                    mapper.merge_links.graph = mapper.graph
             pipeline = Pipeline(calibration, config, memory, mapper)
             wall, cpu, runq = np.zeros(len(frames)), np.zeros(len(frames)), np.zeros(len(frames))
             kf, late = 0, 0

@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 from client.frames import Calibration, PinholeCamera  # noqa: E402
 from service.builder import build_pipeline  # noqa: E402
 from service.config import load_config  # noqa: E402
-from service.mapping.vocabulary import Vocabulary  # noqa: E402
+from service.memory.vocabulary import Vocabulary  # noqa: E402
 from storage import LinkType, MapStore  # noqa: E402
 
 CAL = Calibration(PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480), None, 1000.0)

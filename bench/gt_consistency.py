@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from client.datasets import open_dataset  # noqa: E402
 from client.geometry import rotation_angle  # noqa: E402
 from service.evaluation import associate_stamps, invert  # noqa: E402
-from service.mapping.verification import DenseView  # noqa: E402
+from service.memory.views import DenseView  # noqa: E402
 from service.tracking import icp  # noqa: E402
 from storage import MapStore, link_name  # noqa: E402
 

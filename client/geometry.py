@@ -80,3 +80,19 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_pose(np.stack([x, y, z], axis=1), eye)
+
+
+def nearby(poses: np.ndarray, ids: np.ndarray, current: np.ndarray, radius: float, max_angle_deg: float,
+           max_candidates: int) -> np.ndarray:
+    """Ids of the keyframes among `ids` (poses N×4×4, map frame) whose camera is within
+    `radius` metres of `current` and whose optical axis is within `max_angle_deg` of its
+    own, nearest first, at most `max_candidates`."""
+    if len(ids) == 0 or max_candidates <= 0:
+        return np.zeros(0, np.int64)
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    dist = np.linalg.norm(poses[:, :3, 3] - current[:3, 3], axis=1)
+    cos = poses[:, :3, 2] @ current[:3, 2]
+    ok = (dist <= radius) & (cos >= np.cos(np.radians(max_angle_deg)))
+    idx = np.nonzero(ok)[0]
+    idx = idx[np.argsort(dist[idx], kind="stable")[:max_candidates]]
+    return np.asarray(ids, np.int64)[idx]

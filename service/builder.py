@@ -14,7 +14,7 @@ from storage import MapStore
 from .config import Config, SemanticsConfig
 from .mapping.mapper import Mapper
 from .mapping.process import MappingProcess
-from .memory.long_term import Memory
+from .memory.keyframes import KeyframeWriter
 from .pipeline import Pipeline
 from .semantics.segmentation import make_segmenter
 from .semantics.worker import SemanticWorker
@@ -55,7 +55,7 @@ def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config
     data)`, its semantic worker (`semantics`: the map's shared (worker, why off) from
     `build_semantics`, which the caller closes; else one of its own, see `build_semantics`,
     that the pipeline closes), and the pipeline over them. End it with `Pipeline.close()`."""
-    memory = Memory(store, robot, calibration, config)
+    memory = KeyframeWriter(store, robot, calibration, config)
     mapper = None
     if config.loop.enabled:
         if mapping is not None:

@@ -50,7 +50,7 @@ class Pipeline:
                  semantics_off: str | None = None, *, robot: str = "", owns_semantics: bool = True):
         self.calibration = calibration
         self.config = config
-        self.memory = memory  # service.memory.long_term.Memory, or None for odometry alone
+        self.memory = memory  # service.memory.keyframes.KeyframeWriter, or None for odometry alone
         self.mapper = mapper  # service.mapping.mapper.Mapper (loop closure + graph), or None
         self.semantics = semantics  # service.semantics.worker.SemanticWorker, or None
         self.semantics_off = semantics_off  # why semantics are off (None when on)

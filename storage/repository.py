@@ -22,7 +22,7 @@ class MapRepository(Protocol):
     """The map as the service uses it: sessions, keyframes, the pose graph, visual words and
     the read side the REST API serves."""
 
-    # -- sessions (service.memory.long_term, service.recovery, service.api) -------------------
+    # -- sessions (service.memory.keyframes, service.recovery, service.api) -------------------
     def begin_session(self, robot: str, calibration: Calibration, config: dict | None = None) -> int: ...
 
     def end_session(self, session_id: int, reason: str = "stopped") -> None: ...
@@ -38,7 +38,7 @@ class MapRepository(Protocol):
     def unmapped_nodes(self, session_ids: Iterable[int] | None = None,
                        end_reason: str | None = None) -> dict[int, list[int]]: ...
 
-    # -- graph writes (service.memory.long_term, service.mapping.mapper, service.recovery) ----
+    # -- graph writes (service.memory.keyframes, service.mapping.mapper, service.recovery) ----
     def add_keyframe(self, rec: KeyframeRecord) -> int: ...
 
     def add_link(self, from_id: int, to_id: int, type: int, transform: np.ndarray,
@@ -54,7 +54,7 @@ class MapRepository(Protocol):
 
     def set_label(self, node_id: int, label: str | None) -> None: ...  # service.api
 
-    # -- visual words (service.mapping.vocabulary, service.mapping.mapper) --------------------
+    # -- visual words (service.memory.vocabulary, service.mapping.mapper) --------------------
     def save_node_words(self, node_id: int, word_ids: np.ndarray, new_word_ids: np.ndarray | None = None,
                         new_descriptors: np.ndarray | None = None) -> None: ...
 

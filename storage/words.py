@@ -145,7 +145,7 @@ class Words(Connection):
         return max(0 if top is None else int(top) + 1, 0 if mark is None else int(mark[0]))
 
     def load_vocabulary_state(self) -> dict[str, np.ndarray]:
-        """Everything `service.mapping.vocabulary.Vocabulary.from_state` needs, from one snapshot:
+        """Everything `service.memory.vocabulary.Vocabulary.from_state` needs, from one snapshot:
         `word_ids` (W,) ascending and `descriptors` W×32 uint8 from `words`; the inverted
         index rebuilt from the nodes' `features.word_ids` (nodes without word ids are not
         indexed): `post_word`, `post_node`, `post_count` (one row per distinct (node, word),

@@ -20,7 +20,7 @@ event to stdout, flushed at once so the test sees it before the kill:
     DONE                        every frame processed, the session ended normally
 
 With `--hold KIND N POINT` the map update stops in the N-th transfer (or retrieval): at its
-start (`before`: nothing of it done) or once `MemoryManager._transfer` / `_retrieve` has moved the
+start (`before`: nothing of it done) or once `Memory._transfer` / `_retrieve` has moved the
 node's words and features but the working memory's bookkeeping has not recorded it yet
 (`after`). It prints HOLD and waits there for the kill, tracking going on meanwhile.
 Nothing is mocked: the memory moves are the real ones, only announced (and held) around.
@@ -71,10 +71,10 @@ def load_frames(path):
 
 def instrument(hold: tuple[str, int, str] | None) -> None:
     """Announce every memory move of every mapper in this process; hold the chosen one."""
-    from service.memory.manager import MemoryManager
+    from service.memory.manager import Memory
 
     counts = {"transfer": 0, "retrieve": 0}
-    originals = {"transfer": MemoryManager._transfer, "retrieve": MemoryManager._retrieve}
+    originals = {"transfer": Memory._transfer, "retrieve": Memory._retrieve}
 
     def wrap(kind: str, tag: str):
         original = originals[kind]
@@ -93,8 +93,8 @@ def instrument(hold: tuple[str, int, str] | None) -> None:
 
         return move
 
-    MemoryManager._transfer = wrap("transfer", "T")
-    MemoryManager._retrieve = wrap("retrieve", "R")
+    Memory._transfer = wrap("transfer", "T")
+    Memory._retrieve = wrap("retrieve", "R")
 
 
 def _hold(kind: str, node: int, n: int, point: str) -> None:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.mapping.loop_detection import LoopDetector, LoopHypothesis
-from service.mapping.vocabulary import Vocabulary
+from service.memory.vocabulary import Vocabulary
 
 N_DESC = 400
 

@@ -13,7 +13,7 @@ import pytest
 from client.datasets import open_dataset
 from service.config import load_config
 from service.mapping.process import MappingProcess
-from service.memory.long_term import Memory
+from service.memory.keyframes import KeyframeWriter
 from service.pipeline import Pipeline
 from storage import LinkType, MapStore
 
@@ -36,7 +36,7 @@ def mapped(tmp_path_factory, figure8_run):
     mp = MappingProcess(db, cfg.loop)
     try:
         proxy = mp.mapper("r1", ds.calibration.camera, lambda kind, data: events.append((kind, data)))
-        memory = Memory(store, "r1", ds.calibration, cfg)
+        memory = KeyframeWriter(store, "r1", ds.calibration, cfg)
         pipeline = Pipeline(ds.calibration, cfg, memory, proxy)
         results = [pipeline.process(ds.frame(i)) for i in range(len(ds))]
         assert proxy.close(timeout=600)
@@ -98,7 +98,7 @@ def test_killed_child_leaves_tracking_running(tmp_path):
     mp = MappingProcess(tmp_path / "map.db", cfg.loop)
     try:
         proxy = mp.mapper("k1", ds.calibration.camera)
-        pipeline = Pipeline(ds.calibration, cfg, Memory(store, "k1", ds.calibration, cfg), proxy)
+        pipeline = Pipeline(ds.calibration, cfg, KeyframeWriter(store, "k1", ds.calibration, cfg), proxy)
         results = []
         for i in range(len(ds)):
             if i == 40:

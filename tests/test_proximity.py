@@ -1,8 +1,7 @@
 """Proximity candidates: near in space and looking the same way, nearest first."""
 import numpy as np
 
-from client.geometry import look_at
-from service.mapping.proximity import nearby
+from client.geometry import look_at, nearby
 
 
 def _pose(position, target):

@@ -20,7 +20,7 @@ from service.config import load_config
 from service.demo import ServiceProcess
 from service.evaluation import evaluate
 from service.mapping.mapper import KeyframeUpdate, Mapper
-from service.memory.long_term import Memory
+from service.memory.keyframes import KeyframeWriter
 from service.pipeline import Pipeline
 from service.recovery import recover
 from service.runner import run_dataset
@@ -120,7 +120,7 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, u
     cfg = dataclasses.replace(cfg, storage=dataclasses.replace(cfg.storage, path=str(tmp_path / "map.db")))
     cut = 150  # after the first loops: the mapped part has loop links too
     store = _DiesMidUpdate(cfg.storage.path)
-    memory = Memory(store, "r1", ds.calibration, cfg)
+    memory = KeyframeWriter(store, "r1", ds.calibration, cfg)
     stored = Mapper(ds.calibration.camera, cfg.loop, store, memory=cfg.memory)
     pipeline = Pipeline(ds.calibration, cfg, memory, _Crash(stored, cut))
     results = [pipeline.process(frames.frame(i)) for i in range(len(ds))]
@@ -201,7 +201,7 @@ def test_a_keyframe_that_cannot_be_mapped_is_counted_and_the_others_go_on(tmp_pa
     cfg = load_config()
     cfg = dataclasses.replace(cfg, storage=dataclasses.replace(cfg.storage, path=str(tmp_path / "map.db")))
     with MapStore(cfg.storage.path) as store:
-        memory = Memory(store, "r1", ds.calibration, cfg)
+        memory = KeyframeWriter(store, "r1", ds.calibration, cfg)
         pipeline = Pipeline(ds.calibration, cfg, memory, _Stops(Mapper(ds.calibration.camera, cfg.loop, store), 3))
         ids = [r.node_id for r in (pipeline.process(ds.frame(i)) for i in range(len(ds))) if r.node_id is not None]
     sid, backlog = memory.session_id, ids[3:]

@@ -7,7 +7,7 @@ import numpy as np
 
 from client.datasets import open_dataset
 from service.config import load_config
-from service.memory.long_term import Memory
+from service.memory.keyframes import KeyframeWriter
 from service.pipeline import Pipeline
 from storage import MapStore
 
@@ -45,7 +45,7 @@ def test_map_backlog_keeps_images_of_a_bounded_number_of_keyframes(tmp_path):
     config = load_config(overrides={"loop": {"backlog_images": 4}, "keyframe": {"linear_update": 0.05}})
     mapper = StalledMapper()
     with MapStore(tmp_path / "map.db") as store:
-        memory = Memory(store, "r1", ds.calibration, config)
+        memory = KeyframeWriter(store, "r1", ds.calibration, config)
         pipeline = Pipeline(ds.calibration, config, memory, mapper, robot="r1")
         for i in range(len(ds)):
             pipeline.process(ds.frame(i))

@@ -8,7 +8,7 @@ from service.builder import build_pipeline
 from service.config import load_config
 from service.evaluation import evaluate
 from service.mapping.mapper import Mapper
-from service.mapping.vocabulary import Vocabulary
+from service.memory.vocabulary import Vocabulary
 from storage import LinkType, MapStore
 
 from conftest import synthetic
@@ -65,7 +65,7 @@ def test_a_new_session_starts_with_the_last_nodes_in_wm_and_the_others_in_ltm(fi
 
         # an old LTM node comes back: features, words, a graph node at its stored pose
         old = ids[2]
-        assert m.memory.retrieve([old]) == [old]
+        assert m.retrieve([old]) == [old]
         assert m.memory.tiers.in_wm(old) and old in m.vocabulary and old in m.memory.features
         assert np.array_equal(m.graph.pose(old), stored[old])
         assert m.vocabulary.node_words(old)[0].tolist() == full.node_words(old)[0].tolist()

@@ -33,7 +33,7 @@ def test_different_places_are_rejected():
 
 
 def test_dense_view_gives_the_full_pyramids_coarse_levels():
-    from service.mapping.verification import DenseView
+    from service.memory.views import DenseView
     from service.tracking import icp
     ds = open_dataset("synthetic:loop", noise=True)
     f = ds.frame(3)
@@ -47,7 +47,8 @@ def test_dense_view_gives_the_full_pyramids_coarse_levels():
 
 
 def test_dense_refinement_makes_a_loop_link_an_order_of_magnitude_more_accurate():
-    from service.mapping.verification import DenseView, refine
+    from service.mapping.verification import refine
+    from service.memory.views import DenseView
     ds = open_dataset("synthetic:loop", noise=True)
     cam = ds.calibration.camera
     a = 0
@@ -66,7 +67,8 @@ def test_dense_refinement_makes_a_loop_link_an_order_of_magnitude_more_accurate(
 
 
 def test_refinement_keeps_the_pnp_link_when_the_images_do_not_overlap():
-    from service.mapping.verification import DenseView, Verification, refine
+    from service.mapping.verification import Verification, refine
+    from service.memory.views import DenseView
     ds = open_dataset("synthetic:loop", noise=True)
     cam = ds.calibration.camera
     fa, fb = ds.frame(0), ds.frame(len(ds) // 2)  # opposite sides of the loop

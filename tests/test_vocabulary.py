@@ -14,7 +14,7 @@ from client.datasets import open_dataset
 from client.frames import Calibration, PinholeCamera
 from client.synthetic import SyntheticDataset
 from service.config import load_config
-from service.mapping.vocabulary import MissingWordsError, Vocabulary
+from service.memory.vocabulary import MissingWordsError, Vocabulary
 from service.runner import run_dataset
 from storage import KeyframeRecord, MapStore, UnknownIdError
 
@@ -350,7 +350,7 @@ import sys
 sys.path.insert(0, {root!r})
 import numpy as np
 from client.frames import Calibration, PinholeCamera
-from service.mapping.vocabulary import MissingWordsError, Vocabulary
+from service.memory.vocabulary import MissingWordsError, Vocabulary
 from storage import KeyframeRecord, MapStore
 rng = np.random.default_rng(0)
 centres = rng.integers(0, 256, (3000, 32), dtype=np.uint8)

@@ -2,7 +2,7 @@
 
 Nodes are keyframe ids (global ints, used directly as GTSAM keys); poses are camera-to-world 4×4
 matrices. Links are ``BetweenFactorPose3`` with the registration's 6×6 information (rotation
-first, GTSAM's Pose3 tangent order — see ``service.memory.long_term.odometry_information``):
+first, GTSAM's Pose3 tangent order — see ``service.memory.keyframes.odometry_information``):
 
 * odometry links with a plain Gaussian model;
 * loop links with a robust kernel (Huber by default, or Cauchy) around the same Gaussian;

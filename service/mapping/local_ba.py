@@ -38,8 +38,8 @@ import numpy as np
 
 from client.frames import PinholeCamera
 
+from ..memory.vocabulary import as_u64, hamming_matrix
 from .graph import to_pose3
-from .vocabulary import as_u64, hamming_matrix
 
 VIRTUAL_BASELINE = 0.1  # m, of the virtual stereo measurement (any value: σ_d scales with it)
 HUBER_2 = float(np.sqrt(5.991))  # χ² 95 %, 2 dof (pixels)

@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..memory.vocabulary import Vocabulary
 from ..memory.working_memory import graph_levels
-from .vocabulary import Vocabulary
 
 PREDICTION_LC = (0.1, 0.36, 0.30, 0.16, 0.062, 0.0151, 0.00255, 0.000324, 2.5e-05)
 

@@ -6,8 +6,11 @@ Tracking never waits for it: in the service the mapper runs on its own thread an
 keyframes from a queue (RTAB-Map's map update runs at its detection rate, ORB-SLAM's loop
 closing in parallel to tracking). Offline runs call it synchronously so a run stays
 bit-for-bit reproducible. The mapper owns the map→odometry correction that turns the
-odometry's poses into map poses; the memory manager (`service.memory.manager`) owns the
-keyframes' life cycle (STM / WM / LTM, rehearsal's merges)."""
+odometry's poses into map poses, the loop detector and the pose graph; memory
+(`service.memory.manager.Memory`) owns the keyframes' life cycle (STM / WM / LTM, rehearsal's
+merges), the vocabulary and the feature and view caches, and the mapper calls it through its
+methods: it reports what the update did, places in its graph the nodes memory brings in (a
+previous map's, a resumed session's) and has its detector forget the nodes memory transfers."""
 from __future__ import annotations
 
 import collections
@@ -23,21 +26,21 @@ import cv2
 import numpy as np
 
 from client.frames import PinholeCamera
-from client.geometry import invert, rotation_angle
+from client.geometry import invert, nearby, rotation_angle
 from storage import LinkType, MapStore, UnknownIdError
 
 from ..config import LoopConfig, MemoryConfig
-from ..memory.long_term import decode_images
-from ..memory.manager import MemoryManager, series_information
+from ..memory.keyframes import decode_images
+from ..memory.manager import Memory, series_information
+from ..memory.vocabulary import Vocabulary
 from ..tracking.features import FrameFeatures
 from ..tracking.matching import match_descriptors
 from .graph import PoseGraph
 from .link_refinement import refine_link
 from .local_ba import LocalBundleAdjustment
 from .loop_detection import LoopDetector
-from .proximity import nearby
+from .merge_links import MergeLinks
 from .verification import Verification, refine, register_dense, verify
-from .vocabulary import Vocabulary
 
 log = logging.getLogger("mnemoslam.mapping")
 
@@ -123,15 +126,12 @@ class Mapper:
         self.memory_config = mc = memory if memory is not None else MemoryConfig()
         self.store = store
         self.on_event = on_event or (lambda kind, data: None)
-        # The map's vocabulary: shared by every mapper (robot) of that store, persisted with each
-        # keyframe; on a reopened map with a WM limit it starts without words (those of the nodes
-        # in RAM come with them), else it is loaded whole from the store.
-        self.vocabulary = (Vocabulary.for_store(store, words=mc.max_wm_nodes <= 0, nndr=config.nndr_ratio)
-                           if store is not None else Vocabulary(nndr=config.nndr_ratio))
+        # STM / WM / LTM: which keyframes are loop candidates, with their features, words and views
+        # in RAM, and the map's vocabulary (shared by every mapper of that store)
+        self.memory = Memory(mc, config, store, camera)
         self.detector = LoopDetector(self.vocabulary, loop_threshold=config.threshold, stm_size=mc.stm_size)
         self.graph = PoseGraph(max_error=config.optimize_max_error)
-        # STM / WM / LTM: which keyframes are loop candidates, with their features, words and views in RAM
-        self.memory = MemoryManager(mc, config, store, camera, self.graph, self.vocabulary, self.detector)
+        self.merge_links = MergeLinks(self.graph)  # rehearsal's: one graph link per pair of nodes
         self.local_ba = LocalBundleAdjustment(
             camera, config.local_ba_window, config.local_ba_fixed, config.local_ba_iterations,
             config.local_ba_depth_weight, config.local_ba_adaptive_depth, config.local_ba_min_points,
@@ -148,7 +148,7 @@ class Mapper:
         self.submitted = 0  # keyframe updates handed to the map update ...
         self.mapped = 0  # ... and done (the difference is the backlog)
         if store is not None and previous_map:
-            self.memory.load_previous()
+            self._place(self.memory.load_previous())  # the previous map's WM nodes, where they are
         if background:
             self._queue = queue.Queue()
             self._thread = threading.Thread(target=self._run, name="mapper", daemon=True)
@@ -160,7 +160,7 @@ class Mapper:
         """A (synchronous) mapper that continues a stored session's map update, e.g. after
         the service was killed with keyframes still in its backlog. It holds the session's
         mapped keyframes (those with a statistics row) as the interrupted mapper did
-        (`MemoryManager.resume`); the map's vocabulary comes from the store as for any mapper.
+        (`Memory.resume`); the map's vocabulary comes from the store as for any mapper.
         Then `submit` the session's unmapped keyframes in id order (see
         `KeyframeUpdate.from_store`) and they close loops to the mapped ones. The loop
         detector's belief starts afresh and `to_map` gives the identity until the first
@@ -168,7 +168,14 @@ class Mapper:
         if camera is None:
             camera = store.calibration(int(session_id)).camera
         m = cls(camera, config, store, on_event=on_event, memory=memory, previous_map=False)
-        m.loops = m.memory.resume(session_id)
+        r = m.memory.resume(session_id)
+        m.graph.restore(r.poses, r.odometry, r.loops)
+        m._place(r.previous)
+        for a, b, t, info in r.across:
+            m.graph.add_loop(a, b, t, info, check=False)  # checked when it was added
+        for a, b, t, info in r.merge_links:  # as rehearsal made them (checked then)
+            m.merge_links.add(a, b, t, info, check=False)
+        m.loops = r.closures
         return m
 
     # -- tracking side ---------------------------------------------------------------------
@@ -194,14 +201,44 @@ class Mapper:
         self.flush_poses()
 
     @property
+    def vocabulary(self) -> Vocabulary:
+        """The map's vocabulary (memory's), which the loop detector searches."""
+        return self.memory.vocabulary
+
+    @property
     def merged(self) -> int:
         """Keyframes merged into a node by rehearsal (they are not nodes of the map)."""
         return len(self.memory.merged)
 
+    def pose(self, node: int) -> np.ndarray:
+        """A keyframe's map pose: its node's, or for a merged keyframe where its survivor sees it."""
+        merged = self.memory.merged.get(node)
+        if merged is not None:
+            survivor, t = merged
+            return self.graph.pose(survivor) @ t
+        return self.graph.pose(node)
+
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         """Every keyframe's map pose: the graph's nodes, and each merged keyframe where its
         survivor sees it."""
-        return self.memory.keyframe_poses()
+        poses = self.graph.poses()
+        poses.update({m: poses[c] @ t for m, (c, t) in self.memory.merged.items() if c in poses})
+        return poses
+
+    def retrieve(self, nodes: list[int]) -> list[int]:
+        """LTM → WM (`Memory.retrieve`); a node of the previous map enters the graph at its
+        stored pose. Returns the nodes retrieved."""
+        retrieved, previous = self.memory.retrieve(nodes)
+        for node, pose in previous.items():  # one by one, as they were retrieved
+            self._place({node: pose})
+        return retrieved
+
+    def _place(self, poses: dict[int, np.ndarray]) -> None:
+        """Nodes of the previous map enter the graph at their stored poses ({id: 4×4}), each
+        with the tight prior: that map is already optimised, so it stays where it is and
+        anchors the new session (whose first node has the loose segment prior), which a loop
+        link to it places in the old map's frame."""
+        self.graph.add_anchored(poses)
 
     def flush_poses(self) -> None:
         """Write every pose that moved at all since it was last written (the graph reports only
@@ -209,7 +246,7 @@ class Mapper:
         holds the graph's final estimate."""
         self._write_moved((0.0, 0.0))
         if self.memory.merged and self.store is not None:
-            self.store.update_poses({m: self.memory.pose(m) for m in self.memory.merged})
+            self.store.update_poses({m: self.pose(m) for m in self.memory.merged})
 
     # -- map update ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -241,14 +278,26 @@ class Mapper:
         t1 = time.perf_counter()
         best = r.survivor if r.survivor is not None else self._add_keyframe(u, stats, r.verified)
         t2 = time.perf_counter()
-        transferred, retrieved = self.memory.manage(u.node_id, best, (t2 - t0) * 1e3)
+        transferred, retrieved = self._manage_memory(u.node_id, best, (t2 - t0) * 1e3)
         stats.timings_ms["rehearsal"] = (t1 - t0) * 1e3 - stats.local_ba.get("ms", 0.0)
         stats.timings_ms["local_ba"] = stats.local_ba.get("ms", 0.0)
         stats.timings_ms["memory"] = (time.perf_counter() - t2) * 1e3
         stats.memory = self.memory.statistics(u.stamp, transferred, retrieved, r.survivor)
         self._publish(stats)
         with self._lock:
-            self._correction = self.memory.pose(u.node_id) @ invert(u.odom_pose)
+            self._correction = self.pose(u.node_id) @ invert(u.odom_pose)
+
+    def _manage_memory(self, node: int, best: int | None, update_ms: float) -> tuple[list[int], list[int]]:
+        """After the update of keyframe `node` that took `update_ms` (RTAB-Map's memory
+        management): retrieval (LTM → WM) around the best loop hypothesis and the keyframe,
+        then transfer (WM → LTM) when WM is over its limits, which the loop detector forgets
+        (its belief is this mapper's alone: no lock; the shared vocabulary's words memory
+        unloaded under its lock). Returns (transferred, retrieved) node ids."""
+        retrieved = self.retrieve(self.memory.to_retrieve(node, best, self.pose))
+        transferred = self.memory.transfer(node, update_ms, self.pose)
+        if transferred:
+            self.detector.forget(transferred)
+        return transferred, retrieved
 
     def _add_keyframe(self, u: KeyframeUpdate, stats: LoopStatistics,
                       verified: tuple[int, Verification] | None = None) -> int | None:
@@ -259,7 +308,7 @@ class Mapper:
         self.graph.add_node(u.node_id, u.odom_pose, u.odom_from, u.transform, u.information)
         self.memory.add(u)
         t1 = time.perf_counter()
-        words = self.vocabulary.add(u.node_id, u.features.descriptors, store=self.store)  # + its new words, one commit
+        words = self.memory.add_words(u.node_id, u.features.descriptors)  # + its new words, one commit
         t2 = time.perf_counter()
         candidates = self.memory.candidates(u.stamp, self.config.min_age)
         with self.vocabulary.lock:  # other robots' mappers add to the same vocabulary
@@ -366,8 +415,8 @@ class Mapper:
             return Rehearsal(None, (c, v))
         p = u.odom_from
         if p != c:
-            outcome = self.memory.link_merge(p, c, u.transform @ invert(v.transform),
-                                             series_information(u.information, v.information))
+            outcome = self.merge_links.add(p, c, u.transform @ invert(v.transform),
+                                           series_information(u.information, v.information))
             r["graph_ms"] = outcome.duration_ms
             if not outcome.accepted:
                 r["decision"] = f"rejected: graph {outcome.reason}"
@@ -375,6 +424,8 @@ class Mapper:
         r["decision"] = "merged"
         # came back to c's part of the map?
         r["loop"] = entering = self.memory.merge(u.node_id, c, p, v.transform, v.information)
+        if self.store is not None:
+            self.store.update_poses({u.node_id: self.pose(u.node_id)})
         if entering:
             self.loops.append((c, p))
             self.on_event("loop_closed", {"from": c, "to": u.node_id, "inliers": v.inliers,
@@ -412,9 +463,13 @@ class Mapper:
 
     def _close_nearby(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics,
                       verified: tuple[int, Verification] | None = None) -> None:
-        """Proximity detection: verify the nearest older keyframes the graph places around this
-        one (looking the same way) and link the first that passes (`verified`: a candidate
-        verified already, by rehearsal)."""
+        """Proximity detection (RTAB-Map's RGBD/ProximityBySpace): verify the nearest older
+        keyframes the graph places around this one (looking the same way) and link the first
+        that passes (`verified`: a candidate verified already, by rehearsal). Appearance fails
+        where there is little texture or where the same view comes back from a slightly
+        different angle; a keyframe the graph places close to an older one is worth a
+        geometric check, the same as for appearance hypotheses, so a wrong guess costs time,
+        never a false link."""
         c = self.config
         # in the keyframe's own map only: maps join by appearance (a new session's frame starts at
         # the identity, numerically where the old map's nodes are, and relates to nothing there)

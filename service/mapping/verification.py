@@ -12,6 +12,7 @@ import numpy as np
 from client.frames import PinholeCamera
 from client.geometry import invert, make_pose, rotation_angle
 
+from ..memory.views import DenseView
 from ..tracking import icp
 from ..tracking.matching import match_descriptors
 
@@ -45,33 +46,6 @@ class Verification:
     inlier_pixels: np.ndarray | None = None  # (n, 2) their pixels in the new keyframe
     # (m, deg) largest standard deviations of the link's estimate, when one was made
     sigma: tuple[float, float] | None = None
-
-
-class DenseView:
-    """What dense registration needs of a keyframe, kept small: its depth and grey image
-    reduced `factor` times (a 640×480 frame keeps 160×120, ~150 kB instead of 1.5 MB).
-    The reduced images give exactly the coarse pyramid levels `icp.depth_pyramid` builds
-    from the full ones (depth sampled every `factor` pixels, grey by Gaussian pyramid)."""
-
-    def __init__(self, depth: np.ndarray, grey: np.ndarray, camera: PinholeCamera, factor: int = 4):
-        if factor & (factor - 1) or factor > min(icp.STEPS):
-            raise ValueError(f"factor must be a power of two <= {min(icp.STEPS)}, got {factor}")
-        g = np.asarray(grey)
-        if g.ndim == 3:
-            g = cv2.cvtColor(g, cv2.COLOR_BGR2GRAY)
-        g = g.astype(np.float32) / 255.0 if g.dtype == np.uint8 else g.astype(np.float32)
-        f = 1
-        while f < factor:
-            g, f = cv2.pyrDown(g), f * 2
-        self.depth = np.ascontiguousarray(depth[::factor, ::factor], dtype=np.float32)
-        self.grey = g[: self.depth.shape[0], : self.depth.shape[1]]
-        self.camera = PinholeCamera(camera.fx / factor, camera.fy / factor, camera.cx / factor,
-                                    camera.cy / factor, self.depth.shape[1], self.depth.shape[0])
-        self.steps = tuple(s // factor for s in icp.STEPS)
-        self.factor = factor
-
-    def levels(self) -> list:
-        return icp.depth_pyramid(self.depth, self.camera, self.steps, grey=self.grey)
 
 
 def refine(v: Verification, new: DenseView, candidate: DenseView, *, max_correction: tuple[float, float] = (0.1, 5.0),

@@ -1,86 +1,141 @@
 """The node life cycle of one map update (`Mapper`), RTAB-Map's `Memory`: a new keyframe
-enters STM (`add`) or is merged into a node by rehearsal (`merge`); after each update
-`manage` moves nodes between WM and LTM as `WorkingMemory` decides, telling the vocabulary,
-the loop detector, the pose graph and the views cache what leaves and enters RAM (LTM is
-the database: a move writes nothing). `load_previous` starts WM on a reopened map, `resume`
-rebuilds an interrupted session's memory."""
+enters STM (`add`) and its words the vocabulary (`add_words`), or it is merged into a node by
+rehearsal (`merge`); after each update the mapper asks what to retrieve (`to_retrieve`),
+retrieves it (`retrieve`) and transfers what `WorkingMemory` decides (`transfer`): features,
+words and dense views leave and enter RAM (LTM is the database: a move writes nothing).
+`load_previous` starts WM on a reopened map, `resume` rebuilds an interrupted session's memory.
+
+Memory owns the map's tiers, its vocabulary (shared by every mapper of the store), the
+feature and dense-view caches and the node life-cycle writes to the store; it knows nothing
+of the pose graph or the loop detector. Where it needs map poses the mapper passes them
+(`NodePoses`); the graph nodes it finds (a previous map's, a resumed session's) it returns
+for the mapper to put in its graph, and it returns the nodes it transferred for the loop
+detector to forget."""
 from __future__ import annotations
 
 import dataclasses
-import logging
-import time
+from types import MappingProxyType
+from typing import Callable, Mapping
 
-import gtsam
 import numpy as np
 
 from client.frames import PinholeCamera
-from client.geometry import invert, rotation_angle
+from client.geometry import invert, nearby
 from storage import LinkType, MapStore, UnknownIdError
 
 from ..config import LoopConfig, MemoryConfig
-from ..mapping.graph import LoopOutcome, PoseGraph
-from ..mapping.loop_detection import LoopDetector
-from ..mapping.proximity import nearby
-from ..mapping.verification import DenseView
-from ..mapping.vocabulary import Vocabulary
 from ..tracking.features import FrameFeatures
-from .long_term import decode_images
+from .views import DenseView, StoredViews
+from .vocabulary import Vocabulary
 from .working_memory import WorkingMemory
 
-log = logging.getLogger("mnemoslam.memory")
+NodePoses = Callable[[int], np.ndarray]  # a keyframe's map pose (4×4), as the mapper's graph places it
+Link = tuple[int, int, np.ndarray, np.ndarray]  # (from, to, T_from_to, information)
 
 
-class MemoryManager:
+@dataclasses.dataclass
+class ResumedSession:
+    """What `Memory.resume` found of a stored session for the mapper's graph: its nodes at their
+    stored poses with the links between them (odometry through merged keyframes, loop and
+    path links), the previous map's nodes it linked to (at their stored poses) and those links,
+    rehearsal's links (in the order the merges made them) and its loop closures."""
+
+    poses: dict[int, np.ndarray]
+    odometry: list[Link]
+    loops: list[Link]
+    previous: dict[int, np.ndarray]
+    across: list[Link]
+    merge_links: list[Link]
+    closures: list[tuple[int, int]]
+
+
+class Memory:
     """`tiers`: which node is in STM, WM or LTM, and their weights; `features` and `views`:
     the features and dense views of the nodes in RAM; `neighbours`: graph adjacency of every
     node it knows, LTM included (loop prediction, retrieval); `merged`: keyframe merged by
-    rehearsal -> (survivor, T_survivor_keyframe). The map update reads these and reports what
-    it did (`add`, `add_view`, `link`, `loop_closed`, `merge`); only the manager changes them."""
+    rehearsal -> (survivor, T_survivor_keyframe); `vocabulary`: the map's visual words. The
+    map update reads these (read-only views) and reports what it did (`add`, `add_words`,
+    `add_view`, `link`, `loop_closed`, `merge`); only memory changes them."""
 
-    def __init__(self, config: MemoryConfig, loop: LoopConfig, store: MapStore | None, camera: PinholeCamera,
-                 graph: PoseGraph, vocabulary: Vocabulary, detector: LoopDetector):
+    def __init__(self, config: MemoryConfig, loop: LoopConfig, store: MapStore | None, camera: PinholeCamera):
         self.config, self.loop_config, self.store, self.camera = config, loop, store, camera
-        self.graph, self.vocabulary, self.detector = graph, vocabulary, detector
-        self.tiers = WorkingMemory(config.stm_size, config.max_wm_nodes, config.time_threshold_ms,
-                                   config.recent_wm_ratio, config.max_retrieved, config.retrieval_depth)
-        self.features: dict[int, FrameFeatures] = {}  # the features of the keyframes in STM and WM
+        # The map's vocabulary: shared by every mapper (robot) of that store, persisted with each
+        # keyframe; on a reopened map with a WM limit it starts without words (those of the nodes
+        # in RAM come with them), else it is loaded whole from the store.
+        self._vocabulary = (Vocabulary.for_store(store, words=config.max_wm_nodes <= 0, nndr=loop.nndr_ratio)
+                            if store is not None else Vocabulary(nndr=loop.nndr_ratio))
+        self._tiers = WorkingMemory(config.stm_size, config.max_wm_nodes, config.time_threshold_ms,
+                                    config.recent_wm_ratio, config.max_retrieved, config.retrieval_depth)
+        self._features: dict[int, FrameFeatures] = {}  # the features of the keyframes in STM and WM
         # reduced depth + grey of RGB-D keyframes in RAM, for dense link refinement (a retrieved
         # or stored keyframe's are decoded from its stored images when first needed)
-        self.views: dict[int, DenseView] = _StoredViews(store, camera) if store is not None else {}
-        self.neighbours: dict[int, list[int]] = {}
+        self._views: dict[int, DenseView] = StoredViews(store, camera) if store is not None else {}
+        self._neighbours: dict[int, list[int]] = {}
         self._root: dict[int, int] = {}  # union-find of the graph's connected parts (`same_map`)
-        self.merged: dict[int, tuple[int, np.ndarray]] = {}
+        self._merged: dict[int, tuple[int, np.ndarray]] = {}
         self._order: list[int] = []
+        # node -> stamp, of every node of this map update: those it added, resumed or placed
+        # from the previous map (exactly the mapper's graph nodes)
         self._stamps: dict[int, float] = {}
         self._segment: dict[int, int] = {}  # node -> first node of its odometry segment
         self._loop_nodes: set[int] = set()  # the older end of the last accepted loop closure (kept in WM)
-        self._merge_links: dict[frozenset, _MergeLink] = {}  # node pair -> the one graph link merges between them made
+
+    # -- what the map update reads -----------------------------------------------------------
+    @property
+    def vocabulary(self) -> Vocabulary:
+        """The map's vocabulary (hold its `lock` to read it: other robots' mappers add to it)."""
+        return self._vocabulary
+
+    @property
+    def tiers(self) -> WorkingMemory:
+        return self._tiers
+
+    @property
+    def features(self) -> Mapping[int, FrameFeatures]:
+        return MappingProxyType(self._features)
+
+    @property
+    def views(self) -> Mapping[int, DenseView]:
+        return MappingProxyType(self._views)
+
+    @property
+    def neighbours(self) -> Mapping[int, list[int]]:
+        return MappingProxyType(self._neighbours)
+
+    @property
+    def merged(self) -> Mapping[int, tuple[int, np.ndarray]]:
+        return MappingProxyType(self._merged)
 
     # -- the map update's nodes --------------------------------------------------------------
     def add(self, u) -> None:
         """A new keyframe (`KeyframeUpdate`) enters STM: its features (no images), stamp,
         path segment and odometry link."""
         f = u.features
-        self.features[u.node_id] = FrameFeatures(f.keypoints, f.descriptors, f.points, f.octaves)  # no images
+        self._features[u.node_id] = FrameFeatures(f.keypoints, f.descriptors, f.points, f.octaves)  # no images
         self._stamps[u.node_id] = u.stamp
         self._order.append(u.node_id)
-        self.tiers.add(u.node_id)
-        self.neighbours.setdefault(u.node_id, [])
+        self._tiers.add(u.node_id)
+        self._neighbours.setdefault(u.node_id, [])
         self._segment[u.node_id] = u.node_id if u.odom_from is None else self._segment.get(u.odom_from, u.odom_from)
         if u.odom_from is not None:
             self.link(u.node_id, u.odom_from)
+
+    def add_words(self, node: int, descriptors: np.ndarray) -> np.ndarray:
+        """A new node's descriptors quantised into the vocabulary (new words made), its word ids
+        and new words committed to the store in one transaction. Returns its word ids."""
+        return self._vocabulary.add(node, descriptors, store=self.store)
 
     def add_view(self, u) -> None:
         """The dense view of a new keyframe with depth (for dense refinement, `loop.refine_dense`)."""
         f = u.features
         if self.loop_config.refine_dense and f.depth is not None and f.grey is not None:
-            self.views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
+            self._views[u.node_id] = DenseView(f.depth, f.grey, self.camera)
 
     def link(self, a: int, b: int) -> None:
         """Nodes `a` and `b` are linked in the graph (odometry, loop closure, rehearsal): one
         map from now on."""
-        self.neighbours.setdefault(a, []).append(b)
-        self.neighbours.setdefault(b, []).append(a)
+        self._neighbours.setdefault(a, []).append(b)
+        self._neighbours.setdefault(b, []).append(a)
         ra, rb = self._map_of(a), self._map_of(b)
         if ra != rb:
             self._root[max(ra, rb)] = min(ra, rb)
@@ -106,206 +161,165 @@ class MemoryManager:
         """A loop closure to `node` was accepted: it stays in WM, and the nodes that enter WM
         from now on are recent."""
         self._loop_nodes = {node}
-        self.tiers.loop_closed()
+        self._tiers.loop_closed()
 
     def candidates(self, stamp: float, min_age: float) -> set[int]:
         """Loop candidates of a keyframe taken at `stamp`: WM nodes at least `min_age` s older."""
-        return {n for n in self.tiers.wm if stamp - self._stamps[n] >= min_age}
+        return {n for n in self._tiers.wm if stamp - self._stamps[n] >= min_age}
 
     def recent_path(self, node: int, candidates: set[int]) -> list[int]:
         """The keyframes of `node`'s path segment just before it (the newest, in RAM, back to
         the first loop candidate), not linked to it, newest first."""
         segment, recent = self._segment[node], []
         for n in reversed(self._order[:-1]):  # the non-candidates are the newest keyframes
-            if n in candidates or not self.tiers.in_ram(n):
+            if n in candidates or not self._tiers.in_ram(n):
                 break
-            if self._segment[n] == segment and n not in self.neighbours[node]:
+            if self._segment[n] == segment and n not in self._neighbours[node]:
                 recent.append(n)
         return recent
 
     def statistics(self, stamp: float, transferred: list[int], retrieved: list[int], survivor: int | None) -> dict:
         """The memory part of an update's statistics."""
-        sizes = self.tiers.sizes()
+        sizes = self._tiers.sizes()
         return {"stamp": stamp, "stm": sizes.stm, "wm": sizes.wm, "ltm": sizes.ltm,
                 "transferred": transferred, "retrieved": retrieved, "merged": [] if survivor is None else [survivor],
-                "words": len(self.vocabulary), "dormant_words": self.vocabulary.dormant}
+                "words": len(self._vocabulary), "dormant_words": self._vocabulary.dormant}
 
     # -- rehearsal's merges ----------------------------------------------------------------------
-    def pose(self, node: int) -> np.ndarray:
-        """A keyframe's map pose: its node's, or for a merged keyframe where its survivor sees it."""
-        if node in self.merged:
-            survivor, t = self.merged[node]
-            return self.graph.pose(survivor) @ t
-        return self.graph.pose(node)
-
-    def keyframe_poses(self) -> dict[int, np.ndarray]:
-        """Every keyframe's map pose: the graph's nodes, and each merged keyframe where its
-        survivor sees it."""
-        poses = self.graph.poses()
-        poses.update({m: poses[c] @ t for m, (c, t) in self.merged.items() if c in poses})
-        return poses
-
     def through_merges(self, u):
         """A keyframe (`KeyframeUpdate`) whose odometry starts at a merged keyframe starts at
         its survivor."""
-        if u.odom_from not in self.merged or u.transform is None:
+        if u.odom_from not in self._merged or u.transform is None:
             return u
-        survivor, t = self.merged[u.odom_from]
+        survivor, t = self._merged[u.odom_from]
         return dataclasses.replace(u, odom_from=survivor, transform=t @ u.transform)
-
-    def link_merge(self, a: int, b: int, transform: np.ndarray, information: np.ndarray, check: str | bool = "link"):
-        """The graph link a merge makes between two nodes (T_a_b): the first merge between
-        them adds it; a later one replaces it by the running mean of their measurements, its
-        information that of one measurement times their count (up to 3), so repeated passes
-        refine one link per pair instead of adding one per keyframe (iSAM2 grows ~7 kB per
-        link). A mean that moved less than the graph's `move_tolerance` from the link in the
-        graph, at the same information, is kept in the mean only when the measurement itself
-        fits the current estimate (`graph.max_error`): no optimisation for what would move no
-        pose the map reports. Returns the graph's outcome."""
-        t0 = time.perf_counter()
-        key = frozenset((a, b))
-        old = self._merge_links.get(key)
-        n = 0
-        if old is not None:
-            t = transform if old.from_id == a else invert(transform)
-            a, b, n = old.from_id, old.to_id, old.count
-            one = information
-            step = gtsam.Pose3.Logmap(gtsam.Pose3(invert(old.transform) @ t)) / (n + 1)
-            transform = old.transform @ gtsam.Pose3.Expmap(step).matrix()
-            information = information * min(n + 1, 3)
-            if n >= 3 and self._within_tolerance(old.in_graph, transform):
-                err = self.graph.link_error(a, b, t, one)
-                if not check or self.graph.max_error <= 0 or err <= self.graph.max_error:
-                    self._merge_links[key] = _MergeLink(a, b, transform, old.information, n + 1, old.in_graph)
-                    return LoopOutcome(True, "accepted (the link moved within tolerance: kept)", err, err, err,
-                                       duration_ms=(time.perf_counter() - t0) * 1e3)
-        # (one optimisation replaces the previous link; a refused one leaves it in place)
-        outcome = self.graph.add_loop(a, b, transform, information, check=check,
-                                      replace=None if old is None else old.in_graph)
-        if outcome.accepted:
-            self._merge_links[key] = _MergeLink(a, b, transform, information, n + 1, transform)
-        return outcome
-
-    def _within_tolerance(self, a: np.ndarray, b: np.ndarray) -> bool:
-        tol_t, tol_r = self.graph.move_tolerance
-        d = invert(a) @ b
-        return float(np.linalg.norm(d[:3, 3])) < tol_t and rotation_angle(d[:3, :3]) < tol_r
 
     def merge(self, node: int, survivor: int, previous: int, transform: np.ndarray, information: np.ndarray) -> bool:
         """Keyframe `node` (odometry from `previous`) merged into `survivor`, T_survivor_node
-        = `transform` (RAM, weights, database). Returns True when the path just came back to
-        the survivor's part of the map (counts as a loop closure)."""
-        entering = previous != survivor and survivor not in self.neighbours.get(previous, ())
-        self.merged[node] = (survivor, transform.copy())
-        self.views.pop(node, None)
-        self.tiers.rehearsed(survivor)
+        = `transform` (RAM, weights, database; the mapper writes its map pose). Returns True
+        when the path just came back to the survivor's part of the map (counts as a loop
+        closure)."""
+        entering = previous != survivor and survivor not in self._neighbours.get(previous, ())
+        self._merged[node] = (survivor, transform.copy())
+        self._views.pop(node, None)
+        self._tiers.rehearsed(survivor)
         if entering:
             self.link(previous, survivor)
             self.loop_closed(survivor)
         if self.store is not None:
             self.store.merge_node(node, survivor, transform, information)
-            self.store.update_poses({node: self.pose(node)})
         return entering
 
     # -- transfer and retrieval --------------------------------------------------------------
-    def manage(self, node: int, best: int | None, update_ms: float) -> tuple[list[int], list[int]]:
-        """After the update of keyframe `node` that took `update_ms`: retrieval (LTM → WM)
-        around the best loop hypothesis and the keyframe, then transfer (WM → LTM) when WM is
-        over its limits. Returns (transferred, retrieved) node ids."""
-        tiers = self.tiers
-        retrieved = []
-        if self.store is not None and tiers.ltm and tiers.max_retrieved > 0:
-            retrieved = tiers.select_retrievals([best], self.neighbours)
-            retrieved += [n for n in self._ltm_near(node) if n not in retrieved]
-            retrieved = self.retrieve(retrieved[:tiers.max_retrieved])
-        transferred: list[int] = []
-        if self.store is not None and tiers.over_limit(update_ms):
-            transferred = tiers.select_transfers(update_ms, *self._protected(node))
-            for n in transferred:
-                self._transfer(n)
-            tiers.transferred(transferred)
-        return transferred, retrieved
+    def to_retrieve(self, node: int, best: int | None, pose: NodePoses) -> list[int]:
+        """After the update of keyframe `node`: the LTM nodes to bring back to WM, those
+        around the best loop hypothesis, then those the map places near the keyframe (at most
+        `memory.max_retrieved`)."""
+        tiers = self._tiers
+        if self.store is None or not tiers.ltm or tiers.max_retrieved <= 0:
+            return []
+        retrieved = tiers.select_retrievals([best], self._neighbours)
+        retrieved += [n for n in self._ltm_near(node, pose) if n not in retrieved]
+        return retrieved[:tiers.max_retrieved]
 
-    def retrieve(self, nodes: list[int]) -> list[int]:
+    def retrieve(self, nodes: list[int]) -> tuple[list[int], dict[int, np.ndarray]]:
         """LTM → WM: features and words back from the database (dense views when first
-        needed). Returns the nodes retrieved (one that cannot be loaded stays in LTM)."""
-        nodes = [n for n in nodes if self._retrieve(n)]
-        self.tiers.retrieved(nodes)
-        return nodes
+        needed). Returns the nodes retrieved (one that cannot be loaded stays in LTM), and
+        those of them that are the previous map's and in no graph of this map update yet, at
+        their stored poses, in that order (the mapper places them, see `_place_previous`)."""
+        retrieved, placed = [], {}
+        for n in nodes:
+            if self._retrieve(n):
+                retrieved.append(n)
+                if n not in self._stamps:  # a node of the previous map, not in this map update yet
+                    placed.update(self._place_previous([n]))
+        self._tiers.retrieved(retrieved)
+        return retrieved, placed
 
-    def _ltm_near(self, node: int) -> list[int]:
+    def transfer(self, node: int, update_ms: float, pose: NodePoses) -> list[int]:
+        """After the update of keyframe `node` that took `update_ms`: WM → LTM when WM is over
+        its limits (`WorkingMemory.select_transfers`). Returns the nodes transferred (the
+        mapper's loop detector forgets them)."""
+        tiers = self._tiers
+        if self.store is None or not tiers.over_limit(update_ms):
+            return []
+        transferred = tiers.select_transfers(update_ms, *self._protected(node, pose))
+        for n in transferred:
+            self._transfer(n)
+        tiers.transferred(transferred)
+        return transferred
+
+    def _ltm_near(self, node: int, pose: NodePoses) -> list[int]:
         """LTM nodes the map places where keyframe `node` is (within loop.proximity_radius,
         looking within proximity_angle of its way), nearest first: one R*Tree query of the
         stored poses (the graph's estimates)."""
         c = self.loop_config
-        pose = self.pose(node)
+        here = pose(node)
         r = c.proximity_radius
-        box = (tuple(pose[:3, 3] - r), tuple(pose[:3, 3] + r))
+        box = (tuple(here[:3, 3] - r), tuple(here[:3, 3] + r))
         # the map's nodes only: keyframes merged by rehearsal keep their rows (and their place in
         # the R*Tree), and a patrolled place holds ever more of them
         # (another map's too: brought back, they are candidates for an appearance link, never for
         # proximity; see same_map)
-        nodes = [n for n in self.store.nodes(bbox=box, limit=None, merged=False) if n.id in self.tiers.ltm]
+        nodes = [n for n in self.store.nodes(bbox=box, limit=None, merged=False) if n.id in self._tiers.ltm]
         if not nodes:
             return []
-        return nearby(np.stack([n.pose for n in nodes]), np.array([n.id for n in nodes], np.int64), pose, r,
-                      c.proximity_angle, self.tiers.max_retrieved).tolist()
+        return nearby(np.stack([n.pose for n in nodes]), np.array([n.id for n in nodes], np.int64), here, r,
+                      c.proximity_angle, self._tiers.max_retrieved).tolist()
 
-    def _protected(self, node: int) -> tuple[set[int], set[int]]:
+    def _protected(self, node: int, pose: NodePoses) -> tuple[set[int], set[int]]:
         """(WM nodes that stay in RAM: linked to STM and the last loop closure's; WM nodes that
-        go last: those the graph places within memory.local_radius of keyframe `node`)."""
+        go last: those the map places within memory.local_radius of keyframe `node`)."""
         keep = set(self._loop_nodes)
-        for s in self.tiers.stm:
-            keep.update(self.neighbours.get(s, ()))
-        wm, near = self.tiers.wm, set()
+        for s in self._tiers.stm:
+            keep.update(self._neighbours.get(s, ()))
+        wm, near = self._tiers.wm, set()
         if wm and self.config.local_radius > 0:
-            here = self.pose(node)[:3, 3]
-            centres = np.stack([self.graph.pose(n)[:3, 3] for n in wm])
+            here = pose(node)[:3, 3]
+            centres = np.stack([pose(n)[:3, 3] for n in wm])
             close = np.linalg.norm(centres - here, axis=1) <= self.config.local_radius
             near = set(np.asarray(wm)[close].tolist())
         return keep, near
 
     def _transfer(self, node: int) -> None:
-        """WM → LTM: the node's words leave the search structures, its features leave RAM
-        (everything stays in the database)."""
-        with self.vocabulary.lock:
-            self.vocabulary.unload_node(node)
-            self.detector.forget([node])
-        self.features.pop(node, None)
-        self.views.pop(node, None)
+        """WM → LTM: the node's words leave the vocabulary's search structures (under its lock:
+        other robots' mappers share it), its features and view leave RAM (everything stays in
+        the database)."""
+        with self._vocabulary.lock:
+            self._vocabulary.unload_node(node)
+        self._features.pop(node, None)
+        self._views.pop(node, None)
 
     def _retrieve(self, node: int) -> bool:
         try:
             keypoints, descriptors, points, word_ids = self.store.load_features(node)
         except UnknownIdError:
             return False
-        self.features[node] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
-        if node not in self.graph:  # a node of the previous map, in no graph of this mapper yet
-            self._place_previous([node])
-        if word_ids is not None and node not in self.vocabulary:  # an old node another mapper holds is indexed
-            with self.vocabulary.lock:
-                missing = self.vocabulary.missing_words(word_ids[word_ids >= 0])
-                self.vocabulary.reload_node(node, word_ids, descriptors=self.store.load_words(missing) if len(missing)
-                                            else None)
-        if isinstance(self.views, _StoredViews):
-            self.views.defer(node)
+        self._features[node] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
+        if word_ids is not None and node not in self._vocabulary:  # an old node another mapper holds is indexed
+            with self._vocabulary.lock:
+                missing = self._vocabulary.missing_words(word_ids[word_ids >= 0])
+                self._vocabulary.reload_node(node, word_ids, descriptors=self.store.load_words(missing)
+                                             if len(missing) else None)
+        if isinstance(self._views, StoredViews):
+            self._views.defer(node)
         return True
 
     # -- start-up ----------------------------------------------------------------------------
-    def load_previous(self) -> None:
+    def load_previous(self) -> dict[int, np.ndarray]:
         """RTAB-Map's start-up on a reopened map (`Memory::loadLastNodes`,
         `Mem/InitWMWithAllNodes` false): the nodes of its ended sessions (the previous map;
         open sessions' are other mappers') go to LTM, ids only, except the newest
         `memory.max_wm_nodes` (all of them with an unlimited WM), which start in WM: their
-        features (one query) and words (only their words' descriptors are read), in the
-        graph at their stored poses (`_place_previous`). The old nodes' graph adjacency
-        (one query, ids only) serves the loop detector's prediction and retrieval; they are
-        never "recent" for transfer (the new session's nodes stay first)."""
+        features (one query) and words (only their words' descriptors are read). The old
+        nodes' graph adjacency (one query, ids only) serves the loop detector's prediction and
+        retrieval; they are never "recent" for transfer (the new session's nodes stay first).
+        Returns WM's nodes at their stored poses, for the mapper's graph (`_place_previous`)."""
         store = self.store
         ids = store.node_ids(ended=True)
         if not len(ids):
-            return
-        k = self.tiers.max_wm_nodes
+            return {}
+        k = self._tiers.max_wm_nodes
         first_wm = ids[-k:] if 0 < k < len(ids) else ids
         features = store.load_features_many(first_wm.tolist())
         wm = [n for n in first_wm.tolist() if n in features]  # a node without features stays in LTM
@@ -313,36 +327,38 @@ class MemoryManager:
         pairs = pairs[np.isin(pairs, ids).all(axis=1)]
         for a, b in pairs.tolist():
             self.link(a, b)
-        self._place_previous(wm)
+        placed = self._place_previous(wm)
         for n in wm:
             kp, desc, pts, _ = features[n]
-            self.features[n] = FrameFeatures(kp, desc, pts, np.zeros(len(kp), np.int8))
-            if self.loop_config.refine_dense and isinstance(self.views, _StoredViews):
-                self.views.defer(n)
+            self._features[n] = FrameFeatures(kp, desc, pts, np.zeros(len(kp), np.int8))
+            if self.loop_config.refine_dense and isinstance(self._views, StoredViews):
+                self._views.defer(n)
         self._index_words({n: features[n][3] for n in wm})
         in_ram = set(wm)
-        self.tiers.restore(stm=(), wm=wm, ltm=[n for n in ids.tolist() if n not in in_ram])  # keeps weights
-        self.tiers.loop_closed()  # the old nodes are not "recent": they leave WM first
+        self._tiers.restore(stm=(), wm=wm, ltm=[n for n in ids.tolist() if n not in in_ram])  # keeps weights
+        self._tiers.loop_closed()  # the old nodes are not "recent": they leave WM first
+        return placed
 
-    def resume(self, session_id: int) -> list[tuple[int, int]]:
+    def resume(self, session_id: int) -> ResumedSession:
         """A stored session's interrupted map update (`Mapper.resume`): its mapped keyframes in
-        STM and WM, in the graph with their links at their stored poses (merges fused as
-        rehearsal made them), their features, words, views (decoded when first needed), path
-        segments and adjacency. Returns its loop closures (appearance and proximity links)."""
+        STM and WM (merges as rehearsal made them) with their features, words, views (decoded
+        when first needed), path segments and adjacency. Returns what the mapper's graph needs
+        of it: nodes and links at their stored poses, and its loop closures (appearance and
+        proximity links)."""
         store, sid = self.store, int(session_id)
         unmapped = set(store.unmapped_nodes(session_ids=[sid]).get(sid, ()))
         stored = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
         nodes = [n for n in stored if n.merged_into is None]
         links = [lk for lk in store.links(session_id=sid) if lk.from_id not in unmapped and lk.to_id not in unmapped]
         merges = {lk.to_id: lk for lk in links if lk.type == LinkType.MERGED}
-        self.merged = {k: (lk.from_id, lk.transform) for k, lk in merges.items()}
+        self._merged = {k: (lk.from_id, lk.transform) for k, lk in merges.items()}
         odometry, entries = [], []  # odometry links through merged keyframes: to a node, or (rehearsal) to a survivor
         for lk in links:
             if lk.type != LinkType.NEIGHBOR:
                 continue
-            a, ta = self.merged.get(lk.from_id, (lk.from_id, np.eye(4)))
-            b, tb = self.merged.get(lk.to_id, (lk.to_id, np.eye(4)))
-            if lk.to_id not in self.merged:
+            a, ta = self._merged.get(lk.from_id, (lk.from_id, np.eye(4)))
+            b, tb = self._merged.get(lk.to_id, (lk.to_id, np.eye(4)))
+            if lk.to_id not in self._merged:
                 odometry.append((a, b, ta @ lk.transform, lk.information))
             elif a != b:
                 entries.append((a, b, ta @ lk.transform @ invert(tb),
@@ -353,25 +369,19 @@ class MemoryManager:
         across = [k for k in loops if not (k[0] in own and k[1] in own)]  # to the previous map's nodes
         # odometry from a keyframe merged into the previous map's node starts at that node
         across += [k for k in odometry if k[0] not in own]
-        self.graph.restore({n.id: n.pose for n in nodes}, [k for k in odometry if k[0] in own],
-                           [k for k in loops if k[0] in own and k[1] in own])
         # the previous map's nodes this session linked to: by loops, odometry or merges
-        self._place_previous({n for a, b, _, _ in across + entries for n in (a, b) if n not in own})
-        for a, b, t, info in across:
-            self.graph.add_loop(a, b, t, info, check=False)  # checked when it was added
-        for a, b, t, info in sorted(entries, key=lambda e: e[1]):  # as rehearsal made them (checked then)
-            self.link_merge(a, b, t, info, check=False)
+        previous = self._place_previous({n for a, b, _, _ in across + entries for n in (a, b) if n not in own})
         incoming = {b: a for a, b, _, _ in odometry}
         for a, b, _, _ in entries:
-            if b not in self.neighbours.setdefault(a, []):
+            if b not in self._neighbours.setdefault(a, []):
                 self.link(a, b)
         words = {}
         for n in nodes:
             keypoints, descriptors, points, words[n.id] = store.load_features(n.id)
-            self.features[n.id] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
+            self._features[n.id] = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
             self._stamps[n.id] = n.stamp
             self._order.append(n.id)
-            self.neighbours.setdefault(n.id, [])
+            self._neighbours.setdefault(n.id, [])
             src = incoming.get(n.id)
             self._segment[n.id] = n.id if src is None else self._segment.get(src, src)
             if src is not None:
@@ -384,47 +394,38 @@ class MemoryManager:
                 self.link(lk.to_id, lk.from_id)
         if self.loop_config.refine_dense:
             for n in own:
-                self.views.defer(n)
+                self._views.defer(n)
         self._index_words(words)  # those the vocabulary does not hold (it loads only WM's with a WM limit)
-        k = max(len(self._order) - self.tiers.stm_size, 0)
-        self.tiers.restore(stm=self._order[k:], wm=self._order[:k], ltm=(), weights={n.id: n.weight for n in nodes})
-        return closures
+        k = max(len(self._order) - self._tiers.stm_size, 0)
+        self._tiers.restore(stm=self._order[k:], wm=self._order[:k], ltm=(), weights={n.id: n.weight for n in nodes})
+        return ResumedSession(
+            poses={n.id: n.pose for n in nodes}, odometry=[k for k in odometry if k[0] in own],
+            loops=[k for k in loops if k[0] in own and k[1] in own], previous=previous, across=across,
+            merge_links=sorted(entries, key=lambda e: e[1]),  # as rehearsal made them
+            closures=closures)
 
-    def _place_previous(self, node_ids) -> None:
-        """Nodes of the previous map (not in this mapper's graph) enter it at their stored
-        poses, each with the tight prior: that map is already optimised, so it stays where it
-        is and anchors the new session (whose first node has the loose segment prior), which a
-        loop link to it places in the old map's frame. Their stamps count as older than any
-        `loop.min_age`; their weights are the stored ones."""
-        records = [r for r in self.store.get_nodes(node_ids) if r.id not in self.graph]
-        self.graph.add_anchored({r.id: r.pose for r in records})
+    def _place_previous(self, node_ids) -> dict[int, np.ndarray]:
+        """Nodes of the previous map enter this map update (those not in it yet): their
+        stamps count as older than any `loop.min_age`, their weights are the stored ones.
+        Returns them at their stored poses: the mapper's graph places them there, each with
+        the tight prior (that map is already optimised, so it stays where it is and anchors
+        the new session, which a loop link to it places in the old map's frame)."""
+        records = [r for r in self.store.get_nodes(node_ids) if r.id not in self._stamps]
         for r in records:
             self._stamps[r.id] = -np.inf  # another session's: always old enough to be a candidate
-            self.neighbours.setdefault(r.id, [])
-            self.tiers.weights[r.id] = r.weight
+            self._neighbours.setdefault(r.id, [])
+            self._tiers.weights[r.id] = r.weight
+        return {r.id: r.pose for r in records}
 
     def _index_words(self, words: dict) -> None:
         """Index the words of nodes ({node: word id per feature, or None}) the vocabulary
         does not hold yet, the descriptors of its missing words read in one query."""
-        with self.vocabulary.lock:
-            todo = {n: w for n, w in words.items() if w is not None and n not in self.vocabulary}
+        with self._vocabulary.lock:
+            todo = {n: w for n, w in words.items() if w is not None and n not in self._vocabulary}
             if not todo:
                 return
-            missing = self.vocabulary.missing_words(np.concatenate([np.asarray(w, np.int64) for w in todo.values()]))
-            self.vocabulary.reload_nodes(todo, descriptors=self.store.load_words(missing) if len(missing) else None)
-
-
-@dataclasses.dataclass
-class _MergeLink:
-    """The graph link merges made between two nodes: T_from_to (mean of `count` measurements)
-    and the information of the link in the graph."""
-
-    from_id: int
-    to_id: int
-    transform: np.ndarray
-    information: np.ndarray
-    count: int
-    in_graph: np.ndarray  # T_from_to of the link in the graph (the mean when it was last put there)
+            missing = self._vocabulary.missing_words(np.concatenate([np.asarray(w, np.int64) for w in todo.values()]))
+            self._vocabulary.reload_nodes(todo, descriptors=self.store.load_words(missing) if len(missing) else None)
 
 
 def series_information(a: np.ndarray | None, b: np.ndarray) -> np.ndarray:
@@ -433,42 +434,3 @@ def series_information(a: np.ndarray | None, b: np.ndarray) -> np.ndarray:
     if a is None:
         return b
     return np.linalg.inv(np.linalg.inv(a) + np.linalg.inv(b))
-
-
-class _StoredViews(dict):
-    """Dense views ({node: DenseView}) of which those of stored keyframes are decoded from
-    their stored images when first asked for (`in` or `[]`), so that a resumed session or a
-    retrieved node costs a decode only when it becomes a loop candidate."""
-
-    def __init__(self, store: MapStore, camera: PinholeCamera):
-        super().__init__()
-        self._store, self._camera, self._stored = store, camera, set()
-
-    def defer(self, node_id) -> None:
-        """Decode this node's view from the store when it is first asked for."""
-        if not super().__contains__(node_id):
-            self._stored.add(node_id)
-
-    def pop(self, node_id, default=None):
-        self._stored.discard(node_id)
-        return super().pop(node_id, default)
-
-    def _load(self, node_id) -> None:
-        if node_id not in self._stored:
-            return
-        self._stored.discard(node_id)
-        try:
-            image, depth = decode_images(*self._store.load_images(node_id))
-        except Exception as e:  # a bad image costs the dense refinement of this keyframe only
-            log.warning("node %d: stored images not usable for dense registration: %s", node_id, e)
-            return
-        if image is not None and depth is not None:
-            self[node_id] = DenseView(depth, image, self._camera)
-
-    def __contains__(self, node_id) -> bool:
-        self._load(node_id)
-        return super().__contains__(node_id)
-
-    def __getitem__(self, node_id):
-        self._load(node_id)
-        return super().__getitem__(node_id)

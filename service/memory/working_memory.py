@@ -3,9 +3,9 @@ memory (STM: the newest `stm_size`, not loop candidates), working memory (WM: lo
 candidates, their features and words in RAM) and long-term memory (LTM: in the database
 only), and which move between them.
 
-This module decides; it holds no features and does no I/O. The memory manager
-(`manager.MemoryManager`) asks it what to transfer and what to retrieve, moves the data
-(vocabulary, loop detector, pose graph, feature and view caches) and tells it what moved.
+This module decides; it holds no features and does no I/O. Memory (`manager.Memory`) asks it
+what to transfer and what to retrieve, moves the data (vocabulary, feature and view caches;
+the mapper's loop detector and pose graph are told by the mapper) and tells it what moved.
 Moving a node between WM and LTM changes no data.
 
 Transfer (WM → LTM, RTAB-Map's `Memory::forget`): when WM holds more than `max_wm_nodes`
@@ -16,7 +16,7 @@ or to the loop-closure node, nor nodes near the current pose.
 
 Retrieval (LTM → WM): LTM nodes within `retrieval_depth` graph links of the best loop
 hypothesis (even one below the acceptance threshold), nearest first (`select_retrievals`),
-then those the map places near the new keyframe (the manager asks the database's spatial
+then those the map places near the new keyframe (memory asks the database's spatial
 index), at most `max_retrieved` per update.
 """
 from __future__ import annotations

@@ -42,7 +42,7 @@ import numpy as np
 from client.frames import PinholeCamera
 
 from ..config import SemanticsConfig
-from ..memory.long_term import decode_images
+from ..memory.keyframes import decode_images
 from .connectivity import MapConnectivity
 from .objects import ObjectFusion
 from .segmentation import CameraLabels, Segmenter

@@ -1,7 +1,7 @@
-"""Long-term memory writes: every keyframe goes to the SQLite long-term memory in one
-transaction before it is reported (so RAM never holds the only copy), linked to the
-previous keyframe by its odometry constraint. What the map update keeps of it in RAM, and
-when, is the memory manager's (`manager`)."""
+"""Keyframe writes on the tracking side: every keyframe goes to the SQLite long-term memory in
+one transaction before it is reported (so RAM never holds the only copy), linked to the
+previous keyframe by its odometry constraint (`KeyframeWriter`, one per session). What the map
+update keeps of it in RAM, and when, is memory's (`manager.Memory`)."""
 from __future__ import annotations
 
 import cv2
@@ -23,7 +23,9 @@ def odometry_information(inliers: int) -> np.ndarray:
     return np.diag(1.0 / sigmas**2)
 
 
-class Memory:
+class KeyframeWriter:
+    """A session of one robot in the map: its keyframes written as tracking makes them."""
+
     def __init__(self, store: MapRepository, robot: str, calibration: Calibration, config: Config):
         self.store = store
         self.config = config
