@@ -60,6 +60,7 @@ class _Crash:
 
     def __init__(self, stored: Mapper, cut: int):
         self.stored, self.cut, self.n = stored, cut, 0
+        self.mapped = self.submitted = 0  # (the pipeline's backlog: inline, none)
 
     def submit(self, u):
         self.n += 1
@@ -186,6 +187,7 @@ class _Stops:
 
     def __init__(self, mapper: Mapper, cut: int):
         self.mapper, self.cut, self.n = mapper, cut, 0
+        self.mapped = self.submitted = 0  # (the pipeline's backlog: inline, none)
 
     def submit(self, u):
         self.n += 1
@@ -257,8 +259,10 @@ def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path, uninterrupted)
         sid = s.sessions()[0].id
         assert s.session(sid).ended_at is None  # nobody ended it
         keyframes = [n.id for n in s.nodes(session_id=sid, limit=None)]
-        unmapped = set(s.unmapped_nodes()[sid])  # (the killed service's mapping child may finish one more)
-    assert len(keyframes) == robot["keyframes"] and len(unmapped) >= backlog_at_kill - 1
+        # (the killed service's mapping child maps on until it sees its parent gone: a few more, fast ones
+        # once keyframes past loop.backlog_images come without images)
+        unmapped = set(s.unmapped_nodes()[sid])
+    assert len(keyframes) == robot["keyframes"] and len(unmapped) >= backlog_at_kill - 5
 
     t0 = time.monotonic()
     svc2 = ServiceProcess(db, NO_REHEARSAL).start(timeout=300)  # recovery runs before it serves
