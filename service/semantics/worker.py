@@ -13,9 +13,10 @@ and counted, never raised into tracking.
 Coverage: a keyframe that finds the queue full is not lost. It waits in the store
 (`deferred`), and whenever the queue is empty the worker back-fills the newest map keyframe
 not segmented yet from its stored images with the model (`semantics.backfill`): the
-deferred ones, and those of a map made while semantics were off. It rests after each
-keyframe so as to be busy at most `max_duty` of the time while robots map, and works
-without rest once no keyframe came for `idle_after` seconds. The map's coverage (keyframes
+deferred ones, and those of a map made while semantics were off. While robots map (a
+keyframe came within `idle_after` seconds) it takes only their live keyframes and rests
+after each so as to be busy at most `max_duty` of the time; once they are slow or idle it
+back-fills without rest. The map's coverage (keyframes
 segmented / keyframes) is `MapStore.segmentation_coverage`.
 
 Without `background` (offline runs) `submit` does the work at once, so runs are
@@ -181,11 +182,14 @@ class SemanticWorker:
             except (AttributeError, OSError) as e:  # pragma: no cover - not Linux
                 log.info("semantic worker keeps its priority: %s", e)
         duty = min(1.0, max(0.05, float(self.config.max_duty)))
+        backfilling = False  # the last look found a keyframe to back-fill: look again at once
         while True:
             try:
-                kf = self._queue.get(timeout=0.5 if self.backfills else None)
-            except queue.Empty:
-                kf = self._next_backfill()
+                kf = self._queue.get(block=not backfilling, timeout=0.5 if self.backfills else None)
+            except queue.Empty:  # the back-fill: only while no robot maps (slow or idle), tracking keeps the cores
+                idle = time.monotonic() - self._last_keyframe >= float(self.config.idle_after)
+                kf = self._next_backfill() if idle else None
+                backfilling = kf is not None
                 if kf is None:
                     continue
             if kf is _STOP:
