@@ -264,6 +264,16 @@ def _stored_keyframes(store, ds, frames) -> list[int]:
     return ids
 
 
+def _finish(store, worker, segmented: int, timeout: float):
+    """Wait until `segmented` keyframes are (or `timeout` s), close the worker: (coverage, the
+    worker's counts, the stored objects' labels)."""
+    deadline = time.monotonic() + timeout
+    while store.segmentation_coverage()["segmented"] < segmented and time.monotonic() < deadline:
+        time.sleep(0.1)
+    worker.close()
+    return store.segmentation_coverage(), worker.stats(), {o.label for o in store.objects()}
+
+
 def test_keyframes_the_worker_could_not_take_are_backfilled(segmenter, data_dir, tmp_path):
     """Issue 24: keyframes handed over faster than the model segments them find the queue
     full; they wait in the store and the worker back-fills them (newest first) from their
@@ -285,12 +295,7 @@ def test_keyframes_the_worker_could_not_take_are_backfilled(segmenter, data_dir,
                                                ds.calibration.camera))
             live = worker.stats()
             assert live["deferred" if backfill else "dropped"] >= 5, live  # one in the model, one queued
-            deadline = time.monotonic() + 180
-            while backfill and store.segmentation_coverage()["segmented"] < len(ids) and time.monotonic() < deadline:
-                time.sleep(0.2)
-            worker.close()
-            coverage, stats = store.segmentation_coverage(), worker.stats()
-            labels = {o.label for o in store.objects()}
+            coverage, stats, labels = _finish(store, worker, len(ids) if backfill else 0, timeout=180)
         if not backfill:
             assert coverage["segmented"] == stats["processed"] < len(ids) / 2, (coverage, stats)
             continue
@@ -317,12 +322,7 @@ def test_deferred_camera_labels_wait_for_the_backfill(tmp_path):
                 f = images[i]
                 worker.submit(SemanticKeyframe(n, ds.ground_truth.poses[i], f.image, f.depth, f.extras["labels"],
                                                ds.calibration.camera))
-            deadline = time.monotonic() + 120
-            while backfill and store.segmentation_coverage()["segmented"] < len(ids) and time.monotonic() < deadline:
-                time.sleep(0.1)
-            worker.close()
-            coverage, stats = store.segmentation_coverage(), worker.stats()
-            labels = {o.label for o in store.objects()}
+            coverage, stats, labels = _finish(store, worker, len(ids) if backfill else 0, timeout=120)
         assert stats["deferred" if backfill else "dropped"] >= len(ids) / 2, stats
         if backfill:
             assert coverage["segmented"] == len(ids) and stats["backfilled"] == stats["deferred"], (coverage, stats)
