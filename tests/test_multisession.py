@@ -6,7 +6,7 @@ session's frame starts at the identity, so B's coordinates coincide numerically 
 without meaning anything there: before the fix, proximity search joined B to A's map at its
 4th keyframe by those coordinates (a dense link from the graph's pose, 2.75 m off the truth),
 and B's whole trajectory lay 2.76 m off in A's frame. Now proximity, path and rehearsal stay
-inside a map (`MemoryManager.same_map`); B joins by an appearance hypothesis once it walks
+inside a map (`Memory.same_map`); B joins by an appearance hypothesis once it walks
 A's stretch, and then lies in A's frame."""
 import numpy as np
 import pytest
