@@ -180,7 +180,7 @@ class ViewerFeed:
 
     def _frames(self, store, sessions) -> dict[int, int]:
         """{session id: the map id of the oldest session that links join it to}: sessions with
-        the same one share coordinates (ObjectIndex.maps, service.semantics.connectivity)."""
+        the same one share coordinates (ObjectIndex.maps, storage.connectivity)."""
         if self.objects is None:
             return {}
         firsts = {}

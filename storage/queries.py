@@ -110,7 +110,7 @@ class Queries(Connection):
     def links_after(self, rowid: int = 0) -> tuple[int, np.ndarray]:
         """The links stored after row `rowid` (a rewritten link gets a new row): (the newest
         row, (L, 2) int64 (from, to) in row order), ids as stored. For an incremental view of
-        which nodes the links join (`service.semantics.connectivity`)."""
+        which nodes the links join (`storage.connectivity`)."""
         with self._read() as c:
             rows = c.execute("SELECT rowid, from_id, to_id FROM links WHERE rowid > ? ORDER BY rowid",
                              (_as_int(rowid, "rowid"),)).fetchall()

@@ -1,5 +1,5 @@
 """Several robots in one map share one semantic object set (the map's one semantic worker),
-and frames that no link joins are never compared: `service.semantics.connectivity`.
+and frames that no link joins are never compared: `storage.connectivity`.
 
 Robot A maps the start of the synthetic loop and leaves. Robots B and C then walk the same
 stretch at once (interleaved frames, one shared worker, map updates inline): they relocalize on
@@ -11,9 +11,9 @@ import pytest
 
 from service.builder import build_pipeline, build_semantics
 from service.config import load_config
-from service.semantics.connectivity import MapConnectivity
 from service.semantics.queries import NotFound, ObjectIndex, RobotLocation
 from storage import MapStore
+from storage.connectivity import MapConnectivity
 
 from conftest import LOOP_NOISY, synthetic
 

@@ -22,6 +22,7 @@ import numpy as np
 from client.frames import PinholeCamera
 from client.geometry import invert, nearby
 from storage import LinkType, MapStore, UnknownIdError
+from storage.connectivity import MapConnectivity
 
 from ..config import LoopConfig, MemoryConfig
 from ..tracking.features import FrameFeatures
@@ -71,7 +72,7 @@ class Memory:
         # or stored keyframe's are decoded from its stored images when first needed)
         self._views: dict[int, DenseView] = StoredViews(store, camera) if store is not None else {}
         self._neighbours: dict[int, list[int]] = {}
-        self._root: dict[int, int] = {}  # union-find of the graph's connected parts (`same_map`)
+        self._maps = MapConnectivity()  # the graph's connected parts (`same_map`), fed by `link`
         self._merged: dict[int, tuple[int, np.ndarray]] = {}
         self._order: list[int] = []
         # node -> stamp, of every node of this map update: those it added, resumed or placed
@@ -136,17 +137,7 @@ class Memory:
         map from now on."""
         self._neighbours.setdefault(a, []).append(b)
         self._neighbours.setdefault(b, []).append(a)
-        ra, rb = self._map_of(a), self._map_of(b)
-        if ra != rb:
-            self._root[max(ra, rb)] = min(ra, rb)
-
-    def _map_of(self, node: int) -> int:
-        """The oldest node of `node`'s connected part of the graph (union-find, paths halved)."""
-        root = self._root
-        while root.setdefault(node, node) != node:
-            root[node] = root.setdefault(root[node], root[node])
-            node = root[node]
-        return node
+        self._maps.union(a, b)
 
     def same_map(self, node: int, nodes) -> list[int]:
         """Those of `nodes` that links join to `node` (directly or not): the nodes whose map
@@ -154,8 +145,8 @@ class Memory:
         starts a map of its own, whose coordinates coincide numerically with the others' but
         relate to nothing there until an appearance link joins it (RTAB-Map bounds proximity
         by graph depth for the same reason)."""
-        here = self._map_of(node)
-        return [n for n in nodes if self._map_of(n) == here]
+        here = self._maps.find(node)
+        return [n for n in nodes if self._maps.find(n) == here]
 
     def loop_closed(self, node: int) -> None:
         """A loop closure to `node` was accepted: it stays in WM, and the nodes that enter WM

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .connectivity import MapConnectivity
+from storage.connectivity import MapConnectivity
 
 log = logging.getLogger("mnemoslam.semantics.queries")
 

@@ -25,7 +25,7 @@ reproducible.
 One worker serves one map: the service hands every robot's keyframes to the same worker, so
 the robots' objects are one set (a door two robots see is one door). A keyframe is compared
 only with objects anchored in its own connected part of the map
-(`connectivity.MapConnectivity`): robots, sessions and segments not yet joined by a link have
+(`storage.connectivity.MapConnectivity`): robots, sessions and segments not yet joined by a link have
 unrelated frames."""
 from __future__ import annotations
 
@@ -41,10 +41,10 @@ import cv2
 import numpy as np
 
 from client.frames import PinholeCamera
+from storage.connectivity import MapConnectivity
 
 from ..config import SemanticsConfig
 from ..memory.keyframes import decode_images
-from .connectivity import MapConnectivity
 from .objects import ObjectFusion
 from .segmentation import CameraLabels, Segmenter
 
