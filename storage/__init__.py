@@ -1,8 +1,8 @@
-"""SQLite long-term memory (LTM) of the map: sessions, nodes (keyframes), links, features,
-words, images and statistics in one file. See `storage.store` for how `MapStore` is split by
-concern, `storage.records` for the encodings, `storage.connection` for the durability /
-threading guarantees, `storage.schema` for the tables and migrations and
-`storage.repository` for the interface the service uses."""
+"""SQLite long-term memory (LTM) of the map (`mnemoslam.storage`): sessions, nodes (keyframes), links, features,
+words, images and statistics in one file. See `store` for how `MapStore` is split by
+concern, `records` for the encodings, `connection` for the durability /
+threading guarantees, `schema` for the tables and migrations and
+`repository` for the interface the service uses."""
 from .records import (
     LINK_NAMES,
     KeyframeRecord,

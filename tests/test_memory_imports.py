@@ -1,15 +1,15 @@
-"""Memory is the map's store of nodes (RTAB-Map's Memory); the map update (`service.mapping`)
-calls it, never the reverse: no module of `service/memory` imports `service.mapping`."""
+"""Memory is the map's store of nodes (RTAB-Map's Memory); the map update (`mnemoslam.service.mapping`)
+calls it, never the reverse: no module of `service/memory` imports `mnemoslam.service.mapping`."""
 import ast
 from pathlib import Path
 
-import service.memory
+import mnemoslam.service.memory
 
-MEMORY = Path(service.memory.__file__).parent
+MEMORY = Path(mnemoslam.service.memory.__file__).parent
 
 
-def mapping_imports(source: str, package: str = "service.memory") -> list[str]:
-    """The modules of `service.mapping` that `source` (a module of `package`) imports."""
+def mapping_imports(source: str, package: str = "mnemoslam.service.memory") -> list[str]:
+    """The modules of `mnemoslam.service.mapping` that `source` (a module of `package`) imports."""
     found = []
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Import):
@@ -20,15 +20,15 @@ def mapping_imports(source: str, package: str = "service.memory") -> list[str]:
             names = [module] + [f"{module}.{a.name}" for a in node.names]
         else:
             continue
-        found += [n for n in names if n == "service.mapping" or n.startswith("service.mapping.")]
+        found += [n for n in names if n == "mnemoslam.service.mapping" or n.startswith("mnemoslam.service.mapping.")]
     return found
 
 
 def test_the_check_sees_every_form_of_import():
     assert mapping_imports("from ..mapping.graph import PoseGraph")
     assert mapping_imports("from .. import mapping")
-    assert mapping_imports("import service.mapping.mapper")
-    assert mapping_imports("def f():\n    from service.mapping import graph")
+    assert mapping_imports("import mnemoslam.service.mapping.mapper")
+    assert mapping_imports("def f():\n    from mnemoslam.service.mapping import graph")
     assert not mapping_imports("from ..tracking.features import FrameFeatures\nfrom .views import DenseView")
 
 
