@@ -3,6 +3,7 @@
 pyproject.toml), never modules named `service`, `client` or `storage`; the shared kernel
 (`mnemoslam.client.kernel`) imports nothing else of mnemoslam."""
 import ast
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -27,8 +28,15 @@ def test_every_package_folder_is_listed_under_its_namespace():
 
 def test_the_wheel_holds_only_the_mnemoslam_namespace(tmp_path):
     """The wheel `pip install .` would install: every module under mnemoslam/, the viewer's page
-    beside its module, the `mnemoslam` command on mnemoslam.service.cli."""
-    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path), str(ROOT)],
+    beside its module, the `mnemoslam` command on mnemoslam.service.cli. Built from a copy of the
+    sources, so no build/ folder of the checkout's can add to it."""
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, src / name)
+    for top in TOP:
+        shutil.copytree(ROOT / top, src / top, ignore=shutil.ignore_patterns("__pycache__"))
+    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path), str(src)],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     (wheel,) = tmp_path.glob("mnemoslam-*.whl")
