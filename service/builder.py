@@ -49,13 +49,13 @@ def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config
                    mapping: MappingProcess | None = None, background: bool = False,
                    on_event: Callable[[str, dict], None] | None = None,
                    semantics: tuple[SemanticWorker | None, str | None] | None = None) -> Pipeline:
-    """A new session of `robot` in the map `store`: its memory (a session in the database), its
+    """A new session of `robot` in the map `store`: its keyframe writer (a session in the database), its
     map update when `config.loop.enabled` (in `mapping`'s child process when given, else a
     Mapper on its own thread with `background`, else inline) reporting to `on_event(kind,
     data)`, its semantic worker (`semantics`: the map's shared (worker, why off) from
     `build_semantics`, which the caller closes; else one of its own, see `build_semantics`,
     that the pipeline closes), and the pipeline over them. End it with `Pipeline.close()`."""
-    memory = KeyframeWriter(store, robot, calibration, config)
+    writer = KeyframeWriter(store, robot, calibration, config)
     mapper = None
     if config.loop.enabled:
         if mapping is not None:
@@ -65,4 +65,4 @@ def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config
                             memory=config.memory)
     owned = semantics is None
     worker, off = build_semantics(store, config, background=background) if owned else semantics
-    return Pipeline(calibration, config, memory, mapper, worker, off, robot=robot, owns_semantics=owned)
+    return Pipeline(calibration, config, writer, mapper, worker, off, robot=robot, owns_semantics=owned)

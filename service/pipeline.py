@@ -46,11 +46,11 @@ class FrameResult:
 class Pipeline:
     """One SLAM session for one camera."""
 
-    def __init__(self, calibration: Calibration, config: Config, memory=None, mapper=None, semantics=None,
+    def __init__(self, calibration: Calibration, config: Config, writer=None, mapper=None, semantics=None,
                  semantics_off: str | None = None, *, robot: str = "", owns_semantics: bool = True):
         self.calibration = calibration
         self.config = config
-        self.memory = memory  # service.memory.keyframes.KeyframeWriter, or None for odometry alone
+        self.writer = writer  # memory.keyframes.KeyframeWriter (the session in the map), or None for odometry alone
         self.mapper = mapper  # service.mapping.mapper.Mapper (loop closure + graph), or None
         self.semantics = semantics  # service.semantics.worker.SemanticWorker, or None
         self.semantics_off = semantics_off  # why semantics are off (None when on)
@@ -64,8 +64,8 @@ class Pipeline:
 
     @property
     def session_id(self) -> int | None:
-        """The map database's session of this pipeline (None without memory)."""
-        return self.memory.session_id if self.memory is not None else None
+        """The map database's session of this pipeline (None for odometry alone)."""
+        return self.writer.session_id if self.writer is not None else None
 
     @property
     def map_progress(self) -> tuple[int, int]:
@@ -82,8 +82,8 @@ class Pipeline:
         # after the final poses: objects are written against them
         if self.semantics is not None and self._owns_semantics:
             self.semantics.close()
-        if self.memory is not None:
-            self.memory.close(reason)
+        if self.writer is not None:
+            self.writer.close(reason)
 
     def process(self, frame: Frame) -> FrameResult:
         t0 = time.perf_counter()
@@ -110,12 +110,12 @@ class Pipeline:
         )
 
     def _remember(self, frame: Frame, features, tracked) -> int | None:
-        """Store the keyframe (memory), then hand it to the map update (loop closure)."""
-        if self.memory is None:
+        """Store the keyframe (its session's writer), then hand it to the map update (loop closure)."""
+        if self.writer is None:
             return None
-        node_id = self.memory.add_keyframe(frame, features, tracked.pose, tracked.inliers, tracked.segment)
+        node_id = self.writer.add_keyframe(frame, features, tracked.pose, tracked.inliers, tracked.segment)
         if self.mapper is not None:
-            link = self.memory.last_link
+            link = self.writer.last_link
             mapped, submitted = self.map_progress
             if features.depth is not None and submitted - mapped >= self.config.loop.backlog_images:
                 # the map update is this far behind (a loaded machine): the keyframe waits without
