@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test check lint venv browser bench clean
+.PHONY: demo test check lint typecheck venv browser bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -34,6 +34,16 @@ check: $(STAMP)
 ## The linter (ruff, pinned in the test extras; its rules in pyproject.toml). CI runs it before the tests.
 lint: $(STAMP)
 	$(BIN)/ruff check .
+
+## The type checker (mypy, pinned in the test extras; its settings in pyproject.toml) on the core
+## packages, TYPECHECK; CI runs it after the linter. mypy cannot follow setuptools' editable
+## finder, so it reads the code through build/typecheck/mnemoslam/{service,client,storage}, links
+## to this checkout's folders (its messages name files by those paths).
+TYPECHECK ?= mnemoslam.client.kernel mnemoslam.service.tracking mnemoslam.service.config
+typecheck: $(STAMP)
+	mkdir -p build/typecheck/mnemoslam
+	for d in service client storage; do ln -sfn "$(CURDIR)/$$d" build/typecheck/mnemoslam/$$d; done
+	$(BIN)/mypy --cache-dir build/mypy-cache $(addprefix -p ,$(TYPECHECK))
 
 ## Chromium for the viewer's browser test (tests/test_viewer.py): the Debian package, installed
 ## with apt-get when it is missing and apt-get can (root, or sudo without a password). Not fatal:

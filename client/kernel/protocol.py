@@ -810,11 +810,8 @@ def _load(data: Any, limits: Limits, what: str) -> dict:
     return obj
 
 
-def _number(obj: dict, key: str, what: str, *, positive: bool = False, nonneg: bool = False,
-            optional: bool = False) -> float | None:
+def _number(obj: dict, key: str, what: str, *, positive: bool = False, nonneg: bool = False) -> float:
     v = obj.get(key)
-    if v is None and optional:
-        return None
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise ProtocolError("bad_json", f"{what}: {key} must be a number, got {v!r:.40}")
     v = float(v)
@@ -824,11 +821,8 @@ def _number(obj: dict, key: str, what: str, *, positive: bool = False, nonneg: b
     return v
 
 
-def _integer(obj: dict, key: str, what: str, lo: int, hi: int, *, optional: bool = False,
-             reason: str = "bad_field") -> int | None:
+def _integer(obj: dict, key: str, what: str, lo: int, hi: int, *, reason: str = "bad_field") -> int:
     v = obj.get(key)
-    if v is None and optional:
-        return None
     if isinstance(v, bool) or not isinstance(v, int):
         raise ProtocolError("bad_json", f"{what}: {key} must be an integer, got {v!r:.40}")
     if not lo <= v <= hi:
@@ -886,7 +880,7 @@ def _check_info(obj: dict, what: str = "camera info") -> CameraInfo:
     cy = _number(obj, "cy", what)
     width = _integer(obj, "width", what, 1, 65535)
     height = _integer(obj, "height", what, 1, 65535)
-    baseline = _number(obj, "baseline", what, positive=True, optional=True)
+    baseline = None if obj.get("baseline") is None else _number(obj, "baseline", what, positive=True)
     depth_scale = _number(obj, "depth_scale", what, positive=True)
     if (kind == "stereo") != (baseline is not None):
         raise ProtocolError("bad_field", f"{what}: a {kind} camera must {'' if kind == 'stereo' else 'not '}"
@@ -997,9 +991,8 @@ def decode_pose(data: Any, limits: Limits = DEFAULT_LIMITS) -> PoseMessage:
     if not isinstance(obj.get("keyframe"), bool):
         raise ProtocolError("bad_json", f"{what}: keyframe must be true or false")
     segment = _integer(obj, "segment", what, 0, 2**31 - 1)
-    node_id = _integer(obj, "node_id", what, 0, _U64_MAX, optional=True)
-    queue_depth = _integer(obj, "queue_depth", what, 0, _U64_MAX, optional=True)
-    dropped = _integer(obj, "dropped", what, 0, _U64_MAX, optional=True)
+    node_id, queue_depth, dropped = (None if obj.get(k) is None else _integer(obj, k, what, 0, _U64_MAX)
+                                     for k in ("node_id", "queue_depth", "dropped"))
     return PoseMessage(obj["robot"], seq, stamp, status, pose, obj["keyframe"], segment, node_id, queue_depth,
                        dropped)
 

@@ -58,7 +58,7 @@ def _keypoint_arrays(kps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions, responses and octaves of cv2.KeyPoints as arrays (the one place we cross
     from OpenCV's keypoint objects to numpy)."""
     n = len(kps)
-    xy = cv2.KeyPoint_convert(kps).reshape(-1, 2) if n else np.zeros((0, 2), np.float32)
+    xy = np.asarray(cv2.KeyPoint.convert(kps)).reshape(-1, 2) if n else np.zeros((0, 2), np.float32)
     response = np.fromiter((k.response for k in kps), np.float32, n)
     octave = np.fromiter((k.octave for k in kps), np.int8, n)
     return xy, response, octave
@@ -76,11 +76,11 @@ class FeatureExtractor:
         cam = calibration.camera
         # max_features is for a 640×480 image; larger images (a 1241×376 KITTI frame) get more
         self.max_features = n = round(c.max_features * max(1.0, cam.width * cam.height / (640 * 480)))
-        self._orb = cv2.ORB_create(
+        self._orb = cv2.ORB.create(
             nfeatures=n * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
             edgeThreshold=19, patchSize=31, fastThreshold=c.fast_threshold,
         )
-        self._orb_low = cv2.ORB_create(
+        self._orb_low = cv2.ORB.create(
             nfeatures=n * 2, scaleFactor=c.scale_factor, nlevels=c.levels,
             edgeThreshold=19, patchSize=31, fastThreshold=c.min_fast_threshold,
         )
@@ -172,6 +172,8 @@ class FeatureExtractor:
         triangulate. Returns the points and the measured (uncorrected) disparities."""
         s = self.stereo
         cam = self.calibration.camera
+        baseline = self.calibration.baseline
+        assert baseline is not None  # a stereo calibration's (extract's test)
         out = np.full((len(xy_l), 3), np.nan, np.float32)
         measured = np.full(len(xy_l), np.nan, np.float32)
         right = right if right.ndim == 2 else cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
@@ -197,7 +199,7 @@ class FeatureExtractor:
         with np.errstate(invalid="ignore"):
             good = d_true >= s.min_disparity  # (NaN: no SAD minimum inside the search range)
         i, d, d_true = i[good], d[good], d_true[good]
-        z = cam.fx * self.calibration.baseline / d_true
+        z = cam.fx * baseline / d_true
         keep = z <= s.max_depth
         i, z, d = i[keep], z[keep], d[keep]
         out[i, 0] = (xy_l[i, 0] - cam.cx) / cam.fx * z

@@ -378,12 +378,13 @@ def register(src: list[DepthLevel], ref: list[DepthLevel], T_init: np.ndarray, i
             continue
         if first and hypotheses:
             probe = min(hypothesis_iterations, cfg.iterations)
-            best = None
+            best: tuple | None = None
             for T0 in _hypotheses(T):
                 Tc, lc = _solve_level(s_lvl, r_lvl, T0, cfg, probe)
                 c = lc[1]["cost"] if lc else np.inf
                 if best is None or c < best[0]:
                     best = (c, Tc, lc)
+            assert best is not None  # _hypotheses gives one at least
             _, T, lvl_last = best
             if cfg.iterations > probe:
                 T, lc = _solve_level(s_lvl, r_lvl, T, cfg, cfg.iterations - probe)

@@ -32,9 +32,10 @@ class _DepthReference:
 
     def __init__(self, depth: np.ndarray, grey: np.ndarray | None):
         self.pose: np.ndarray | None = None
-        self.depth, self.grey, self._levels = depth, grey, None
+        self.depth, self.grey = depth, grey
+        self._levels: list[icp.DepthLevel] | None = None
 
-    def levels(self, camera: PinholeCamera) -> list:
+    def levels(self, camera: PinholeCamera) -> list[icp.DepthLevel]:
         if self._levels is None:
             self._levels = icp.depth_pyramid(self.depth, camera, icp.STEPS, grey=self.grey)
         return self._levels
@@ -82,7 +83,7 @@ class LocalMap:
 
     def clear(self) -> None:
         next_id = self._next_id  # ids stay unique over segments
-        self.__init__(self.capacity)
+        LocalMap.__init__(self, self.capacity)
         self._next_id = next_id
 
     def update(self, stamp_id: int, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> np.ndarray:
@@ -204,9 +205,9 @@ class Odometry:
         point_ids = np.where(inlier_index >= 0, self.map.ids[np.maximum(inlier_index, 0)], -1)
         if self._needs_map_update(pose, int(inliers.sum())):
             point_ids = self._update_map(features, pose, inlier_index, int(inliers.sum()))
-        if self.disparity_offset != offset:  # the map follows the new estimate (the frames will)
-            c = self.calibration
-            self.map.place_stereo_points(c.offset, c.fb, c.config.disparity_sigma)
+        cal = self.calibration
+        if cal is not None and cal.offset != offset:  # the map follows the new estimate (the frames will)
+            self.map.place_stereo_points(cal.offset, cal.fb, cal.config.disparity_sigma)
         self.velocity = invert(self.pose) @ pose  # motion over the last interval ...
         self._last_dt = self._dt(stamp)  # ... of this length, rescaled in _predict
         self.pose, self.last_stamp, self.lost_in_row = pose, stamp, 0
@@ -227,9 +228,9 @@ class Odometry:
     def _needs_map_update(self, pose: np.ndarray, inliers: int) -> bool:
         c = self.config
         delta = invert(self._map_pose) @ pose
-        return (np.linalg.norm(delta[:3, 3]) >= c.map_update_linear
-                or rotation_angle(delta[:3, :3]) >= c.map_update_angular
-                or inliers < c.map_update_ratio * self._map_inliers)
+        return bool(np.linalg.norm(delta[:3, 3]) >= c.map_update_linear
+                    or rotation_angle(delta[:3, :3]) >= c.map_update_angular
+                    or inliers < c.map_update_ratio * self._map_inliers)
 
     def _update_map(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray, inliers: int) -> np.ndarray:
         """The frame's features into the local map; returns their stable point ids."""
@@ -248,10 +249,12 @@ class Odometry:
         """Feed the disparity-offset estimate with this frame: its inliers' information on the
         offset at the refined pose (stereo map points slide along their first ray by
         ∂ρ/∂δ = −ρ²·cos/(f·b), this frame's depths by ∂z/∂δ = −z²/(f·b))."""
+        cal = self.calibration
+        assert cal is not None  # track() calibrates only with an estimator
         q = np.nonzero(map_index >= 0)[0]
         m = map_index[q]
         mp = self.map
-        fb = self.calibration.fb
+        fb = cal.fb
         stereo = np.isfinite(mp.disparity[m])
         rho = np.linalg.norm(mp.points[m] - mp.origins[m], axis=1)
         dworld = np.where(stereo, -rho ** 2 * np.nan_to_num(mp.cos0[m]) / fb, 0.0)
@@ -261,13 +264,14 @@ class Odometry:
                                         features.pixel_sigmas()[q], mp.rays[m], mp.sigma[m], dworld, z,
                                         features.depth_sigmas(nan=True)[q], ddepth)
         if info > 0:
-            self.calibration.add(self.calibration.offset - grad / info, info)
+            cal.add(cal.offset - grad / info, info)
 
     def _register_depth(self, features: FrameFeatures, predicted: np.ndarray):
         """Point-to-plane ICP of this frame's depth against the last map update's depth."""
         ref = self._reference
         if ref is None or features.depth is None:
             return None
+        assert ref.pose is not None  # _update_map sets the reference's pose with it
         c = self.config
         current = self._pending_reference = _DepthReference(features.depth, features.grey)
         res = icp.register(current.levels(self.camera), ref.levels(self.camera), invert(ref.pose) @ predicted,
@@ -294,6 +298,7 @@ class Odometry:
 
     def _predict(self, stamp: float) -> np.ndarray:
         """Constant-velocity prediction, the last motion scaled to the elapsed time."""
+        assert self.pose is not None  # track() starts a segment first
         if not self.config.motion_model:
             return self.pose
         dt, last_dt = self._dt(stamp), self._last_dt
@@ -353,10 +358,10 @@ class Odometry:
         if self._last_dt is None:  # no motion known yet in this segment: nothing to compare with
             return True
         delta = invert(predicted) @ pose
-        speed = np.linalg.norm(self.velocity[:3, 3])
-        turn = rotation_angle(self.velocity[:3, :3])
-        return (np.linalg.norm(delta[:3, 3]) <= max(c.max_jump_min_m, c.max_jump_factor * speed)
-                and rotation_angle(delta[:3, :3]) <= max(c.max_jump_min_rad, c.max_jump_factor * turn))
+        speed = float(np.linalg.norm(self.velocity[:3, 3]))
+        turn = float(rotation_angle(self.velocity[:3, :3]))
+        return bool(np.linalg.norm(delta[:3, 3]) <= max(c.max_jump_min_m, c.max_jump_factor * speed)
+                    and rotation_angle(delta[:3, :3]) <= max(c.max_jump_min_rad, c.max_jump_factor * turn))
 
     def _depth_consistent(self, pose: np.ndarray, world: np.ndarray, measured: np.ndarray) -> bool:
         """Reprojection alone cannot see a pose slid along the line of sight when the inliers

@@ -113,7 +113,8 @@ def sigma_from_hessian(H: np.ndarray) -> tuple[float, float]:
     except np.linalg.LinAlgError:
         return float("inf"), float("inf")
     var = np.linalg.eigvalsh(C[:3, :3])[-1], np.linalg.eigvalsh(C[3:, 3:])[-1]
-    return tuple(float(np.sqrt(v)) if v > 0 else float("inf") for v in var)
+    rotation, translation = (float(np.sqrt(v)) if v > 0 else float("inf") for v in var)
+    return rotation, translation
 
 
 def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray,
@@ -134,7 +135,7 @@ def refine_pose(T_cw: np.ndarray, K: np.ndarray, world: np.ndarray, pixels: np.n
         return (T, H) if hessian else T
     z_meas = zw = None
     chi = np.full(len(X), HUBER_CHI)
-    if depth is not None:
+    if depth is not None and depth_sigma is not None:
         z_meas, zw, chi, _ = _depth_terms(depth, depth_sigma)
     for _ in range(iterations):
         obs = _Observations(T, K, X, px, sigma_px, rays, sigma_ray, z_meas, zw)
