@@ -20,10 +20,11 @@ demo: $(STAMP)
 
 ## The test suite (real-data tests read MNEMOSLAM_DATA, default ../shared/data), on two pytest-xdist
 ## workers: each test module on one worker, the modules that share the session's runs on the same
-## one (tests/conftest.py XDIST_GROUPS). TEST_WORKERS=0 runs it in this one process.
+## one (tests/conftest.py XDIST_GROUPS); the 15 longest tests are listed at the end (where the
+## time goes). TEST_WORKERS=0 runs it in this one process.
 TEST_WORKERS ?= 2
 test: $(STAMP) browser
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 ## The fast tier for the edit loop: the suite without the tests marked slow (whole sequences,
 ## long streams through the service, the viewer's browser test: tests/conftest.py SLOW), on the
