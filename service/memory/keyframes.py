@@ -9,9 +9,10 @@ import numpy as np
 
 from client.frames import Calibration, Frame
 from client.geometry import invert
-from storage import KeyframeRecord, MapRepository
+from storage import KeyframeRecord, LocalGridRecord, MapRepository
 
 from ..config import Config, to_dict
+from ..grid.local import LocalGridMaker
 from ..tracking.features import FrameFeatures
 
 
@@ -34,6 +35,8 @@ class KeyframeWriter:
         self.last_pose: np.ndarray | None = None
         self.last_segment: int | None = None
         self.last_link: tuple | None = None
+        # each RGB-D keyframe's local occupancy grid, made and stored here (issue 25)
+        self.grids = LocalGridMaker(calibration.camera, config.grid) if config.grid.enabled else None
 
     def close(self, reason: str = "stopped") -> None:
         """The session ended, for `reason` (its keyframes are all committed already)."""
@@ -58,7 +61,17 @@ class KeyframeWriter:
             depth_png=depth_png, odom_link=link, statistics=statistics,
         ))
         self.last_node, self.last_pose, self.last_segment = node_id, pose, segment
+        if self.grids is not None and frame.depth is not None:
+            self._save_grid(node_id, frame, pose, segment)
         return node_id
+
+    def _save_grid(self, node_id: int, frame: Frame, pose: np.ndarray, segment: int) -> None:
+        """The keyframe's local grid, stored with it (its own small transaction after the
+        keyframe's: a keyframe without one gets it from its stored depth when needed)."""
+        g = self.grids.make(frame.depth, pose, segment, accel=frame.extras.get("accel"))
+        if g is not None:
+            self.store.save_local_grids([LocalGridRecord(node_id, g.cell_size, g.T_cam_local, g.origin_x, g.origin_y,
+                                                         g.encode_cells(), g.up_source, g.floor_points)])
 
 
 def decode_images(color_jpeg: bytes | None, depth_png: bytes | None) -> tuple[np.ndarray | None, np.ndarray | None]:
