@@ -5,7 +5,8 @@ import pytest
 
 from client.synthetic.dataset import SyntheticDataset
 from service.config import GridConfig
-from service.grid.local import FREE, OCCUPIED, LocalGrid, LocalGridMaker, angle_deg, fit_floor
+from service.grid.assembly import G_OCCUPIED, GlobalGrid
+from service.grid.local import FREE, OCCUPIED, LocalGrid, LocalGridMaker, StoredLocalGrid, angle_deg, fit_floor
 from storage import LocalGridRecord, MapStore, UnknownIdError
 
 Z_UP = np.array([0.0, 0.0, 1.0])
@@ -129,3 +130,143 @@ def test_local_grids_storage_and_migration(tmp_path):
             s.save_local_grids([LocalGridRecord(999, 0.05, T, 0, 0, b"x")])
         with pytest.raises(ValueError):
             s.save_local_grids([LocalGridRecord(nid, 0.0, T, 0, 0, b"x")])
+
+
+# -- the map's grid: assembly ----------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def walk_grids(walk):
+    """Local grids of every 4th frame of walk_b (true poses, in the first camera's frame)."""
+    mk = LocalGridMaker(walk.calibration.camera, GridConfig())
+    T0inv = np.linalg.inv(walk.ground_truth.poses[0])
+    poses, grids = [], {}
+    for k, i in enumerate(range(0, len(walk), 4)):
+        pose = T0inv @ walk.ground_truth.poses[i]
+        g = mk.make(walk.frame(i).depth, pose, 0)
+        rec = LocalGridRecord(k + 1, g.cell_size, g.T_cam_local, g.origin_x, g.origin_y, g.encode_cells(),
+                              g.up_source, g.floor_points)
+        grids[k + 1] = StoredLocalGrid(rec)
+        poses.append(pose)
+    return np.arange(1, len(poses) + 1), np.stack(poses), grids
+
+
+def _corrected(poses: np.ndarray, metres: float) -> np.ndarray:
+    """Poses bent as a loop closure corrects them: a yaw and a shift growing along the path."""
+    out = poses.copy()
+    for i in range(len(poses)):
+        f = i / (len(poses) - 1)
+        a = np.radians(2.0) * f
+        R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])  # about the map's y
+        out[i, :3, :3] = R @ poses[i, :3, :3]
+        out[i, :3, 3] = R @ poses[i, :3, 3] + np.array([metres * f, 0, 0])
+    return out
+
+
+@pytest.mark.parametrize("update_error", [0.0, 0.01])
+def test_grid_after_a_loop_closure_equals_one_from_scratch(walk_grids, update_error):
+    """Keyframes added one by one, then the poses corrected (a 2° / 10 cm bend): the grid
+    updated incrementally (moved keyframes re-placed, none added twice) equals the grid
+    assembled from scratch at the corrected poses: bit for bit with update_error 0, all but
+    the cells of keyframes that moved < 1 cm with the default."""
+    ids, poses, grids = walk_grids
+    cfg = GridConfig(update_error=update_error, frame_nodes=5)
+    g = GlobalGrid(cfg)
+    for k in range(10, len(ids) + 1, 10):
+        g.update(ids[:k], poses[:k], grids)
+    g.update(ids, poses, grids)
+    bent = _corrected(poses, 0.10)
+    bent[:5] = poses[:5]  # the grid frame's keyframes stay (else the grid is rebuilt anyway)
+    stats = g.update(ids, bent, grids)
+    assert not stats["rebuilt"] and stats["added"] == 0 and stats["moved"] > len(ids) // 2
+    scratch = GlobalGrid(cfg)
+    scratch.update(ids, bent, grids)
+    h1, m1, o1 = g.counts()
+    h2, m2, o2 = scratch.counts()
+    if update_error == 0:
+        assert o1 == o2
+        np.testing.assert_array_equal(h1, h2)
+        np.testing.assert_array_equal(m1, m2)
+        np.testing.assert_array_equal(g.image().states, scratch.image().states)
+    else:
+        a, b = g.image(), scratch.image()
+        assert a.states.shape == b.states.shape
+        assert np.mean(a.states == b.states) > 0.995
+    # a grid that did not follow the correction differs
+    stale = GlobalGrid(cfg)
+    stale.update(ids, poses, grids)
+    assert stale.image().states.shape != scratch.image().states.shape or \
+        np.mean(stale.image().states == scratch.image().states) < 0.97
+
+
+def test_grid_resampled_keeps_obstacles(walk_grids):
+    ids, poses, grids = walk_grids
+    g = GlobalGrid(GridConfig())
+    g.update(ids, poses, grids)
+    img = g.image()
+    coarse = img.resampled(0.1)
+    assert coarse.resolution == 0.1
+    assert abs(coarse.width - img.width / 2) <= 1 and abs(coarse.height - img.height / 2) <= 1
+    # every occupied 5 cm cell lies in an occupied 10 cm cell
+    iy, ix = np.nonzero(img.states == G_OCCUPIED)
+    cy = np.floor((img.origin[1] + (iy + 0.5) * 0.05 - coarse.origin[1]) / 0.1).astype(int)
+    cx = np.floor((img.origin[0] + (ix + 0.5) * 0.05 - coarse.origin[0]) / 0.1).astype(int)
+    assert np.all(coarse.states[cy, cx] == G_OCCUPIED)
+    fine = img.resampled(0.025)
+    assert np.mean(fine.states[1::2, 1::2][:img.height, :img.width] == img.states[:fine.height // 2,
+                                                                                   :fine.width // 2]) > 0.99
+
+
+def _store_with(path, walk_grids, sessions=1):
+    """A store whose keyframes carry walk_b's local grids, chained by odometry links; with two
+    sessions the second half is a second session (a second map until a link joins them)."""
+    from client.frames import Calibration, PinholeCamera
+    from storage import KeyframeRecord
+
+    ids, poses, grids = walk_grids
+    s = MapStore(path)
+    cal = Calibration(PinholeCamera(525, 525, 319.5, 239.5, 640, 480))
+    half = len(ids) // 2
+    sid = s.begin_session("r1", cal)
+    node_of, prev = {}, None
+    for k, n in enumerate(ids):
+        if sessions == 2 and k == half:
+            sid, prev = s.begin_session("r2", cal), None
+        link = None if prev is None else (prev, np.linalg.inv(poses[k - 1]) @ poses[k], None)
+        nid = s.add_keyframe(KeyframeRecord(sid, float(k), poses[k], np.zeros((0, 2), np.float32),
+                                            np.zeros((0, 32), np.uint8), np.zeros((0, 3), np.float32),
+                                            odom_link=link))
+        g = grids[int(n)]
+        s.save_local_grids([LocalGridRecord(nid, g.cell_size, g.T_cam_local, g.origin_x, g.origin_y, g.blob,
+                                            g.up_source, g.floor_points)])
+        node_of[int(n)], prev = nid, nid
+    return s, node_of
+
+
+def test_map_grids_follow_the_store(tmp_path, walk_grids):
+    """MapGrids: one grid per map; it follows poses moved in the store (as the map update
+    writes them) and equals a fresh assembly; two maps until a link joins them."""
+    from service.grid.maps import MapGrids, NoMap
+    from storage import LinkType
+
+    ids, poses, grids = walk_grids
+    cfg = GridConfig(update_error=0.0, frame_nodes=5)
+    s, node_of = _store_with(tmp_path / "a.db", walk_grids, sessions=2)
+    with s:
+        mg = MapGrids(s, cfg)
+        assert sorted(mg.maps()) == [0, 1]
+        a0, a1 = mg.grid(0), mg.grid(1)
+        assert a0.keyframes + a1.keyframes == len(ids)
+        with pytest.raises(NoMap, match="no map 7"):
+            mg.grid(7)
+        # a loop link joins the second session to the first: one map of every keyframe
+        first, last = node_of[int(ids[0])], node_of[int(ids[len(ids) // 2])]
+        s.add_link(first, last, int(LinkType.GLOBAL_CLOSURE), np.linalg.inv(poses[0]) @ poses[len(ids) // 2])
+        assert sorted(mg.maps()) == [0]
+        assert mg.grid(0).keyframes == len(ids)
+        bent = _corrected(poses, 0.1)
+        bent[:5] = poses[:5]
+        s.update_poses({node_of[int(n)]: bent[k] for k, n in enumerate(ids)})
+        img = mg.grid(0)
+        assert mg.last_update["moved"] > len(ids) // 2 and mg.last_update["added"] == 0
+        fresh = MapGrids(s, cfg).grid(0)
+        np.testing.assert_array_equal(img.states, fresh.states)
+        assert img.origin == fresh.origin

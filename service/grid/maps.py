@@ -1,0 +1,138 @@
+"""One occupancy grid per map of the store (`MapGrids`), kept up to date on demand.
+
+A map is a connected part of the pose graph, named by the map id of its oldest session (as
+`GET /robots/{id}` names the map a robot is in; storage.connectivity). Each call of `grid`
+reads every node's current pose (one query), the links stored since the last call, and
+brings that map's `GlobalGrid` to its keyframes: new ones are added, those that moved are
+re-placed, those gone (another map joined, a node deleted) taken out. The local grids come
+from the store once per node (kept encoded); a keyframe of an older database without one gets
+it from its stored depth the first time (then stored).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+
+from storage.connectivity import MapConnectivity
+
+from ..config import GridConfig
+from .assembly import GlobalGrid, GridImage
+from .local import LocalGridMaker, StoredLocalGrid
+
+log = logging.getLogger("mnemoslam.grid")
+
+
+class NoMap(LookupError):
+    """No such map, or a map without any local grid (the reason is the message)."""
+
+
+class MapGrids:
+    """The store's maps' occupancy grids."""
+
+    def __init__(self, store, config: GridConfig):
+        self.store, self.config = store, config
+        self._lock = threading.Lock()
+        self._links = MapConnectivity()
+        self._grids: dict[int, GlobalGrid] = {}
+        self._local: dict[int, StoredLocalGrid] = {}
+        self._map_of_root: dict[int, int | None] = {}
+        self._no_grid: set[int] = set()  # nodes that have no grid and cannot get one (no depth)
+        self.last_update: dict = {}
+
+    def maps(self) -> dict[int, np.ndarray]:
+        """{map id: its node ids ascending}, and refreshes the node poses (see `grid`)."""
+        with self._lock:
+            return {m: ids for m, (ids, _) in self._partition().items()}
+
+    def _partition(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        nodes = self.store.grid_nodes()
+        self._nodes = nodes
+        self._links.refresh(self.store)
+        ids = nodes["id"]
+        if len(ids) == 0:
+            return {}
+        roots = self._links.roots(ids)
+        new = set(roots.tolist()) - self._map_of_root.keys()
+        if new:
+            session = dict(zip(ids.tolist(), nodes["session_id"].tolist()))
+            map_id = {s.id: s.map_id for s in self.store.sessions()}
+            self._map_of_root.update({r: map_id.get(session.get(r)) for r in new})
+        maps = np.array([self._map_of_root[r] if self._map_of_root[r] is not None else -1 for r in roots.tolist()])
+        out = {}
+        for m in np.unique(maps).tolist():
+            sel = maps == m
+            out[int(m)] = (ids[sel], nodes["pose"][sel])
+        return out
+
+    def grid(self, map_id: int) -> GridImage:
+        """The map's grid at its cell size (grid.cell_size), brought up to date."""
+        with self._lock:
+            t0 = time.perf_counter()
+            parts = self._partition()
+            if map_id not in parts:
+                raise NoMap(f"no map {map_id}" + (f" (maps: {', '.join(map(str, sorted(parts)))})" if parts else
+                                                  " (the database has no keyframes)"))
+            for gone in set(self._grids) - set(parts):  # joined into an older map
+                del self._grids[gone]
+            ids, poses = parts[map_id]
+            self._load(ids)
+            grids = {int(n): self._local[int(n)] for n in ids if int(n) in self._local}
+            if not grids:
+                raise NoMap(f"map {map_id} has no local grids (no keyframe with depth: a stereo map, or "
+                            "grid.enabled was false and storage.keep_images too)")
+            g = self._grids.setdefault(map_id, GlobalGrid(self.config))
+            stats = g.update(ids, poses, grids)
+            self.last_update = {**stats, "ms": (time.perf_counter() - t0) * 1e3, "keyframes": g.keyframes}
+            return g.image()
+
+    def global_grid(self, map_id: int) -> GlobalGrid:
+        """The map's assembled grid (after `grid(map_id)`)."""
+        return self._grids[map_id]
+
+    def _load(self, ids: np.ndarray) -> None:
+        need = [int(n) for n in ids if int(n) not in self._local and int(n) not in self._no_grid]
+        if not need:
+            return
+        for i in range(0, len(need), 5000):
+            for n, rec in self.store.local_grids(need[i:i + 5000]).items():
+                self._local[n] = StoredLocalGrid(rec)
+        missing = [n for n in need if n not in self._local]
+        if missing:
+            made = self._backfill(missing)
+            self._no_grid.update(set(missing) - made)
+
+    def _backfill(self, node_ids: list[int]) -> set[int]:
+        """Make and store the local grids of keyframes stored without one (an older database)
+        from their stored depth; returns the nodes that got one."""
+        from storage import LocalGridRecord
+
+        from ..memory.keyframes import decode_images
+
+        todo = set(self.store.nodes_without_grid(node_ids))
+        if not todo:
+            return set()
+        t0 = time.perf_counter()
+        makers: dict[int, LocalGridMaker] = {}
+        sessions = {n.id: n.session_id for n in self.store.get_nodes(sorted(todo))}
+        made, records = set(), []
+        for n in sorted(todo):
+            sid = sessions.get(n)
+            if sid is None:
+                continue
+            if sid not in makers:
+                makers[sid] = LocalGridMaker(self.store.calibration(sid).camera, self.config)
+            _, depth = decode_images(None, self.store.load_images(n)[1])
+            g = makers[sid].make(depth) if depth is not None else None
+            if g is None:
+                continue
+            rec = LocalGridRecord(n, g.cell_size, g.T_cam_local, g.origin_x, g.origin_y, g.encode_cells(),
+                                  g.up_source, g.floor_points)
+            records.append(rec)
+            self._local[n] = StoredLocalGrid(rec)
+            made.add(n)
+        self.store.save_local_grids(records)
+        log.info("made the local grids of %d stored keyframes in %.1f s", len(made), time.perf_counter() - t0)
+        return made
