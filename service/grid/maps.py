@@ -88,6 +88,27 @@ class MapGrids:
             self.last_update = {**stats, "ms": (time.perf_counter() - t0) * 1e3, "keyframes": g.keyframes}
             return g.image()
 
+    def keyframes(self, map_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """(node ids, their current poses) of a map (NoMap when there is no such map)."""
+        with self._lock:
+            parts = self._partition()
+        if map_id not in parts:
+            raise NoMap(f"no map {map_id}")
+        return parts[map_id]
+
+    def map_of(self, node_id: int) -> int | None:
+        """The map a node is in (after the last look at the links; None for an unknown node)."""
+        with self._lock:
+            self._links.refresh(self.store)
+            root = self._links.find(int(node_id))
+            if root not in self._map_of_root:
+                nodes = self.store.get_nodes([root])
+                if not nodes:
+                    return None
+                sessions = {s.id: s.map_id for s in self.store.sessions()}
+                self._map_of_root[root] = sessions.get(nodes[0].session_id)
+            return self._map_of_root[root]
+
     def global_grid(self, map_id: int) -> GlobalGrid:
         """The map's assembled grid (after `grid(map_id)`)."""
         return self._grids[map_id]
@@ -136,3 +157,19 @@ class MapGrids:
         self.store.save_local_grids(records)
         log.info("made the local grids of %d stored keyframes in %.1f s", len(made), time.perf_counter() - t0)
         return made
+
+
+class GridHolder:
+    """One MapGrids per open store of the service (a restarted service gets a new one)."""
+
+    def __init__(self, config: GridConfig):
+        self.config = config
+        self._lock = threading.Lock()
+        self._store = None
+        self._grids: MapGrids | None = None
+
+    def get(self, store) -> MapGrids:
+        with self._lock:
+            if self._grids is None or self._store is not store:
+                self._store, self._grids = store, MapGrids(store, self.config)
+            return self._grids
