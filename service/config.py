@@ -287,7 +287,8 @@ class GridConfig:
     prob_clamping_max: float = 0.971  # (GridGlobal/ProbClampingMax)
     occupancy_thr: float = 0.5  # a cell is occupied above this probability (GridGlobal/OccupancyThr)
     update_error: float = 0.01  # m; a keyframe whose optimised pose moved more (or turned more than this / 1 m in rad) is re-placed in the map grid (GridGlobal/UpdateError); 0 = at any change
-    footprint_radius: float = 0.2  # m; paths keep this far from occupied cells (GridGlobal/FootprintRadius is 0)
+    footprint_radius: float = 0.2  # m; the cells this close to a keyframe's position are free: the camera (the robot, the person holding it) was there (GridGlobal/FootprintRadius, 0 there); 0 = off
+    robot_radius: float = 0.2  # m; paths (GET /path) keep this far from occupied cells
     path_unknown: bool = False  # paths may cross unknown cells (else free cells only)
 
 

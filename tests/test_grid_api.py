@@ -149,7 +149,7 @@ def test_path_through_doors_to_an_object_and_a_point(world):
                     tuple(g["origin"][:2]), np.array(g["map_to_grid"]).reshape(4, 4))
     truth = groundtruth_grid(world.ds.scene, img, world.world_from_map)
     gp = np.array(p["grid_points"])
-    best = plan(truth, gp[0], gp[-1], GridConfig().footprint_radius)
+    best = plan(truth, gp[0], gp[-1], GridConfig().robot_radius)
     assert abs(p["length"] - best.length) / best.length < 0.10, (p["length"], best.length)  # measured ≤ 1 %
     # to a point (map frame): the office's middle
     goal = (np.linalg.inv(world.world_from_map) @ np.array([9.5, 1.0, 1.0, 1.0]))[:3]
@@ -185,3 +185,34 @@ def test_grid_follows_moved_poses(world, tmp_path):
     finally:
         world.store.update_poses({i: np.linalg.inv(T) @ p for i, p in poses.items()})
     assert G_OCCUPIED == 100
+
+
+def test_viewer_draws_the_grid_in_chromium(world, tmp_path):
+    """The viewer's top-down view fetches the map's grid (PNG) and draws it under the
+    trajectory: its occupied cells show as light pixels where the walls are."""
+    from test_viewer import CHROMIUM_ARGS
+
+    from conftest import require_chromium
+
+    chromium = require_chromium()
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(chromium), args=CHROMIUM_ARGS, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 860})
+            page.goto(f"{world.url}/viewer?")
+            page.wait_for_function("(document.getElementById('top').dataset.grids || '').includes('0')",
+                                   timeout=30_000)
+            page.wait_for_timeout(300)
+            shot = page.locator("#top").screenshot()
+            page.uncheck("#showgrid")
+            page.wait_for_timeout(300)
+            plain = page.locator("#top").screenshot()
+        finally:
+            browser.close()
+    (tmp_path / "viewer_grid.png").write_bytes(shot)
+    img = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
+    off = cv2.imdecode(np.frombuffer(plain, np.uint8), cv2.IMREAD_COLOR)
+    light = (img.min(axis=2) > 215).sum()  # occupied cells (230, 236, 245)
+    assert light > 2000 and (off.min(axis=2) > 215).sum() < light / 10

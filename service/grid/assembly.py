@@ -18,7 +18,9 @@ order-free and exactly reversible: a keyframe whose optimised pose moved more th
 keyframe is added, so after a loop closure the grid is the one assembled from scratch from
 the corrected poses (with update_error 0 bit for bit; with the default, keyframes that moved
 less than 1 cm keep their placement). A change of the grid frame (one of its keyframes moved)
-rebuilds the grid.
+rebuilds the grid. Cells within `grid.footprint_radius` of a keyframe's position are free in
+the image (the camera was there; RTAB-Map's GridGlobal/FootprintRadius), whatever their counts.
+
 """
 from __future__ import annotations
 
@@ -263,9 +265,28 @@ class GlobalGrid:
         L = np.clip(L, logodds(cfg.prob_clamping_min), logodds(cfg.prob_clamping_max))
         return 1.0 / (1.0 + np.exp(-L))
 
+    def _under_keyframes(self) -> np.ndarray:
+        """Mask (array cells) within footprint_radius of a placed keyframe's position."""
+        cfg, r = self.config, self.resolution
+        under = np.zeros(self.hits.shape, np.uint8)
+        if cfg.footprint_radius <= 0 or not self._placed:
+            return under.astype(bool)
+        xy = np.stack([(self.map_to_grid @ p.pose)[:2, 3] for p in self._placed.values()])
+        col = np.floor(xy[:, 0] / r).astype(np.int64) - self.ox
+        row = np.floor(xy[:, 1] / r).astype(np.int64) - self.oy
+        ok = (row >= 0) & (row < under.shape[0]) & (col >= 0) & (col < under.shape[1])
+        under[row[ok], col[ok]] = 1
+        k = int(math.ceil(cfg.footprint_radius / r))
+        yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+        disk = ((xx * xx + yy * yy) * r * r <= cfg.footprint_radius ** 2).astype(np.uint8)
+        return cv2.dilate(under, disk) > 0
+
     def image(self) -> GridImage:
         """The grid's states over the box of its known cells."""
+        under = self._under_keyframes() if self.map_to_grid is not None else None
         known = (self.hits > 0) | (self.misses > 0)
+        if under is not None:
+            known |= under
         if self.map_to_grid is None or not known.any():
             M = np.eye(4) if self.map_to_grid is None else self.map_to_grid
             return GridImage(np.full((0, 0), G_UNKNOWN, np.int8), self.resolution, (0.0, 0.0), M, 0)
@@ -276,6 +297,7 @@ class GlobalGrid:
         L = np.clip(L, logodds(cfg.prob_clamping_min), logodds(cfg.prob_clamping_max))
         states = np.where(L > logodds(cfg.occupancy_thr), G_OCCUPIED, G_FREE).astype(np.int8)
         states[~known[sy, sx]] = G_UNKNOWN
+        states[under[sy, sx]] = G_FREE  # the camera was there (GridGlobal/FootprintRadius)
         r = self.resolution
         return GridImage(states, r, ((self.ox + cols[0]) * r, (self.oy + rows[0]) * r), self.map_to_grid.copy(),
                          self.keyframes)

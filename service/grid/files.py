@@ -143,5 +143,34 @@ def agreement(grid: GridImage, truth: GridImage, slack: int = 1) -> dict:
             "free": n_free, "free_agree": ok_free / max(1, n_free)}
 
 
+def write_map_files(store, out_dir: str | Path, config, voxel: float = 0.02, cloud: bool = True) -> dict[int, dict]:
+    """Each map's grid (DIR/grid.pgm + grid.yaml) and cloud (DIR/cloud.ply) of a store; with
+    several maps each file gets the map's id (grid_map1.pgm, ...). Returns {map id: {"grid":
+    GridImage, "files": [paths]}}."""
+    from .cloud import map_cloud, ply_bytes
+    from .maps import MapGrids, NoMap
+
+    out = Path(out_dir)
+    grids = MapGrids(store, config)
+    maps = sorted(m for m in grids.maps() if m >= 0)
+    done: dict[int, dict] = {}
+    for m in maps:
+        suffix = "" if len(maps) == 1 else f"_map{m}"
+        paths: list[Path] = []
+        try:
+            grid = grids.grid(m)
+        except NoMap:
+            continue
+        paths += write_grid(out, grid, f"grid{suffix}")
+        if cloud:
+            ids, poses = grids.keyframes(m)
+            P, C = map_cloud(store, ids, poses, voxel)
+            if len(P):
+                (out / f"cloud{suffix}.ply").write_bytes(ply_bytes(P, C))
+                paths.append(out / f"cloud{suffix}.ply")
+        done[m] = {"grid": grid, "files": paths}
+    return done
+
+
 def write_json(path: Path, data) -> None:
     path.write_text(json.dumps(data, indent=1) + "\n")

@@ -16,11 +16,14 @@ points less than `max_ground_height` above the floor are free floor, points up t
 from the camera to the farthest seen cell of each bearing (0.5° bins) are free too. Obstacles
 win over free cells of the same keyframe.
 
-The up direction, in order of preference: the keyframe's accelerometer (`accel`, specific force
-in camera axes: up when still), the floor fitted in its depth, the session's estimate (the mean
-of the fitted floors so far, kept in the session's odometry frame by `LocalGridMaker`) and the
-configured camera mounting (`grid.up`). The camera height likewise: the floor fitted in this
-keyframe, else the session's lowest floor seen so far, else `grid.camera_height`.
+The up direction, in order of preference: the session's estimate (the mean normal of the
+floors fitted so far, weighted by their points, kept in the session's odometry frame by
+`LocalGridMaker`), the floor fitted in this keyframe's depth, its accelerometer (`accel`,
+specific force in camera axes, up when still; a handheld camera's is off by several degrees
+from its motion, a floor fit is not) and the configured camera mounting (`grid.up`); each is
+the prior of the next's floor search. The camera height: the floor found in this keyframe
+(measured along the session's up), else the session's lowest floor so far (a plane well above
+it is a table), else `grid.camera_height`.
 """
 from __future__ import annotations
 
@@ -274,10 +277,10 @@ class LocalGridMaker:
         P, N = self.points(depth)
         source = "config"
         prior = _unit(cfg.up)
-        if R is not None and self.session_up is not None:
-            prior, source = R.T @ self.session_up, "session"
         if accel is not None and np.all(np.isfinite(accel)) and np.linalg.norm(accel) > 1.0:
             prior, source = _unit(accel), "accelerometer"
+        if R is not None and self.session_up is not None:
+            prior, source = R.T @ self.session_up, "session"
         fit = fit_floor(P, prior, cfg, N) if len(P) else None
         if fit is not None and R is not None and self._floor_w is not None:
             # a plane well above the session's floor is a table or a bed, not the floor (one
@@ -287,9 +290,9 @@ class LocalGridMaker:
         up, height, floor_points = prior, None, 0
         if fit is not None:
             floor_points = fit.points
-            if source == "config":
+            if source != "session":
                 up, source, height = fit.up, "floor", fit.height
-            else:  # the session's mean up (or the accelerometer's) stays: the slab gives the height
+            else:  # the session's mean up stays (steadier than one fit): the slab gives the height
                 height = fit.prior_height
             if R is not None:  # the session's estimate, in its odometry frame
                 self._up_sum += (R @ fit.up) * fit.points

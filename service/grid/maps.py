@@ -64,6 +64,11 @@ class MapGrids:
         out = {}
         for m in np.unique(maps).tolist():
             sel = maps == m
+            # parts of one map id not joined (yet) by links (a session whose tracking was lost
+            # restarts in a frame of its own) have no common frame: the largest part is the map
+            r, counts = np.unique(roots[sel], return_counts=True)
+            if len(r) > 1:
+                sel &= roots == r[np.argmax(counts)]
             out[int(m)] = (ids[sel], nodes["pose"][sel])
         return out
 

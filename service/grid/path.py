@@ -1,4 +1,4 @@
-"""Paths on an occupancy grid: A* over 8-connected cells that keep `footprint_radius` from
+"""Paths on an occupancy grid: A* over 8-connected cells that keep `robot_radius` from
 every occupied cell (free cells only, or unknown ones too with `grid.path_unknown`), then
 shortened by line of sight (string pulling), so a path crosses a room straight, not in 45°
 steps. Start and goal snap to the nearest cell the robot may stand on (a robot standing next
@@ -30,13 +30,13 @@ class GridPath:
     goal_snap: float  # m from the given goal to the goal cell
 
 
-def traversable(grid: GridImage, footprint_radius: float, unknown: bool = False) -> np.ndarray:
+def traversable(grid: GridImage, robot_radius: float, unknown: bool = False) -> np.ndarray:
     """Cells a robot of that radius may stand on."""
     ok = (grid.states == G_FREE) | ((grid.states == G_UNKNOWN) if unknown else False)
     occ = (grid.states != G_OCCUPIED).astype(np.uint8)
-    if footprint_radius > 0 and occ.size:
+    if robot_radius > 0 and occ.size:
         dist = cv2.distanceTransform(occ, cv2.DIST_L2, 5) * grid.resolution
-        ok &= dist > footprint_radius
+        ok &= dist > robot_radius
     return ok
 
 
@@ -119,18 +119,18 @@ def shorten(ok: np.ndarray, cells: list[tuple[int, int]]) -> list[tuple[int, int
     return out
 
 
-def plan(grid: GridImage, start_xy, goal_xy, footprint_radius: float, unknown: bool = False,
+def plan(grid: GridImage, start_xy, goal_xy, robot_radius: float, unknown: bool = False,
          start_snap: float = 0.5, goal_snap: float = 1.5) -> GridPath:
     """A path on `grid` from a grid-frame point to another (NoPath with the reason)."""
     if grid.states.size == 0:
         raise NoPath("the map's grid is empty")
-    ok = traversable(grid, footprint_radius, unknown)
+    ok = traversable(grid, robot_radius, unknown)
     r = grid.resolution
     s_rc, g_rc = grid.cell_of(start_xy), grid.cell_of(goal_xy)
     s = _snap(ok, s_rc, start_snap / r)
     if s is None:
         raise NoPath(f"no free cell within {start_snap} m of the start (it is outside the observed free space, or "
-                     f"closer than grid.footprint_radius {footprint_radius} m to obstacles)")
+                     f"closer than grid.robot_radius {robot_radius} m to obstacles)")
     g = _snap(ok, g_rc, goal_snap / r)
     if g is None:
         raise NoPath(f"no free cell within {goal_snap} m of the goal (not observed free yet, or walled in)")

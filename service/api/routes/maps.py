@@ -108,7 +108,7 @@ def grid_path(request: Request, service: ServiceDep, store: StoreDep,
               x: Coordinate = None, y: Coordinate = None, z: Coordinate = None):
     """A path on the robot's map's occupancy grid from its current position to an object
     (`to`) or a point (x, y, z, map frame): A* over the free cells at least
-    grid.footprint_radius from obstacles, shortened by line of sight. 404 says why there is
+    grid.robot_radius from obstacles, shortened by line of sight. 404 says why there is
     none (unknown robot, no pose, no grid, the goal in another map, not reachable)."""
     point = [v is not None for v in (x, y, z)]
     if any(point) and not all(point):
@@ -138,7 +138,7 @@ def grid_path(request: Request, service: ServiceDep, store: StoreDep,
     try:
         grid = grids.grid(map_id)
         start_g, goal_g = grid.to_grid(np.asarray(at.position, np.float64)), grid.to_grid(goal)
-        p = plan(grid, start_g[:2], goal_g[:2], cfg.footprint_radius, cfg.path_unknown)
+        p = plan(grid, start_g[:2], goal_g[:2], cfg.robot_radius, cfg.path_unknown)
     except (NoMap, NoPath) as e:
         raise HTTPException(404, f"no path for robot {robot!r}: {e}") from None
     inv = np.linalg.inv(grid.map_to_grid)
