@@ -141,6 +141,7 @@ class GlobalGrid:
         self.ox = self.oy = 0  # absolute cell index of [0, 0]
         self.rebuilds = 0
         self.placements = 0  # local grids placed (added) so far
+        self._image: GridImage | None = None  # the last image, until the grid changes
 
     # -- which keyframes moved --------------------------------------------------------------------
     def _moved(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
@@ -179,22 +180,35 @@ class GlobalGrid:
             self._frame_key = (fids, fposes)
             stats["rebuilt"] = True
         index = {int(n): i for i, n in enumerate(ids)}
-        for n in [n for n in self._placed if n not in index]:
-            self._remove(n)
-            stats["removed"] += 1
+        before = set(self._placed)
+        gone = [n for n in self._placed if n not in index]
         placed = [n for n in index if n in self._placed]
+        moved: list[int] = []
         if placed:
             old = np.stack([self._placed[n].pose for n in placed])
             new = poses[[index[n] for n in placed]]
-            for n, m in zip(placed, self._moved(old, new)):
-                if m:
-                    self._remove(n)
-                    self._add(n, poses[index[n]], grids[n])
-                    stats["moved"] += 1
+            moved = [n for n, m in zip(placed, self._moved(old, new)) if m]
+        if 2 * (len(gone) + len(moved)) > len(self._placed) and not stats["rebuilt"]:
+            # most keyframes moved (a loop closure): adding them all to empty counts is half the
+            # work of taking each out and adding it again, and the same counts
+            stats.update(rebuilt=True, moved=len(moved), removed=len(gone))
+            rebuilds, frame, key = self.rebuilds + 1, self.map_to_grid, self._frame_key
+            self.__init__(self.config, self.resolution)
+            self.rebuilds, self.map_to_grid, self._frame_key = rebuilds, frame, key
+            gone, moved = [], []
+        for n in gone:
+            self._remove(n)
+            stats["removed"] += 1
+        for n in moved:
+            self._remove(n)
+            self._add(n, poses[index[n]], grids[n])
+            stats["moved"] += 1
         for n, i in index.items():
             if n not in self._placed:
                 self._add(n, poses[i], grids[n])
-                stats["added"] += 1
+        stats["added"] = len(index.keys() - before)
+        if stats["added"] or stats["moved"] or stats["removed"] or stats["rebuilt"]:
+            self._image = None
         return stats
 
     # -- placing one local grid -----------------------------------------------------------------------
@@ -282,7 +296,12 @@ class GlobalGrid:
         return cv2.dilate(under, disk) > 0
 
     def image(self) -> GridImage:
-        """The grid's states over the box of its known cells."""
+        """The grid's states over the box of its known cells (kept until the grid changes)."""
+        if self._image is None:
+            self._image = self._make_image()
+        return self._image
+
+    def _make_image(self) -> GridImage:
         under = self._under_keyframes() if self.map_to_grid is not None else None
         known = (self.hits > 0) | (self.misses > 0)
         if under is not None:

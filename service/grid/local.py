@@ -146,7 +146,8 @@ def fit_floor(points: np.ndarray, up_prior: np.ndarray, config: GridConfig,
     `floor_min_points`, refined twice by a least-squares plane; None when there is none or its
     normal is more than `max_ground_angle` from `up_prior`. With `normals` (unit, per point)
     the slab is searched along the mean normal of the points facing within `max_ground_angle`
-    of the prior (floors and table tops), so a camera tilted far from its mounting finds it."""
+    of the prior (floors and table tops), so a camera tilted far from its mounting finds it, and
+    only those points are searched and fitted."""
     if len(points) < config.floor_min_points:
         return None
     prior = _unit(up_prior)
@@ -154,10 +155,13 @@ def fit_floor(points: np.ndarray, up_prior: np.ndarray, config: GridConfig,
     if normals is not None:
         cos_max = math.cos(math.radians(config.max_ground_angle))
         for cos_lim in (cos_max, math.cos(math.radians(min(10.0, config.max_ground_angle)))):
-            horiz = normals @ up.astype(np.float32) > cos_lim
-            if np.count_nonzero(horiz) < config.floor_min_points:
+            w = (normals @ up.astype(np.float32) > cos_lim).astype(np.float32)
+            if w.sum() < config.floor_min_points:
                 return None
-            up = _unit(normals[horiz].sum(axis=0))
+            up = _unit(w @ normals)  # (a matrix product: 10x faster than a masked sum)
+        points = points[normals @ up.astype(np.float32) > cos_max]  # the horizontal surfaces only
+        if len(points) < config.floor_min_points:
+            return None
     band = config.floor_band
     h = points @ up  # heights relative to the camera (negative below)
     lo = float(h.min())
@@ -178,9 +182,9 @@ def fit_floor(points: np.ndarray, up_prior: np.ndarray, config: GridConfig,
         if np.count_nonzero(sel) < config.floor_min_points:
             return None
         P = points[sel]
-        c = P.mean(axis=0)
-        Q = P - c
-        n = np.linalg.eigh(Q.T @ Q)[1][:, 0]  # the direction of least spread
+        c = P.sum(axis=0) / len(P)
+        C = P.T @ P - len(P) * np.outer(c, c)  # scatter about the centroid
+        n = np.linalg.eigh(C)[1][:, 0]  # the direction of least spread
         if n @ up < 0:
             n = -n
         normal, d = n, -float(n @ c)
@@ -316,36 +320,42 @@ class LocalGridMaker:
         L = (P - T[:3, 3]) @ T[:3, :3]  # points in the local frame (z = height above the floor)
         hz = L[:, 2]
         ground = hz <= cfg.max_ground_height
-        obstacle = ~ground & (hz <= cfg.max_obstacle_height)
-        seen = ground | obstacle
-        ix = np.floor(L[:, 0] / cs).astype(np.int64)
-        iy = np.floor(L[:, 1] / cs).astype(np.int64)
+        seen = hz <= cfg.max_obstacle_height
         if not np.any(seen):
             return LocalGrid(cs, T, 0, 0, np.zeros((1, 1), np.uint8))
-        x0, x1 = min(int(ix[seen].min()), 0), max(int(ix[seen].max()), 0)
-        y0, y1 = min(int(iy[seen].min()), 0), max(int(iy[seen].max()), 0)
+        ix = np.floor(L[seen, 0] / cs).astype(np.int64)
+        iy = np.floor(L[seen, 1] / cs).astype(np.int64)
+        ground = ground[seen]
+        x0, x1 = min(int(ix.min()), 0), max(int(ix.max()), 0)
+        y0, y1 = min(int(iy.min()), 0), max(int(iy.max()), 0)
         W, H = x1 - x0 + 1, y1 - y0 + 1
+        flat = (iy - y0) * W + (ix - x0)
         cells = np.zeros(H * W, np.uint8)
+        cells[flat[ground]] = FREE
+        cells[flat[~ground]] = OCCUPIED
+        img = cells.reshape(H, W)
         if cfg.ray_tracing:
-            self._ray_trace(cells, L[seen], ix[seen], iy[seen], x0, y0, W, H, cs)
-        cells[(iy[ground] - y0) * W + (ix[ground] - x0)] = FREE
-        cells[(iy[obstacle] - y0) * W + (ix[obstacle] - x0)] = OCCUPIED
-        return LocalGrid(cs, T, x0, y0, cells.reshape(H, W))
+            self._ray_trace(img, x0, y0)
+        return LocalGrid(cs, T, x0, y0, img)
 
     @staticmethod
-    def _ray_trace(cells: np.ndarray, L: np.ndarray, ix, iy, x0, y0, W, H, cs) -> None:
+    def _ray_trace(img: np.ndarray, x0: int, y0: int) -> None:
         """Free the cells from the camera (L's origin) to the farthest seen cell of each 0.5°
-        bearing: the polygon of the camera and those cells in bearing order, filled."""
-        ang = np.arctan2(L[:, 1], L[:, 0])
-        b = np.floor(np.degrees(ang) * 2.0).astype(np.int64)
-        r2 = L[:, 0] ** 2 + L[:, 1] ** 2
-        order = np.lexsort((-r2, b))  # per bin, farthest first
+        bearing (the polygon of the camera and those cells in bearing order, filled), keeping
+        the seen cells' own states."""
+        r, c = np.nonzero(img)
+        dx, dy = c + x0 + 0.5, r + y0 + 0.5  # cell centres, in cells, from the camera's foot
+        b = np.floor(np.degrees(np.arctan2(dy, dx)) * 2.0)
+        r2 = dx * dx + dy * dy
+        order = np.argsort(b * 1e6 - r2, kind="stable")  # per bin, farthest first (r2 < 1e6 cells²)
+        bs = b[order]
         first = np.ones(len(order), bool)
-        first[1:] = b[order][1:] != b[order][:-1]
+        first[1:] = bs[1:] != bs[:-1]
         far = order[first]  # bins ascending: the polygon's vertices in bearing order
         poly = np.empty((len(far) + 1, 2), np.int32)
         poly[0] = (-x0, -y0)
-        poly[1:, 0] = ix[far] - x0
-        poly[1:, 1] = iy[far] - y0
-        img = cells.reshape(H, W)
+        poly[1:, 0] = c[far]
+        poly[1:, 1] = r[far]
+        seen = img.copy()
         cv2.fillPoly(img, [poly], FREE)
+        np.copyto(img, seen, where=seen > 0)

@@ -40,6 +40,7 @@ class MapGrids:
         self._local: dict[int, StoredLocalGrid] = {}
         self._map_of_root: dict[int, int | None] = {}
         self._no_grid: set[int] = set()  # nodes that have no grid and cannot get one (no depth)
+        self._roots: tuple[np.ndarray, np.ndarray] | None = None  # (node ids, their parts' roots) at the last look
         self.last_update: dict = {}
 
     def maps(self) -> dict[int, np.ndarray]:
@@ -49,12 +50,16 @@ class MapGrids:
 
     def _partition(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         nodes = self.store.grid_nodes()
-        self._nodes = nodes
-        self._links.refresh(self.store)
+        read = self._links.refresh(self.store)
         ids = nodes["id"]
         if len(ids) == 0:
             return {}
-        roots = self._links.roots(ids)
+        cached = self._roots
+        if read == 0 and cached is not None and np.array_equal(cached[0], ids):
+            roots = cached[1]  # no new link, the same nodes: the same parts (~20 ms at 20k nodes)
+        else:
+            roots = self._links.roots(ids)
+            self._roots = (ids, roots)
         new = set(roots.tolist()) - self._map_of_root.keys()
         if new:
             session = dict(zip(ids.tolist(), nodes["session_id"].tolist()))
@@ -104,7 +109,8 @@ class MapGrids:
     def map_of(self, node_id: int) -> int | None:
         """The map a node is in (after the last look at the links; None for an unknown node)."""
         with self._lock:
-            self._links.refresh(self.store)
+            if self._links.refresh(self.store):
+                self._roots = None  # parts may have joined: `_partition` finds them again
             root = self._links.find(int(node_id))
             if root not in self._map_of_root:
                 nodes = self.store.get_nodes([root])

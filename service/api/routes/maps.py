@@ -75,8 +75,13 @@ def _grid_json(grid) -> bytes:
     f = files.map_yaml_fields(grid, "")
     head = json.dumps({k: v for k, v in f.items()} | {"width": grid.width, "height": grid.height,
                                                        "keyframes": grid.keyframes})[:-1]
-    data = ",".join(map(str, grid.states.reshape(-1).tolist()))
-    return f'{head}, "data": [{data}]}}'.encode()
+    # each cell's text from a table of 4-byte tokens ("-1,", "0,", "100,"), padding dropped:
+    # vectorised (~20 ms for 2 M cells against ~0.5 s for str() per cell)
+    table = np.frombuffer(b"-1,\x000,\x00\x00100,", np.uint8).reshape(3, 4)
+    code = np.where(grid.states == -1, 0, np.where(grid.states == 0, 1, 2)).reshape(-1)
+    text = table[code].reshape(-1)
+    data = text[text != 0].tobytes()[:-1]
+    return head.encode() + b', "data": [' + data + b"]}"
 
 
 @read_routes.get("/maps/{map_id}/cloud", response_model=CloudOut, responses={**error_responses(404), 200: {
