@@ -76,17 +76,22 @@ class Grids(Connection):
         with self._read() as c:
             return c.execute("SELECT COUNT(*) FROM local_grids").fetchone()[0]
 
-    def grid_nodes(self) -> dict[str, np.ndarray]:
+    def grid_nodes(self, has_grid: bool = True) -> dict[str, np.ndarray]:
         """Every node as columns, by id: `id` (N,) int64, `session_id` (N,) int64, `pose`
-        (N, 4, 4) float64 (its current graph pose), `has_grid` (N,) bool. One query."""
+        (N, 4, 4) float64 (its current graph pose) and, with `has_grid`, `has_grid` (N,) bool.
+        One query (~20 ms at 20k nodes)."""
+        sql = ("SELECT n.id, n.session_id, n.pose, g.node_id IS NOT NULL FROM nodes n "
+               "LEFT JOIN local_grids g ON g.node_id = n.id ORDER BY n.id") if has_grid else \
+            "SELECT id, session_id, pose FROM nodes ORDER BY id"
         with self._read(snapshot=True) as c:
-            rows = c.execute("SELECT n.id, n.session_id, n.pose, g.node_id IS NOT NULL FROM nodes n "
-                             "LEFT JOIN local_grids g ON g.node_id = n.id ORDER BY n.id").fetchall()
+            rows = c.execute(sql).fetchall()
         n = len(rows)
         cols = list(zip(*rows)) if rows else [()] * 4
-        return {"id": np.array(cols[0], np.int64).reshape(n), "session_id": np.array(cols[1], np.int64).reshape(n),
-                "pose": np.frombuffer(b"".join(cols[2]), "<f8").reshape(n, 4, 4).astype(np.float64),
-                "has_grid": np.array(cols[3], bool).reshape(n)}
+        out = {"id": np.array(cols[0], np.int64).reshape(n), "session_id": np.array(cols[1], np.int64).reshape(n),
+               "pose": np.frombuffer(b"".join(cols[2]), "<f8").reshape(n, 4, 4).astype(np.float64)}
+        if has_grid:
+            out["has_grid"] = np.array(cols[3], bool).reshape(n)
+        return out
 
     def nodes_without_grid(self, node_ids: Iterable[int] | None = None) -> list[int]:
         """Nodes (of `node_ids`) with stored depth but no local grid: made from their images."""

@@ -40,6 +40,7 @@ class MapGrids:
         self._local: dict[int, StoredLocalGrid] = {}
         self._map_of_root: dict[int, int | None] = {}
         self._no_grid: set[int] = set()  # nodes that have no grid and cannot get one (no depth)
+        self._known_ids: tuple[np.ndarray, np.ndarray] | None = None
         self._roots: tuple[np.ndarray, np.ndarray] | None = None  # (node ids, their parts' roots) at the last look
         self.last_update: dict = {}
 
@@ -49,7 +50,7 @@ class MapGrids:
             return {m: ids for m, (ids, _) in self._partition().items()}
 
     def _partition(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-        nodes = self.store.grid_nodes()
+        nodes = self.store.grid_nodes(has_grid=False)
         read = self._links.refresh(self.store)
         ids = nodes["id"]
         if len(ids) == 0:
@@ -89,12 +90,12 @@ class MapGrids:
                 del self._grids[gone]
             ids, poses = parts[map_id]
             self._load(ids)
-            grids = {int(n): self._local[int(n)] for n in ids if int(n) in self._local}
-            if not grids:
+            known, good = self._known()
+            if not np.isin(ids, known, assume_unique=True).any():
                 raise NoMap(f"map {map_id} has no local grids (no keyframe with depth: a stereo map, or "
                             "grid.enabled was false and storage.keep_images too)")
             g = self._grids.setdefault(map_id, GlobalGrid(self.config))
-            stats = g.update(ids, poses, grids)
+            stats = g.update(ids, poses, self._local, known=known, good=np.isin(ids, good, assume_unique=True))
             self.last_update = {**stats, "ms": (time.perf_counter() - t0) * 1e3, "keyframes": g.keyframes}
             return g.image()
 
@@ -124,8 +125,20 @@ class MapGrids:
         """The map's assembled grid (after `grid(map_id)`)."""
         return self._grids[map_id]
 
+    def _known(self) -> tuple[np.ndarray, np.ndarray]:
+        """(sorted ids of the nodes with a local grid, those whose up came from a floor or an
+        accelerometer), kept until more grids are loaded."""
+        if self._known_ids is None or len(self._known_ids[0]) != len(self._local):
+            ids = np.array(sorted(self._local), np.int64)
+            good = np.array([n for n in ids.tolist() if self._local[n].up_source in ("floor", "accelerometer")],
+                            np.int64)
+            self._known_ids = (ids, good)
+        return self._known_ids
+
     def _load(self, ids: np.ndarray) -> None:
-        need = [int(n) for n in ids if int(n) not in self._local and int(n) not in self._no_grid]
+        known = self._known()[0] if self._local else np.zeros(0, np.int64)
+        cand = ids[~np.isin(ids, known, assume_unique=True)]
+        need = [n for n in cand.tolist() if n not in self._no_grid]
         if not need:
             return
         for i in range(0, len(need), 5000):
