@@ -80,7 +80,7 @@ def test_maps_and_grid_json(world):
     up_map = np.linalg.inv(world.world_from_map)[:3, :3] @ np.array([0, 0, 1.0])
     assert math.degrees(math.acos(min(1.0, M[2, :3] @ up_map))) < 0.5
     # against the scene's floor plan: ≥ 95 % of the observed cells agree (issue 25's bound; measured 96.8 %
-    # on a `run` of walk_b at 5 Hz, 97.5 % here with true poses)
+    # on `run synthetic:walk_b`, 96.7 % here with true poses and every 4th frame at 5 Hz)
     from service.grid.assembly import GridImage
 
     img = GridImage(np.array(g["data"], np.int8).reshape(g["height"], g["width"]), g["resolution"],
