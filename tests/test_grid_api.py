@@ -216,3 +216,19 @@ def test_viewer_draws_the_grid_in_chromium(world, tmp_path):
     off = cv2.imdecode(np.frombuffer(plain, np.uint8), cv2.IMREAD_COLOR)
     light = (img.min(axis=2) > 215).sum()  # occupied cells (230, 236, 245)
     assert light > 2000 and (off.min(axis=2) > 215).sum() < light / 10
+
+
+def test_planner_client(world):
+    from client.planner import ApiError, PlannerClient
+
+    api = PlannerClient(world.url, timeout=60)
+    assert api.maps() == [{"map": 0, "keyframes": len(world.ids)}]
+    g = api.grid(0, resolution=0.1)
+    assert g["resolution"] == 0.1 and len(g["data"]) == g["width"] * g["height"]
+    c = api.cloud(0, voxel=0.2)
+    assert c["count"] == len(c["points"]) == len(c["colors"]) > 100
+    p = api.path("r1", to=world.oid)
+    assert p["length"] > 5 and p["object"]["id"] == world.oid
+    with pytest.raises(ApiError) as e:
+        api.path("r9", point=(0.0, 0.0, 0.0))
+    assert e.value.status == 404 and "unknown robot" in e.value.detail
