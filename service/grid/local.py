@@ -28,6 +28,7 @@ it is a table), else `grid.camera_height`.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import cv2
@@ -267,8 +268,6 @@ class LocalGridMaker:
         """The local grid of a keyframe: its depth (metres, 0 / non-finite invalid), its
         odometry pose (camera-to-world, for the session's estimate), its tracking segment and
         its accelerometer reading (camera axes, m/s²) when it has one. None without depth."""
-        import time
-
         t0 = time.perf_counter()
         if depth is None:
             return None
@@ -289,7 +288,7 @@ class LocalGridMaker:
         if fit is not None and R is not None and self._floor_w is not None:
             # a plane well above the session's floor is a table or a bed, not the floor (one
             # well below it is: the floor is the lowest plane)
-            if float(self.session_up @ c) - fit.height > self._floor_w + FLOOR_TOLERANCE:
+            if float(self.session_up @ c) - fit.prior_height > self._floor_w + FLOOR_TOLERANCE:
                 fit = None
         up, height, floor_points = prior, None, 0
         if fit is not None:
