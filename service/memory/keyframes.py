@@ -4,16 +4,20 @@ previous keyframe by its odometry constraint (`KeyframeWriter`, one per session)
 update keeps of it in RAM, and when, is memory's (`manager.Memory`)."""
 from __future__ import annotations
 
+import logging
+
 import cv2
 import numpy as np
 
 from client.frames import Calibration, Frame
 from client.geometry import invert
-from storage import KeyframeRecord, LocalGridRecord, MapRepository
+from storage import KeyframeRecord, LocalGridRecord, MapRepository, StoreError
 
 from ..config import Config, to_dict
 from ..grid.local import LocalGridMaker
 from ..tracking.features import FrameFeatures
+
+log = logging.getLogger("mnemoslam.memory")
 
 
 def odometry_information(inliers: int) -> np.ndarray:
@@ -68,10 +72,14 @@ class KeyframeWriter:
     def _save_grid(self, node_id: int, frame: Frame, pose: np.ndarray, segment: int) -> None:
         """The keyframe's local grid, stored with it (its own small transaction after the
         keyframe's: a keyframe without one gets it from its stored depth when needed)."""
-        g = self.grids.make(frame.depth, pose, segment, accel=frame.extras.get("accel"))
-        if g is not None:
-            self.store.save_local_grids([LocalGridRecord(node_id, g.cell_size, g.T_cam_local, g.origin_x, g.origin_y,
-                                                         g.encode_cells(), g.up_source, g.floor_points)])
+        try:
+            g = self.grids.make(frame.depth, pose, segment, accel=frame.extras.get("accel"))
+            if g is not None:
+                self.store.save_local_grids([LocalGridRecord(node_id, g.cell_size, g.T_cam_local, g.origin_x,
+                                                             g.origin_y, g.encode_cells(), g.up_source,
+                                                             g.floor_points)])
+        except (ValueError, StoreError) as e:  # the keyframe stands without its grid (made later from its depth)
+            log.warning("keyframe %d: no local grid (%s)", node_id, e)
 
 
 def decode_images(color_jpeg: bytes | None, depth_png: bytes | None) -> tuple[np.ndarray | None, np.ndarray | None]:
