@@ -280,7 +280,7 @@ class GridConfig:
     floor_band: float = 0.03  # m, half thickness of the floor slab of the plane fit
     up: list = field(default_factory=lambda: [0.0, -1.0, 0.0])  # the camera mounting: the up direction in the camera frame (x right, y down, z forward) before a floor or an accelerometer says otherwise
     camera_height: float = 1.2  # m, the camera above the floor until a floor is seen (a handheld camera: ~1.2-1.5)
-    frame_nodes: int = 50  # the map grid's plane is perpendicular to the mean up of the map's oldest this many keyframes with a fitted floor (or an accelerometer)
+    frame_nodes: int = 50  # the map grid's plane is perpendicular to the mean up of the map's oldest this many keyframes whose up came from a floor or an accelerometer (not the configured mounting)
     prob_hit: float = 0.7  # an obstacle cell of a keyframe adds logodds(prob_hit) (GridGlobal/ProbHit)
     prob_miss: float = 0.4  # a free cell adds logodds(prob_miss) (GridGlobal/ProbMiss)
     prob_clamping_min: float = 0.1192  # the cell's probability is clamped to [min, max] (GridGlobal/ProbClampingMin)

@@ -169,7 +169,7 @@ def test_grid_after_a_loop_closure_equals_one_from_scratch(walk_grids, update_er
     assembled from scratch at the corrected poses: bit for bit with update_error 0, all but
     the cells of keyframes that moved < 1 cm with the default."""
     ids, poses, grids = walk_grids
-    cfg = GridConfig(update_error=update_error, frame_nodes=5)
+    cfg = GridConfig(update_error=update_error, frame_nodes=3)
     g = GlobalGrid(cfg)
     for k in range(10, len(ids) + 1, 10):
         g.update(ids[:k], poses[:k], grids)

@@ -3,7 +3,8 @@ optimised poses (RTAB-Map's OccupancyGrid::assemble, written from its descriptio
 docs/grid.md).
 
 The grid frame: z along the map's up direction (the mean up of its oldest `grid.frame_nodes`
-keyframes with a fitted floor or an accelerometer, else of all), x along the map's x axis
+keyframes whose up came from a floor (their own, or the session's mean of them) or an
+accelerometer, else of all), x along the map's x axis
 made horizontal, z = 0 on their median floor. `map_to_grid` is that rigid transform (grid ←
 map). A local grid is placed by warping its cell image with the 2-D affine map of
 `map_to_grid @ pose @ T_cam_local` (nearest cell, so no holes at any rotation) into a patch of
@@ -175,7 +176,7 @@ class GlobalGrid:
             self.__init__(self.config, self.resolution)
             return stats
         if good is None:
-            good = np.fromiter((grids[int(n)].up_source in ("floor", "accelerometer") for n in ids), bool, len(ids))
+            good = np.fromiter((grids[int(n)].up_source != "config" for n in ids), bool, len(ids))
         fids, fposes = self._frame_for(ids, poses, good)
         key_ok = (self._frame_key is not None and np.array_equal(self._frame_key[0], fids)
                   and not self._moved(self._frame_key[1], fposes).any())

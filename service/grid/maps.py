@@ -127,10 +127,10 @@ class MapGrids:
 
     def _known(self) -> tuple[np.ndarray, np.ndarray]:
         """(sorted ids of the nodes with a local grid, those whose up came from a floor or an
-        accelerometer), kept until more grids are loaded."""
+        accelerometer, not the configured mounting), kept until more grids are loaded."""
         if self._known_ids is None or len(self._known_ids[0]) != len(self._local):
             ids = np.array(sorted(self._local), np.int64)
-            good = np.array([n for n in ids.tolist() if self._local[n].up_source in ("floor", "accelerometer")],
+            good = np.array([n for n in ids.tolist() if self._local[n].up_source != "config"],
                             np.int64)
             self._known_ids = (ids, good)
         return self._known_ids
