@@ -41,7 +41,7 @@ class MapGrids:
         self._map_of_root: dict[int, int | None] = {}
         self._no_grid: set[int] = set()  # nodes that have no grid and cannot get one (no depth)
         self._known_ids: tuple[np.ndarray, np.ndarray] | None = None
-        self._roots: tuple[np.ndarray, np.ndarray] | None = None  # (node ids, their parts' roots) at the last look
+        self._roots: tuple | None = None  # (node ids, their parts' roots, their map ids) at the last look
         self.last_update: dict = {}
 
     def maps(self) -> dict[int, np.ndarray]:
@@ -57,16 +57,17 @@ class MapGrids:
             return {}
         cached = self._roots
         if read == 0 and cached is not None and np.array_equal(cached[0], ids):
-            roots = cached[1]  # no new link, the same nodes: the same parts (~20 ms at 20k nodes)
+            roots, maps = cached[1], cached[2]  # no new link, the same nodes: the same parts (~30 ms at 20k)
         else:
             roots = self._links.roots(ids)
-            self._roots = (ids, roots)
-        new = set(roots.tolist()) - self._map_of_root.keys()
-        if new:
-            session = dict(zip(ids.tolist(), nodes["session_id"].tolist()))
-            map_id = {s.id: s.map_id for s in self.store.sessions()}
-            self._map_of_root.update({r: map_id.get(session.get(r)) for r in new})
-        maps = np.array([self._map_of_root[r] if self._map_of_root[r] is not None else -1 for r in roots.tolist()])
+            new = set(roots.tolist()) - self._map_of_root.keys()
+            if new:
+                session = dict(zip(ids.tolist(), nodes["session_id"].tolist()))
+                map_id = {s.id: s.map_id for s in self.store.sessions()}
+                self._map_of_root.update({r: map_id.get(session.get(r)) for r in new})
+            maps = np.array([-1 if self._map_of_root[r] is None else self._map_of_root[r] for r in roots.tolist()],
+                            np.int64)
+            self._roots = (ids, roots, maps)
         out = {}
         for m in np.unique(maps).tolist():
             sel = maps == m
