@@ -39,11 +39,11 @@ def ms(a, q) -> float:
 
 
 def per_keyframe(frames: int):
-    from client.synthetic.dataset import SyntheticDataset
-    from service.config import Config
-    from service.grid.local import LocalGridMaker
-    from service.tracking.features import FeatureExtractor
-    from storage import KeyframeRecord, LocalGridRecord, MapStore
+    from mnemoslam.client.synthetic.dataset import SyntheticDataset
+    from mnemoslam.service.config import Config
+    from mnemoslam.service.grid.local import LocalGridMaker
+    from mnemoslam.service.tracking.features import FeatureExtractor
+    from mnemoslam.storage import KeyframeRecord, LocalGridRecord, MapStore
 
     ds = SyntheticDataset("walk_b", rate=30.0)
     idx = np.linspace(0, len(ds) - 1, frames).astype(int)
@@ -92,8 +92,8 @@ def per_keyframe(frames: int):
 
 
 def build_map(path: Path, n: int, grids, seed: int = 0):
-    from client.frames import Calibration, PinholeCamera
-    from storage import KeyframeRecord, LinkType, LocalGridRecord, MapStore
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+    from mnemoslam.storage import KeyframeRecord, LinkType, LocalGridRecord, MapStore
 
     rng = np.random.default_rng(seed)
     s = MapStore(path)
@@ -132,8 +132,8 @@ def build_map(path: Path, n: int, grids, seed: int = 0):
 
 
 def assembly(store, ids, poses):
-    from service.config import GridConfig
-    from service.grid.maps import MapGrids
+    from mnemoslam.service.config import GridConfig
+    from mnemoslam.service.grid.maps import MapGrids
 
     cfg = GridConfig()
     mg = MapGrids(store, cfg)
@@ -173,8 +173,8 @@ def assembly(store, ids, poses):
 def rest(store, requests_n: int):
     import http.client
 
-    from service.api import ApiThread, create_app
-    from service.config import load_config
+    from mnemoslam.service.api import ApiThread, create_app
+    from mnemoslam.service.config import load_config
 
     class Stand:
         def __init__(self, store):
@@ -216,7 +216,7 @@ def main() -> int:
     a = ap.parse_args()
     print(f"load average {os.getloadavg()[0]:.1f}")
     grids, _ = per_keyframe(a.frames)
-    from storage import MapStore
+    from mnemoslam.storage import MapStore
 
     with tempfile.TemporaryDirectory() as d:
         path = Path(a.db) if a.db else Path(d) / "grid.db"

@@ -3,11 +3,19 @@ import cv2
 import numpy as np
 import pytest
 
-from client.synthetic.dataset import SyntheticDataset
-from service.config import GridConfig
-from service.grid.assembly import G_OCCUPIED, GlobalGrid
-from service.grid.local import FREE, OCCUPIED, LocalGrid, LocalGridMaker, StoredLocalGrid, angle_deg, fit_floor
-from storage import LocalGridRecord, MapStore, UnknownIdError
+from mnemoslam.client.synthetic.dataset import SyntheticDataset
+from mnemoslam.service.config import GridConfig
+from mnemoslam.service.grid.assembly import G_OCCUPIED, GlobalGrid
+from mnemoslam.service.grid.local import (
+    FREE,
+    OCCUPIED,
+    LocalGrid,
+    LocalGridMaker,
+    StoredLocalGrid,
+    angle_deg,
+    fit_floor,
+)
+from mnemoslam.storage import LocalGridRecord, MapStore, UnknownIdError
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 
@@ -61,7 +69,7 @@ def test_local_grid_matches_the_scene(walk):
 def test_floor_found_by_a_camera_tilted_far_from_its_mounting(walk):
     """A camera pitched down 35° and rolled 12° (far from the configured level mounting) finds
     the floor from the surface normals; a wall alone is no floor."""
-    from client.geometry import make_pose
+    from mnemoslam.client.kernel.geometry import make_pose
 
     cfg = GridConfig()
     p, b, a = np.array([3.0, 2.5, 1.4]), np.radians(35), np.radians(12)
@@ -94,8 +102,8 @@ def test_local_grid_cost_and_size(walk):
 
 def _v6(path):
     """A database at schema v6 with one session and one keyframe with depth."""
-    from client.frames import Calibration, PinholeCamera
-    from storage import KeyframeRecord
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+    from mnemoslam.storage import KeyframeRecord
 
     class V6(MapStore):
         MIGRATIONS = MapStore.MIGRATIONS[:6]
@@ -224,8 +232,8 @@ def test_grid_resampled_keeps_obstacles(walk_grids):
 def _store_with(path, walk_grids, sessions=1):
     """A store whose keyframes carry walk_b's local grids, chained by odometry links; with two
     sessions the second half is a second session (a second map until a link joins them)."""
-    from client.frames import Calibration, PinholeCamera
-    from storage import KeyframeRecord
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+    from mnemoslam.storage import KeyframeRecord
 
     ids, poses, grids = walk_grids
     s = MapStore(path)
@@ -250,8 +258,8 @@ def _store_with(path, walk_grids, sessions=1):
 def test_map_grids_follow_the_store(tmp_path, walk_grids):
     """MapGrids: one grid per map; it follows poses moved in the store (as the map update
     writes them) and equals a fresh assembly; two maps until a link joins them."""
-    from service.grid.maps import MapGrids, NoMap
-    from storage import LinkType
+    from mnemoslam.service.grid.maps import MapGrids, NoMap
+    from mnemoslam.storage import LinkType
 
     ids, poses, grids = walk_grids
     cfg = GridConfig(update_error=0.0, frame_nodes=5)
@@ -283,11 +291,11 @@ def test_run_out_writes_grid_cloud_and_groundtruth(tmp_path):
     scene, groundtruth_grid.pgm + .yaml on the same cells; the grid agrees with it."""
     import yaml
 
-    from client.datasets import open_dataset
-    from service.config import load_config
-    from service.grid.cloud import read_ply
-    from service.grid.files import agreement, read_grid
-    from service.runner import run_dataset
+    from mnemoslam.client.datasets import open_dataset
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.grid.cloud import read_ply
+    from mnemoslam.service.grid.files import agreement, read_grid
+    from mnemoslam.service.runner import run_dataset
 
     ds = open_dataset("synthetic:walk_b", rate=5, max_frames=50)
     out = run_dataset(ds, load_config(overrides={"semantics": {"enabled": False}}), tmp_path, progress=False)
@@ -303,7 +311,7 @@ def test_run_out_writes_grid_cloud_and_groundtruth(tmp_path):
     P, C = read_ply((tmp_path / "cloud.ply").read_bytes())
     assert len(P) > 10000 and C.shape == P.shape
     # `db export` writes the same grid (and the cloud) from the database
-    from service.cli import main
+    from mnemoslam.service.cli import main
 
     assert main(["db", "export", str(tmp_path / "map.db"), "--out", str(tmp_path / "export")]) == 0
     again = read_grid(tmp_path / "export" / "grid.yaml")

@@ -11,15 +11,15 @@ import pytest
 import requests
 import yaml
 
-from client.synthetic.dataset import SyntheticDataset
-from service.api import ApiThread, create_app
-from service.config import GridConfig, load_config
-from service.grid.assembly import G_FREE, G_OCCUPIED
-from service.grid.cloud import read_ply
-from service.grid.files import agreement, groundtruth_grid
-from service.grid.local import LocalGridMaker
-from service.grid.path import plan
-from storage import KeyframeRecord, LocalGridRecord, MapStore, ObjectRecord
+from mnemoslam.client.synthetic.dataset import SyntheticDataset
+from mnemoslam.service.api import ApiThread, create_app
+from mnemoslam.service.config import GridConfig, load_config
+from mnemoslam.service.grid.assembly import G_FREE, G_OCCUPIED
+from mnemoslam.service.grid.cloud import read_ply
+from mnemoslam.service.grid.files import agreement, groundtruth_grid
+from mnemoslam.service.grid.local import LocalGridMaker
+from mnemoslam.service.grid.path import plan
+from mnemoslam.storage import KeyframeRecord, LocalGridRecord, MapStore, ObjectRecord
 from tests.test_api_objects import FakeService, _robot
 
 
@@ -81,7 +81,7 @@ def test_maps_and_grid_json(world):
     assert math.degrees(math.acos(min(1.0, M[2, :3] @ up_map))) < 0.5
     # against the scene's floor plan: ≥ 95 % of the observed cells agree (issue 25's bound; measured 96.8 %
     # on `run synthetic:walk_b`, 96.7 % here with true poses and every 4th frame at 5 Hz)
-    from service.grid.assembly import GridImage
+    from mnemoslam.service.grid.assembly import GridImage
 
     img = GridImage(np.array(g["data"], np.int8).reshape(g["height"], g["width"]), g["resolution"],
                     tuple(g["origin"][:2]), M)
@@ -142,7 +142,7 @@ def test_path_through_doors_to_an_object_and_a_point(world):
     assert {"hall", "living", "office", "doorway:living-hall", "doorway:living-office"} <= rooms, rooms
     assert None not in rooms  # never through a wall
     # the true shortest path: on the scene's floor plan, same footprint
-    from service.grid.assembly import GridImage
+    from mnemoslam.service.grid.assembly import GridImage
 
     g = _get(world, "/maps/0/grid").json()
     img = GridImage(np.array(g["data"], np.int8).reshape(g["height"], g["width"]), g["resolution"],
@@ -219,7 +219,7 @@ def test_viewer_draws_the_grid_in_chromium(world, tmp_path):
 
 
 def test_planner_client(world):
-    from client.planner import ApiError, PlannerClient
+    from mnemoslam.client.planner import ApiError, PlannerClient
 
     api = PlannerClient(world.url, timeout=60)
     assert api.maps() == [{"map": 0, "keyframes": len(world.ids)}]

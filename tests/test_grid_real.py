@@ -9,12 +9,12 @@ import itertools
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from service.config import GridConfig
-from service.evaluation import associate_stamps
-from service.grid.assembly import G_FREE, G_OCCUPIED, GlobalGrid
-from service.grid.local import LocalGridMaker, StoredLocalGrid, angle_deg
-from storage import LocalGridRecord
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.service.config import GridConfig
+from mnemoslam.service.evaluation import associate_stamps
+from mnemoslam.service.grid.assembly import G_FREE, G_OCCUPIED, GlobalGrid
+from mnemoslam.service.grid.local import LocalGridMaker, StoredLocalGrid, angle_deg
+from mnemoslam.storage import LocalGridRecord
 from tests.conftest import require
 
 #: The Kinect's accelerometer (TUM's accelerometer.txt, ax ay az) in the colour camera's axes (x

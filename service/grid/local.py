@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from client.frames import PinholeCamera
+from mnemoslam.client.kernel.frames import PinholeCamera
 
 from ..config import GridConfig
 

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from storage.connectivity import MapConnectivity
+from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import GridConfig
 from .assembly import GlobalGrid, GridImage
@@ -153,7 +153,7 @@ class MapGrids:
     def _backfill(self, node_ids: list[int]) -> set[int]:
         """Make and store the local grids of keyframes stored without one (an older database)
         from their stored depth; returns the nodes that got one."""
-        from storage import LocalGridRecord
+        from mnemoslam.storage import LocalGridRecord
 
         from ..memory.keyframes import decode_images
 

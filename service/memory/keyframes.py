@@ -9,9 +9,9 @@ import logging
 import cv2
 import numpy as np
 
-from client.frames import Calibration, Frame
-from client.geometry import invert
-from storage import KeyframeRecord, LocalGridRecord, MapRepository, StoreError
+from mnemoslam.client.kernel.frames import Calibration, Frame
+from mnemoslam.client.kernel.geometry import invert
+from mnemoslam.storage import KeyframeRecord, LocalGridRecord, MapRepository, StoreError
 
 from ..config import Config, to_dict
 from ..grid.local import LocalGridMaker

@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 import numpy as np
 from fastapi import HTTPException, Query, Request, Response
 
-from client.protocol import ROBOT_PATTERN
+from mnemoslam.client.kernel.protocol import ROBOT_PATTERN
 
 from ...grid import cloud as grid_cloud
 from ...grid import files
