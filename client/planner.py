@@ -111,6 +111,29 @@ class PlannerClient:
         "goal_distance"}."""
         return self.get(f"/objects/{int(object_id)}/path", robot=robot)
 
+    # -- the maps: occupancy grid, cloud, paths on the grid (docs/grid.md) ----------------------
+    def maps(self) -> list[dict]:
+        """[{"map", "keyframes"}] of the database."""
+        return self.get("/maps")
+
+    def grid(self, map_id: int, resolution: float | None = None) -> dict:
+        """The map's occupancy grid: {"resolution", "origin", "width", "height", "data" (row-major
+        from the origin cell: -1 unknown, 0 free, 100 occupied), "map_to_grid", map_server's
+        YAML fields, "keyframes"}."""
+        return self.get(f"/maps/{int(map_id)}/grid", resolution=resolution, format="json")
+
+    def cloud(self, map_id: int, voxel: float = 0.05) -> dict:
+        """The map's coloured point cloud as JSON {"count", "voxel", "points", "colors"} (for
+        small maps; GET /maps/{map}/cloud?format=ply for the binary PLY)."""
+        return self.get(f"/maps/{int(map_id)}/cloud", voxel=voxel, format="json")
+
+    def path(self, robot: str, to: int | None = None, point=None) -> dict:
+        """A path on the occupancy grid from `robot` to an object (`to`) or a point (x, y, z):
+        {"robot", "map", "start", "goal", "points", "grid_points", "length", "goal_distance",
+        "object"}."""
+        x, y, z = point if point is not None else (None, None, None)
+        return self.get("/path", robot=robot, to=to, x=x, y=y, z=z)
+
     # -- changes (need the token) --------------------------------------------------------------
     def label_node(self, node_id: int, label: str | None) -> dict:
         """Name a keyframe (None clears its name); the node."""

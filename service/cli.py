@@ -33,6 +33,13 @@ def _cmd_run(args) -> int:
         dataset = Passes(dataset, args.passes)
     out = run_dataset(dataset, config, args.out, progress=want_progress(args.quiet))
     print(out.summary.line())
+    g = getattr(out, "grid", None)
+    if g:
+        line = f"grid: {g['width']}x{g['height']} cells, {g['observed']} observed"
+        if "groundtruth_agree" in g:
+            line += (f", {100 * g['groundtruth_agree']:.1f} % agree with the scene's floor plan (occupied "
+                     f"{100 * g['groundtruth_occupied_agree']:.1f} %, free {100 * g['groundtruth_free_agree']:.1f} %)")
+        print(line)
     if dataset.ground_truth is not None and len(out.trajectory) >= 3:
         from .evaluation import evaluate
 
@@ -168,6 +175,15 @@ def _cmd_db(args) -> int:
         print(db_info(args.db))
     else:
         print(db_export(args.db, args.out, args.session))
+        if not args.no_grid:  # the maps' occupancy grids and clouds (service/grid/files.py)
+            from mnemoslam.storage import MapStore
+
+            from .config import load_config
+            from .grid.files import write_map_files
+
+            with MapStore(args.db, create=False) as store:
+                for m in write_map_files(store, args.out, load_config(args.config).grid).values():
+                    print("\n".join(f"wrote {p}" for p in m["files"]))
     return 0
 
 
@@ -198,7 +214,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a dataset offline through the SLAM pipeline")
     r.add_argument("dataset", help="dataset folder (TUM, EuRoC, KITTI, 7-Scenes), ROS bag (rosbag2 folder, .db3, "
                                    ".mcap, ROS 1 .bag) or synthetic[:loop|figure8|...]")
-    r.add_argument("--out", required=True, help="output folder (trajectory.tum, keyframes.tum, summary.json)")
+    r.add_argument("--out", required=True, help="output folder (trajectory.tum, keyframes.tum, summary.json, map.db, "
+                                                "grid.pgm + grid.yaml, cloud.ply)")
     r.add_argument("--format", choices=list(FORMATS), help="override layout detection")
     r.add_argument("--topics", action="append", metavar="ROLE=TOPIC,...", help=TOPICS_HELP)
     r.add_argument("--config", help="YAML config file (default: built-in defaults)")
@@ -246,10 +263,12 @@ def build_parser() -> argparse.ArgumentParser:
     dbs = db.add_subparsers(dest="db_command", required=True)
     di = dbs.add_parser("info", help="schema, sessions, counts, integrity")
     di.add_argument("db")
-    dx = dbs.add_parser("export", help="trajectory (TUM) and graph (JSON)")
+    dx = dbs.add_parser("export", help="trajectory (TUM), graph (JSON), each map's grid (PGM + YAML) and cloud (PLY)")
     dx.add_argument("db")
     dx.add_argument("--out", required=True, help="output folder")
     dx.add_argument("--session", type=int, help="only this session")
+    dx.add_argument("--no-grid", action="store_true", help="no grid.pgm / grid.yaml / cloud.ply")
+    dx.add_argument("--config", help="YAML config file for the grid.* keys (default: built-in defaults)")
     db.set_defaults(func=_cmd_db)
 
     cf = sub.add_parser("config", help="print every configuration key with its default")

@@ -266,6 +266,33 @@ class RosConfig:
 
 
 @dataclass
+class GridConfig:
+    enabled: bool = True  # a local occupancy grid per RGB-D keyframe from its depth, stored with the node (RTAB-Map: Grid/FromDepth); the map's grid, cloud and paths are built from them (docs/grid.md)
+    cell_size: float = 0.05  # m, the local grids' cells and the map grid's default resolution (Grid/CellSize)
+    depth_decimation: int = 4  # every n-th depth pixel of each row and column (Grid/DepthDecimation)
+    range_min: float = 0.0  # m; depth points nearer than this are not used (Grid/RangeMin)
+    range_max: float = 5.0  # m; ... nor farther than this (Grid/RangeMax)
+    ray_tracing: bool = True  # cells between the camera and what it sees are free (Grid/RayTracing; false in RTAB-Map, whose free space is only the floor it sees)
+    max_ground_height: float = 0.05  # m above the floor: points lower are floor (free) (Grid/MaxGroundHeight; 0 = off there)
+    max_obstacle_height: float = 1.9  # m above the floor: points higher (ceilings, lamps) are ignored (Grid/MaxObstacleHeight; 0 = off there)
+    max_ground_angle: float = 45.0  # deg; depth points whose surface normal is this close to the expected up are floor candidates, and the fitted floor may turn this far from it (Grid/MaxGroundAngle)
+    floor_min_points: int = 150  # decimated depth points within ±floor_band of a plane for it to count as the floor
+    floor_band: float = 0.03  # m, half thickness of the floor slab of the plane fit
+    up: list = field(default_factory=lambda: [0.0, -1.0, 0.0])  # the camera mounting: the up direction in the camera frame (x right, y down, z forward) before a floor or an accelerometer says otherwise
+    camera_height: float = 1.2  # m, the camera above the floor until a floor is seen (a handheld camera: ~1.2-1.5)
+    frame_nodes: int = 50  # the map grid's plane is perpendicular to the mean up of the map's oldest this many keyframes whose up came from a floor or an accelerometer (not the configured mounting)
+    prob_hit: float = 0.7  # an obstacle cell of a keyframe adds logodds(prob_hit) (GridGlobal/ProbHit)
+    prob_miss: float = 0.4  # a free cell adds logodds(prob_miss) (GridGlobal/ProbMiss)
+    prob_clamping_min: float = 0.1192  # the cell's probability is clamped to [min, max] (GridGlobal/ProbClampingMin)
+    prob_clamping_max: float = 0.971  # (GridGlobal/ProbClampingMax)
+    occupancy_thr: float = 0.5  # a cell is occupied above this probability (GridGlobal/OccupancyThr)
+    update_error: float = 0.01  # m; a keyframe whose optimised pose moved more (or turned more than this / 1 m in rad) is re-placed in the map grid (GridGlobal/UpdateError); 0 = at any change
+    footprint_radius: float = 0.2  # m; the cells this close to a keyframe's position are free: the camera (the robot, the person holding it) was there (GridGlobal/FootprintRadius, 0 there); 0 = off
+    robot_radius: float = 0.2  # m; paths (GET /path) keep this far from occupied cells
+    path_unknown: bool = False  # paths may cross unknown cells (else free cells only)
+
+
+@dataclass
 class Config:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     stereo: StereoConfig = field(default_factory=StereoConfig)
@@ -279,6 +306,7 @@ class Config:
     api: ApiConfig = field(default_factory=ApiConfig)
     semantics: SemanticsConfig = field(default_factory=SemanticsConfig)
     ros: RosConfig = field(default_factory=RosConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
     seed: int = 0  # seeds every random choice (RANSAC), for bit-for-bit reproducible runs
 
 

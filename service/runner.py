@@ -63,6 +63,7 @@ class RunOutput:
     # synthetic + semantics: frames in which ≥ 200 px of each instance id were visible
     instance_frames: np.ndarray | None = None
     links: "LinkReport | None" = None  # the map's links against ground truth, per type (datasets with ground truth)
+    grid: dict | None = None  # the map grid's files and figures (grid.enabled, with out_dir): see write_run_grids
 
     def __post_init__(self):
         if self.online is None:
@@ -72,8 +73,10 @@ class RunOutput:
 def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = None,
                 progress: bool = True) -> RunOutput:
     """Run every frame of `dataset` through one pipeline; write `trajectory.tum`,
-    `keyframes.tum` (and `groundtruth.tum` when the dataset has it) and the map database
-    `map.db` (the same one the service writes) into `out_dir`; with semantics on also
+    `keyframes.tum` (and `groundtruth.tum` when the dataset has it), the map database
+    `map.db` (the same one the service writes) and, with grid.enabled, the map's occupancy
+    grid and cloud (`grid.pgm`, `grid.yaml`, `cloud.ply`; synthetic: `groundtruth_grid.*`)
+    into `out_dir`; with semantics on also
     `objects.json` (the fused objects at their final positions) and, for synthetic data,
     `groundtruth_objects.json` (the scene's objects and how many frames saw them)."""
     with contextlib.ExitStack() as stack:
@@ -120,7 +123,35 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
                 write_objects(out_dir / "objects.json", reader.objects())
             if hasattr(dataset, "scene"):
                 write_groundtruth_objects(out_dir / "groundtruth_objects.json", dataset.scene, out.instance_frames)
+        if config.grid.enabled:
+            out.grid = write_run_grids(db, out_dir, config, dataset, out.keyframes)
     return out
+
+
+def write_run_grids(db: Path, out_dir: Path, config: Config, dataset: Dataset, keyframes: Trajectory) -> dict | None:
+    """DIR/grid.pgm + grid.yaml and DIR/cloud.ply of the run's map (service/grid/files.py); for
+    the synthetic scene also DIR/groundtruth_grid.pgm + .yaml, its true floor plan on the same
+    cells (the map frame placed in the scene by the first keyframe's true pose), and the
+    grid's agreement with it. Returns {"cells": observed, "agree": share, ...} or None."""
+    from .evaluation import associate_stamps
+    from .grid.files import agreement, groundtruth_grid, write_grid, write_map_files
+
+    with MapStore(db, create=False) as store:
+        maps = write_map_files(store, out_dir, config.grid)
+    if not maps:
+        return None
+    m = min(maps)
+    grid = maps[m]["grid"]
+    info = {"map": m, "observed": int((grid.states >= 0).sum()), "width": grid.width, "height": grid.height,
+            "files": [str(p) for p in maps[m]["files"]]}
+    if hasattr(dataset, "scene") and dataset.ground_truth is not None and len(keyframes):
+        ig, ie = associate_stamps(dataset.ground_truth.stamps, keyframes.stamps)
+        if len(ie):
+            world_from_map = dataset.ground_truth.poses[ig[0]] @ invert(keyframes.poses[ie[0]])
+            truth = groundtruth_grid(dataset.scene, grid, world_from_map)
+            info["files"] += [str(p) for p in write_grid(out_dir, truth, "groundtruth_grid")]
+            info.update({f"groundtruth_{k}": v for k, v in agreement(grid, truth).items()})
+    return info
 
 
 def object_dict(o) -> dict:

@@ -3,6 +3,7 @@ words, images and statistics in one file. See `store` for how `MapStore` is spli
 concern, `records` for the encodings, `connection` for the durability /
 threading guarantees, `schema` for the tables and migrations and
 `repository` for the interface the service uses."""
+from .grids import LocalGridRecord
 from .records import (
     LINK_NAMES,
     KeyframeRecord,
@@ -19,6 +20,7 @@ from .repository import MapRepository
 from .store import MapStore
 
 __all__ = [
-    "LINK_NAMES", "KeyframeRecord", "LinkRecord", "LinkType", "MapRepository", "MapStore", "NodeRecord", "ObjectRecord",
+    "LINK_NAMES", "KeyframeRecord", "LinkRecord", "LocalGridRecord", "LinkType",
+    "MapRepository", "MapStore", "NodeRecord", "ObjectRecord",
     "SessionRecord", "StoreError", "UnknownIdError", "link_name",
 ]

@@ -14,6 +14,7 @@ import numpy as np
 from mnemoslam.client.kernel.frames import Calibration
 from mnemoslam.client.kernel.trajectory import Trajectory
 
+from .grids import LocalGridRecord
 from .records import KeyframeRecord, LinkRecord, NodeRecord, ObjectRecord, SessionRecord
 
 
@@ -125,6 +126,15 @@ class MapRepository(Protocol):
     def segmentation_coverage(self) -> dict[str, int]: ...
 
     def count_objects(self) -> int: ...
+
+    # -- local occupancy grids (service.memory.keyframes, service.grid) -------------------------
+    def save_local_grids(self, grids: Iterable[LocalGridRecord]) -> int: ...
+
+    def local_grids(self, node_ids: Iterable[int]) -> dict[int, LocalGridRecord]: ...
+
+    def grid_nodes(self, has_grid: bool = True) -> dict[str, np.ndarray]: ...
+
+    def nodes_without_grid(self, node_ids: Iterable[int] | None = None) -> list[int]: ...
 
     # -- lifetime (service.server, service.mapping.process) -----------------------------------
     def close(self) -> None: ...

@@ -158,9 +158,26 @@ def m006_segmentations(db: sqlite_utils.Database) -> None:
             not_null=["source", "status", "at"], foreign_keys=[_fk("segmentations", "node_id", "nodes")])
 
 
+def m007_local_grids(db: sqlite_utils.Database) -> None:
+    """v7: `local_grids`, each keyframe's local occupancy grid made from its depth (issue 25;
+    RTAB-Map keeps ground/obstacle/empty cells in its `Data` table): `cell_size` (m),
+    `transform` (float64 4×4, camera ← grid frame: z up, origin on the floor under the
+    camera), `origin_x`/`origin_y` (cell index of the image's first cell), `cells` (PNG of a
+    uint8 image: 0 unknown, 1 free, 2 occupied; row = y), `up_source` (where the up direction
+    came from: config, session, floor, accelerometer) and `floor_points` (depth points of the
+    fitted floor, 0 when none). Keyframes of older files have no row: the grid is made from
+    their stored depth when a map grid first needs it."""
+    _create(db, "local_grids",
+            {"node_id": int, "cell_size": float, "transform": bytes, "origin_x": int, "origin_y": int,
+             "cells": bytes, "up_source": str, "floor_points": int},
+            pk="node_id", not_null=["cell_size", "transform", "origin_x", "origin_y", "cells", "up_source",
+                                    "floor_points"],
+            foreign_keys=[_fk("local_grids", "node_id", "nodes")])
+
+
 #: Applied in order: MIGRATIONS[i] upgrades schema version i to i + 1.
 MIGRATIONS: tuple[Migration, ...] = (m001_initial, m002_session_end_reason, m003_merged_nodes, m004_objects,
-                                      m005_rtree_map_nodes, m006_segmentations)
+                                      m005_rtree_map_nodes, m006_segmentations, m007_local_grids)
 
 #: Tables a v1 database has (for "is this a mnemoslam database" checks).
 TABLES = ("admin", "sessions", "nodes", "links", "features", "words", "images", "statistics")

@@ -13,11 +13,13 @@ connection:
 - `storage.words` (`Words`): the vocabulary's words and the nodes' word ids.
 - `storage.queries` (`Queries`): reads of nodes, links, trajectories, statistics; export.
 - `storage.objects` (`Objects`): the semantic map's 3-D objects (anchored to keyframes).
+- `storage.grids` (`Grids`): the keyframes' local occupancy grids.
 
 `storage.repository.MapRepository` lists the methods the service uses.
 """
 from __future__ import annotations
 
+from .grids import Grids
 from .nodes import Nodes
 from .objects import Objects
 from .queries import Queries
@@ -25,7 +27,7 @@ from .records import MAP_UPDATE_LINKS, StoreError, _pack, _unpack  # noqa: F401 
 from .words import Words
 
 
-class MapStore(Nodes, Words, Queries, Objects):
+class MapStore(Nodes, Words, Queries, Objects, Grids):
     """The long-term memory in one SQLite file. See `storage.records` for the encodings and
     `storage.connection` for the durability and threading guarantees."""
 

@@ -134,3 +134,21 @@ def test_semantic_endpoints_on_the_real_service(service):
         with pytest.raises(ApiError) as e:
             client.label_node(node, "kitchen")
         assert e.value.status == 403 and "MNEMOSLAM_API_TOKEN" in e.value.detail
+
+
+def test_grid_endpoints_on_the_real_service(service):
+    """Every keyframe the service wrote has its local grid (made where keyframes are written):
+    the map's grid has them all, free floor and occupied walls; a path from the robot to a point
+    a metre ahead of it along its view exists (issue 25)."""
+    import numpy as np
+
+    session = service.session_of("p1")
+    keyframes = service.api.nodes(session, limit=1)["total"]
+    assert service.api.maps() == [{"map": 0, "keyframes": keyframes}]
+    g = service.api.grid(0)
+    assert g["keyframes"] == keyframes > 3
+    data = np.array(g["data"])
+    assert (data == 0).sum() > 1000 and (data == 100).sum() > 100
+    r = service.api.robot("p1")
+    p = service.api.path("p1", point=tuple(np.add(r["position"], (0.0, 0.0, 1.0))))  # 1 m along the first view
+    assert 0.5 < p["length"] < 2.0 and p["map"] == 0

@@ -1075,6 +1075,7 @@ def test_v5_takes_merged_keyframes_out_of_the_rtree(tmp_path, rng):
     c = sqlite3.connect(path, isolation_level=None)  # back to v4: the merged keyframe in the R*Tree, no trigger
     c.execute("DROP TRIGGER nodes_rtree_merged")
     c.execute("DROP TABLE segmentations")  # (v6)
+    c.execute("DROP TABLE local_grids")  # (v7)
     c.execute("INSERT INTO nodes_rtree VALUES (?, 1, 1, 0, 0, 0, 0)", (ids[1],))
     c.execute("PRAGMA user_version = 4")
     c.close()

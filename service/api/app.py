@@ -9,6 +9,7 @@ import time
 import uvicorn
 from fastapi import FastAPI
 
+from ..grid.maps import GridHolder
 from ..metrics import Metrics, RequestTimer
 from ..server import SlamService
 from ..viewer import Viewer
@@ -23,6 +24,7 @@ def create_app(service: SlamService) -> FastAPI:
     app.state.service = service
     app.state.access = Access.from_config(service.config)
     app.state.objects = IndexHolder()
+    app.state.grids = GridHolder(service.config.grid)  # the maps' occupancy grids (service/grid)
     app.state.semantics = None  # (when, semantics_status()) for the object endpoints
     app.state.metrics = Metrics(service)
     app.state.viewer = Viewer(service, objects=app.state.objects.get)

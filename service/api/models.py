@@ -225,6 +225,48 @@ class DeletedOut(BaseModel):
     deleted: int
 
 
+class MapOut(BaseModel):
+    map: int = Field(description="the map id (of its oldest session)")
+    keyframes: int
+
+
+class GridOut(BaseModel):
+    """An occupancy grid as ROS's nav_msgs/OccupancyGrid with map_server's YAML fields."""
+    resolution: float = Field(description="m per cell")
+    origin: list[float] = Field(description="x, y, yaw of the lower-left cell's corner in the grid frame (m, rad)")
+    negate: int = 0
+    occupied_thresh: float
+    free_thresh: float
+    map_to_grid: list[float] = Field(description="the 4×4 transform grid ← map frame, row-major")
+    width: int
+    height: int
+    keyframes: int = Field(description="keyframes assembled into it")
+    data: list[int] = Field(description="row-major from the origin cell (row 0 = lowest y): -1 unknown, 0 free, "
+                            "100 occupied")
+    image: str = ""
+
+
+class CloudOut(BaseModel):
+    count: int
+    voxel: float = Field(description="m")
+    points: list[list[float]] = Field(description="x, y, z (m, map frame)")
+    colors: list[list[int]] = Field(description="red, green, blue (0-255) of each point")
+
+
+class GridPathOut(BaseModel):
+    robot: str
+    map: int
+    start: list[float] = Field(description="the robot's position (map frame)")
+    goal: list[float] = Field(description="the target: the object's position or the point (map frame)")
+    points: list[list[float]] = Field(description="the path's corners in the map frame (at the start's height), "
+                                      "from the robot's cell to the goal's")
+    grid_points: list[list[float]] = Field(description="the same corners in the grid frame (x, y; m)")
+    length: float = Field(description="m along the path")
+    goal_distance: float = Field(description="m from the path's end to the goal (an object is itself an obstacle: "
+                                 "the path ends at the nearest free cell)")
+    object: ObjectOut | None = None
+
+
 class ErrorOut(BaseModel):
     detail: Any
 

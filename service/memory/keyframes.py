@@ -4,15 +4,20 @@ previous keyframe by its odometry constraint (`KeyframeWriter`, one per session)
 update keeps of it in RAM, and when, is memory's (`manager.Memory`)."""
 from __future__ import annotations
 
+import logging
+
 import cv2
 import numpy as np
 
 from mnemoslam.client.kernel.frames import Calibration, Frame
 from mnemoslam.client.kernel.geometry import invert
-from mnemoslam.storage import KeyframeRecord, MapRepository
+from mnemoslam.storage import KeyframeRecord, LocalGridRecord, MapRepository, StoreError
 
 from ..config import Config, to_dict
+from ..grid.local import LocalGridMaker
 from ..tracking.features import FrameFeatures
+
+log = logging.getLogger("mnemoslam.memory")
 
 
 def odometry_information(inliers: int) -> np.ndarray:
@@ -34,6 +39,8 @@ class KeyframeWriter:
         self.last_pose: np.ndarray | None = None
         self.last_segment: int | None = None
         self.last_link: tuple | None = None
+        # each RGB-D keyframe's local occupancy grid, made and stored here (issue 25)
+        self.grids = LocalGridMaker(calibration.camera, config.grid) if config.grid.enabled else None
 
     def close(self, reason: str = "stopped") -> None:
         """The session ended, for `reason` (its keyframes are all committed already)."""
@@ -58,7 +65,21 @@ class KeyframeWriter:
             depth_png=depth_png, odom_link=link, statistics=statistics,
         ))
         self.last_node, self.last_pose, self.last_segment = node_id, pose, segment
+        if self.grids is not None and frame.depth is not None:
+            self._save_grid(node_id, frame, pose, segment)
         return node_id
+
+    def _save_grid(self, node_id: int, frame: Frame, pose: np.ndarray, segment: int) -> None:
+        """The keyframe's local grid, stored with it (its own small transaction after the
+        keyframe's: a keyframe without one gets it from its stored depth when needed)."""
+        try:
+            g = self.grids.make(frame.depth, pose, segment, accel=frame.extras.get("accel"))
+            if g is not None:
+                self.store.save_local_grids([LocalGridRecord(node_id, g.cell_size, g.T_cam_local, g.origin_x,
+                                                             g.origin_y, g.encode_cells(), g.up_source,
+                                                             g.floor_points)])
+        except (ValueError, StoreError) as e:  # the keyframe stands without its grid (made later from its depth)
+            log.warning("keyframe %d: no local grid (%s)", node_id, e)
 
 
 def decode_images(color_jpeg: bytes | None, depth_png: bytes | None) -> tuple[np.ndarray | None, np.ndarray | None]:

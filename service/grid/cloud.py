@@ -1,0 +1,94 @@
+"""The map's coloured point cloud (rtabmap-export's cloud): each keyframe's stored depth and
+colour, decimated, back-projected, placed at the keyframe's optimised pose, then voxel-filtered
+(one point per voxel: the mean position and colour of the points in it), written as binary
+PLY. Keyframes without stored images (merged by rehearsal, storage.keep_images false) add
+nothing."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..memory.keyframes import decode_images
+
+
+def keyframe_points(color: np.ndarray | None, depth: np.ndarray, camera, decimation: int = 4,
+                    max_depth: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (N, 3) float32 and their colours (N, 3) uint8 RGB (grey when no colour)."""
+    d = max(1, int(decimation))
+    z = depth[::d, ::d]
+    v, u = np.mgrid[0:depth.shape[0]:d, 0:depth.shape[1]:d]
+    ok = np.isfinite(z) & (z > 0) & (z <= max_depth)
+    zz = z[ok].astype(np.float32)
+    P = np.column_stack([(u[ok] - camera.cx) / camera.fx * zz, (v[ok] - camera.cy) / camera.fy * zz, zz])
+    if color is None:
+        C = np.full((len(P), 3), 200, np.uint8)
+    else:
+        c = color[::d, ::d] if color.shape[:2] == depth.shape[:2] else None
+        if c is None:
+            C = np.full((len(P), 3), 200, np.uint8)
+        elif c.ndim == 2:
+            C = np.repeat(c[ok][:, None], 3, axis=1)
+        else:
+            C = c[ok][:, ::-1]  # BGR -> RGB
+    return P.astype(np.float32), np.ascontiguousarray(C, np.uint8)
+
+
+def voxel_filter(P: np.ndarray, C: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """One point per voxel: the mean of its points and colours."""
+    if len(P) == 0 or voxel <= 0:
+        return P, C
+    key = np.floor(P / voxel).astype(np.int64)
+    key -= key.min(axis=0)
+    dims = key.max(axis=0) + 1
+    flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    n = len(counts)
+    out_p = np.zeros((n, 3))
+    out_c = np.zeros((n, 3))
+    for k in range(3):
+        out_p[:, k] = np.bincount(inv, P[:, k], n) / counts
+        out_c[:, k] = np.bincount(inv, C[:, k], n) / counts
+    return out_p.astype(np.float32), np.rint(out_c).astype(np.uint8)
+
+
+def map_cloud(store, node_ids, poses, voxel: float = 0.02, decimation: int = 4,
+              max_depth: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud of these keyframes at these poses (map frame), voxel-filtered. Keyframes are
+    filtered one by one as they come (bounded memory), then once more together."""
+    cams: dict[int, object] = {}
+    sessions = {n.id: n.session_id for n in store.get_nodes([int(i) for i in node_ids])}
+    parts_p, parts_c = [], []
+    for n, pose in zip(node_ids, poses):
+        color_b, depth_b = store.load_images(int(n))
+        if depth_b is None:
+            continue
+        sid = sessions.get(int(n))
+        if sid not in cams:
+            cams[sid] = store.calibration(sid).camera
+        color, depth = decode_images(color_b, depth_b)
+        P, C = keyframe_points(color, depth, cams[sid], decimation, max_depth)
+        P = P @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
+        P, C = voxel_filter(P, C, voxel)
+        parts_p.append(P)
+        parts_c.append(C)
+    if not parts_p:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    return voxel_filter(np.concatenate(parts_p), np.concatenate(parts_c), voxel)
+
+
+def ply_bytes(P: np.ndarray, C: np.ndarray) -> bytes:
+    """Binary little-endian PLY with x, y, z (float32) and red, green, blue (uint8)."""
+    n = len(P)
+    header = ("ply\nformat binary_little_endian 1.0\ncomment mnemoslam map cloud (map frame, metres)\n"
+              f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n").encode()
+    rec = np.zeros(n, dtype=[("p", "<f4", 3), ("c", "u1", 3)])
+    rec["p"], rec["c"] = P, C
+    return header + rec.tobytes()
+
+
+def read_ply(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """A PLY of `ply_bytes` read back (tests, tools)."""
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    n = int(next(line.split()[2] for line in data[:end].decode().splitlines() if line.startswith("element vertex")))
+    rec = np.frombuffer(data[end:], dtype=[("p", "<f4", 3), ("c", "u1", 3)], count=n)
+    return rec["p"].copy(), rec["c"].copy()
