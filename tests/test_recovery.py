@@ -19,7 +19,7 @@ from client.transport import ZenohSettings
 from service.config import load_config
 from service.demo import ServiceProcess
 from service.evaluation import evaluate
-from service.mapping.mapper import KeyframeUpdate, Mapper
+from service.mapping.mapper import Mapper
 from service.memory.keyframes import KeyframeWriter
 from service.pipeline import Pipeline
 from service.recovery import recover
@@ -138,6 +138,7 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, u
     # Mapper.resume: the mapped part as the interrupted mapper held it, from the database alone
     with MapStore(cfg.storage.path) as other:
         resumed = Mapper.resume(other, sid, cfg.loop, memory=cfg.memory)
+        u = resumed.stored_update(ids[cut + 1])  # a backlog keyframe as its update is rebuilt from the store
     stored_poses = {n.id: n.pose for n in store.nodes(session_id=sid, limit=None)}
     poses = resumed.keyframe_poses()
     assert set(poses) == set(ids[:cut])
@@ -146,7 +147,6 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, u
     assert len(resumed.graph.loops()) == len([lk for lk in store.links(session_id=sid)
                                               if lk.type in (*LOOPS, LinkType.LOCAL_TIME) and lk.to_id != ids[cut]])
     assert ids[cut - 1] in resumed.vocabulary and ids[cut + 1] not in resumed.vocabulary
-    u = KeyframeUpdate.from_store(store, ids[cut + 1])
     assert (u.odom_from, u.node_id) == (ids[cut], ids[cut + 1]) and u.features.depth is not None
     assert (u.features.depth.shape == u.features.grey.shape
             == (ds.calibration.camera.height, ds.calibration.camera.width))

@@ -9,7 +9,7 @@ import numpy as np
 
 from client.frames import Calibration, Frame
 from client.geometry import invert
-from storage import KeyframeRecord, MapRepository
+from storage import KeyframeLog, KeyframeRecord
 
 from ..config import Config, to_dict
 from ..tracking.features import FrameFeatures
@@ -26,7 +26,7 @@ def odometry_information(inliers: int) -> np.ndarray:
 class KeyframeWriter:
     """A session of one robot in the map: its keyframes written as tracking makes them."""
 
-    def __init__(self, store: MapRepository, robot: str, calibration: Calibration, config: Config):
+    def __init__(self, store: KeyframeLog, robot: str, calibration: Calibration, config: Config):
         self.store = store
         self.config = config
         self.session_id = store.begin_session(robot, calibration, to_dict(config))
