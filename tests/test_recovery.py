@@ -67,7 +67,7 @@ class _Crash:
         if self.n <= self.cut:
             self.stored.submit(u)
         elif self.n == self.cut + 1:
-            self.stored.store.die_at = u.node_id
+            self.stored.memory.store.die_at = u.node_id  # (the map update writes through its memory)
             with pytest.raises(RuntimeError, match="killed"):
                 self.stored.submit(u)
 
