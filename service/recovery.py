@@ -29,7 +29,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-from storage import MAP_UPDATE_LINKS, MapStore, SessionRecord
+from mnemoslam.storage import MAP_UPDATE_LINKS, MapStore, SessionRecord
 
 from .config import Config
 from .mapping.mapper import Mapper

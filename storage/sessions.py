@@ -8,7 +8,7 @@ import dataclasses
 import time
 from collections.abc import Mapping
 
-from client.frames import Calibration
+from mnemoslam.client.kernel.frames import Calibration
 
 from .codec import SESSION_COLUMNS, as_end_reason, as_int, session_from_row, to_json
 from .connection import Part
@@ -23,7 +23,7 @@ class Sessions(Part):
         if not isinstance(robot, str) or not robot.strip():
             raise ValueError(f"robot must be a non-empty string, got {robot!r}")
         if not isinstance(calibration, Calibration):
-            raise ValueError(f"calibration must be a client.frames.Calibration, got {type(calibration).__name__}")
+            raise ValueError(f"calibration must be a mnemoslam.client.kernel.frames.Calibration, got {type(calibration).__name__}")
         if config is not None and not (isinstance(config, Mapping) or dataclasses.is_dataclass(config)):
             raise ValueError(f"config must be a dict, got {type(config).__name__}")
         calib = to_json(calibration_to_dict(calibration), "calibration")

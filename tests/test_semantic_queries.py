@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from service.semantics.queries import NotFound, ObjectIndex, QueryError, RobotLocation, robot_location
+from mnemoslam.service.semantics.queries import NotFound, ObjectIndex, QueryError, RobotLocation, robot_location
 
 LABELS = ["door", "chair", "table", "window"]
 

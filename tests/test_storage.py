@@ -18,9 +18,9 @@ from typing import Protocol
 import numpy as np
 import pytest
 
-from client.frames import Calibration, PinholeCamera
-from client.trajectory import read_tum
-from storage import (
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+from mnemoslam.client.kernel.trajectory import read_tum
+from mnemoslam.storage import (
     ApiStore,
     KeyframeLog,
     KeyframeRecord,
@@ -34,14 +34,14 @@ from storage import (
     UnknownIdError,
     WordStore,
 )
-from storage.cli import db_export, db_info
-from storage.codec import pack, unpack
-from storage.connection import Connection
-from storage.nodes import Nodes
-from storage.objects import Objects
-from storage.queries import Queries
-from storage.sessions import Sessions
-from storage.words import Words
+from mnemoslam.storage.cli import db_export, db_info
+from mnemoslam.storage.codec import pack, unpack
+from mnemoslam.storage.connection import Connection
+from mnemoslam.storage.nodes import Nodes
+from mnemoslam.storage.objects import Objects
+from mnemoslam.storage.queries import Queries
+from mnemoslam.storage.sessions import Sessions
+from mnemoslam.storage.words import Words
 
 ROOT = Path(__file__).resolve().parents[1]
 CAL = Calibration(PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480), None, 5000.0)
@@ -872,8 +872,8 @@ CHILD = r"""
 import sys
 sys.path.insert(0, {root!r})
 import numpy as np
-from client.frames import Calibration, PinholeCamera
-from storage import KeyframeRecord, MapStore
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+from mnemoslam.storage import KeyframeRecord, MapStore
 store = MapStore({path!r})
 sid = store.begin_session("crash", Calibration(PinholeCamera(500, 500, 320, 240, 640, 480)))
 rng = np.random.default_rng(0)

@@ -24,9 +24,9 @@ from typing import Callable
 
 import numpy as np
 
-from client.frames import PinholeCamera
-from client.geometry import invert, nearby, rotation_angle
-from storage import LinkType, MapUpdateStore
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.kernel.geometry import invert, nearby, rotation_angle
+from mnemoslam.storage import LinkType, MapUpdateStore
 
 from ..config import LoopConfig, MemoryConfig
 from ..memory.manager import Memory, series_information

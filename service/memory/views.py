@@ -9,8 +9,8 @@ import logging
 import cv2
 import numpy as np
 
-from client.frames import PinholeCamera
-from storage import MapUpdateStore
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.storage import MapUpdateStore
 
 from ..tracking import icp
 from .keyframes import decode_images

@@ -49,7 +49,7 @@ import weakref
 
 import numpy as np
 
-from storage import WordStore
+from mnemoslam.storage import WordStore
 
 _NONE_DIST = 257  # larger than any 256-bit Hamming distance
 

@@ -39,8 +39,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from storage import ApiStore, MapReader, StoreError
-from storage.connectivity import MapConnectivity
+from mnemoslam.storage import ApiStore, MapReader, StoreError
+from mnemoslam.storage.connectivity import MapConnectivity
 
 log = logging.getLogger("mnemoslam.semantics.queries")
 
