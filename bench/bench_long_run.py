@@ -50,7 +50,7 @@ from mnemoslam.client.kernel.geometry import invert  # noqa: E402
 from mnemoslam.client.synthetic import SyntheticDataset  # noqa: E402
 from mnemoslam.service.builder import build_pipeline  # noqa: E402
 from mnemoslam.service.config import load_config, merge_overrides, parse_sets  # noqa: E402
-from mnemoslam.service.runner import UPDATE_COLUMNS, UPDATE_STEPS, _frames, update_row  # noqa: E402
+from mnemoslam.service.runner import UPDATE_COLUMNS, UPDATE_STEPS, read_ahead, update_row  # noqa: E402
 from mnemoslam.storage import MapStore  # noqa: E402
 
 ON_DEFAULTS = ("memory.rehearsal=true", "memory.max_wm_nodes=100")
@@ -116,7 +116,7 @@ def run_one(name: str, args) -> dict:
         mapper = pipeline.mapper
         bar = tqdm(total=target, desc=f"{name} keyframes", unit="kf", disable=not sys.stderr.isatty(),
                    dynamic_ncols=True)
-        gen = _frames(ds)
+        gen = read_ahead(ds)
         for frame in gen:
             frames += 1
             if isinstance(frame, DatasetError):

@@ -46,7 +46,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from prometheus_client.registry import Collector
 from prometheus_client.utils import floatToGoString
 
-from mnemoslam.storage import LinkType, StoreError
+from mnemoslam.storage import LinkType, MapReader, StoreError
 
 log = logging.getLogger("mnemoslam.metrics")
 
@@ -226,7 +226,7 @@ class ServiceCollector(Collector):
         if store is not None:
             yield from self._coverage(store)
 
-    def _coverage(self, store):
+    def _coverage(self, store: MapReader):
         """The semantic map's coverage: the map's keyframes, those segmented, those skipped."""
         try:
             c = store.segmentation_coverage()

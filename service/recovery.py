@@ -11,7 +11,7 @@ mapping process and the Zenoh subscriptions exist:
    the map update's last write, `MapStore.unmapped_nodes`), resumes a mapper on the session
    (`Mapper.resume`: its graph holds the session's mapped keyframes and links at their
    stored poses, the map's vocabulary is loaded from the store) and runs the update of each
-   such keyframe in id order, rebuilt from the database (`KeyframeUpdate.from_store`), so
+   such keyframe in id order, rebuilt from the database (`Mapper.stored_update`), so
    they close loops to the mapped ones as they would have. What an interrupted update had
    already written for a keyframe (loop links; its words are redone) is replaced.
 
@@ -29,11 +29,10 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-from mnemoslam.storage import MapStore, SessionRecord
-from mnemoslam.storage.store import MAP_UPDATE_LINKS
+from mnemoslam.storage import MAP_UPDATE_LINKS, MapStore, SessionRecord
 
 from .config import Config
-from .mapping.mapper import KeyframeUpdate, Mapper
+from .mapping.mapper import Mapper
 from .mapping.process import LOCK_WAIT_S, map_update_lock
 
 log = logging.getLogger("mnemoslam.recovery")
@@ -127,7 +126,7 @@ def _recover_session(store: MapStore, session: SessionRecord, node_ids: list[int
     failed = 0
     for k, nid in enumerate(node_ids, 1):
         try:
-            u = KeyframeUpdate.from_store(store, nid, images=config.loop.refine_dense)
+            u = mapper.stored_update(nid, images=config.loop.refine_dense)
             if u.odom_from is not None and u.odom_from not in mapper.graph:
                 log.warning("recovery: node %d: its odometry predecessor %d is not in the graph: starts a segment",
                             nid, u.odom_from)

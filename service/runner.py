@@ -208,7 +208,7 @@ def update_row(node: int, memory: dict, timings: dict) -> list:
             m.get("words", "")] + [f"{t.get(s, 0.0):.3f}" for s in UPDATE_STEPS]
 
 
-def _frames(dataset: Dataset, ahead: int = 2):
+def read_ahead(dataset: Dataset, ahead: int = 2):
     """The dataset's frames in order, each read (decoded or rendered) `ahead` frames early on
     one reader thread, so that decoding (which releases the GIL) overlaps the pipeline's
     work on the other core; a frame that cannot be read comes as its DatasetError. One
@@ -235,7 +235,7 @@ def _run(dataset: Dataset, pipeline: Pipeline, progress: bool) -> RunOutput:
     seen = None  # per instance id: frames that showed ≥ VISIBLE_PIXELS of it (synthetic, semantics on)
     start = time.perf_counter()
     bar = tqdm(total=len(dataset), desc=dataset.name, unit="frame", disable=not progress, leave=False)
-    for i, frame in enumerate(_frames(dataset)):
+    for i, frame in enumerate(read_ahead(dataset)):
         if isinstance(frame, DatasetError):
             log.error("frame %d skipped: %s", i, frame)
             bad += 1

@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
-from mnemoslam.storage import LinkType, StoreError
+from mnemoslam.storage import LinkType, MapReader, StoreError
 
 from .semantics.queries import QueryError, Unavailable
 
@@ -146,7 +146,7 @@ class ViewerFeed:
         return out
 
     # -- sessions -----------------------------------------------------------------------------
-    def _shown(self, store, live: set[int], now: float) -> list:
+    def _shown(self, store: MapReader, live: set[int], now: float) -> list:
         known = {s.id for s in self._sessions}
         if live - known or now - self._listed_at >= self.limits.full_every:
             sessions = store.sessions()
@@ -156,7 +156,7 @@ class ViewerFeed:
             self._listed_at = now
         return self._sessions
 
-    def _session_updates(self, store, live: set[int], now: float) -> list[dict]:
+    def _session_updates(self, store: MapReader, live: set[int], now: float) -> list[dict]:
         out = []
         sessions = self._shown(store, live, now)
         live_maps = {s.map_id for s in sessions if s.id in live}
@@ -178,7 +178,7 @@ class ViewerFeed:
             sent.live = is_live
         return out
 
-    def _frames(self, store, sessions) -> dict[int, int]:
+    def _frames(self, store: MapReader, sessions) -> dict[int, int]:
         """{session id: the map id of the oldest session that links join it to}: sessions with
         the same one share coordinates (ObjectIndex.maps, storage.connectivity)."""
         if self.objects is None:
@@ -200,7 +200,8 @@ class ViewerFeed:
             return {}
         return {} if maps is None else {sid: m for sid, m in zip(firsts, maps) if m is not None}
 
-    def _trajectory_update(self, store, s, sent: _Sent, is_live: bool, map_is_live: bool, now: float) -> dict | None:
+    def _trajectory_update(self, store: MapReader, s, sent: _Sent, is_live: bool, map_is_live: bool,
+                           now: float) -> dict | None:
         due = now - sent.full_at >= self.limits.full_every
         if not (is_live or due):
             return None
@@ -229,7 +230,7 @@ class ViewerFeed:
         sent.last_id = int(rows[-1, 0])
         return {"full": False, "nodes": sent.nodes, "points": _xyz(rows[:, 1:4])}
 
-    def _memory_update(self, store, session_id: int, sent: _Sent, is_live: bool) -> dict | None:
+    def _memory_update(self, store: MapReader, session_id: int, sent: _Sent, is_live: bool) -> dict | None:
         """STM / WM / LTM sizes and vocabulary words after the session's latest map update, when
         they changed (as GET /metrics reads them: the map update's statistics rows)."""
         if not is_live and sent.live is not None:
@@ -245,7 +246,7 @@ class ViewerFeed:
         return latest
 
     # -- objects ------------------------------------------------------------------------------
-    def _coverage_update(self, store) -> dict | None:
+    def _coverage_update(self, store: MapReader) -> dict | None:
         """The semantic map's coverage ({"keyframes", "segmented", "skipped"}) when it changed."""
         if self.objects is None:
             return None
@@ -259,7 +260,7 @@ class ViewerFeed:
         self._coverage = c
         return c
 
-    def _object_update(self, store) -> dict | None:
+    def _object_update(self, store: MapReader) -> dict | None:
         if self.objects is None:
             return None
         try:

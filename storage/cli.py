@@ -4,7 +4,8 @@ from __future__ import annotations
 import datetime as _dt
 from pathlib import Path
 
-from .store import MapStore, StoreError
+from .records import StoreError
+from .store import MapStore
 
 
 def _open(path: str | Path) -> MapStore:

@@ -1,10 +1,11 @@
 """Connection and checkpointing of the long-term memory: `Connection` opens the file (its
-pragmas), owns the writer connection and the pool of reader connections, the `_write` /
-`_read` transactions every other storage module goes through, the background WAL
+pragmas), owns the writer connection and the pool of reader connections, the `write` /
+`read` transactions every part of the store goes through, the background WAL
 checkpointer, the schema migrations, the `admin` key-value table and closing. Its state
-(connections, locks, the commit count) is touched nowhere else: the per-concern classes
-(`storage.nodes`, `storage.words`, `storage.queries`) subclass it and use only `_write`,
-`_read`, `_rtree` and `path`.
+(connections, locks, the commit count) is touched nowhere else: the parts `MapStore` is
+composed of (`storage.sessions`, `storage.nodes`, `storage.queries`, `storage.words`,
+`storage.objects`: each a `Part` holding the one `Connection`) use only `write`, `read`,
+`rtree` and `path`.
 
 Durability: WAL journal with synchronous=NORMAL. A transaction is durable against a
 process crash (kill -9) once COMMIT returns; `add_keyframe` returns only after COMMIT, so
@@ -34,7 +35,8 @@ from typing import Any, Iterator, Self
 import sqlite_utils
 
 from . import schema
-from .records import StoreError, _to_json
+from .codec import to_json
+from .records import StoreError
 
 log = logging.getLogger("mnemoslam.storage")
 
@@ -44,14 +46,14 @@ class Connection:
     pool, the checkpointer and the schema. See the module docstring for the durability and
     threading guarantees."""
 
-    #: MIGRATIONS[i] upgrades schema version i to i + 1; the current version is their count.
-    MIGRATIONS: tuple = schema.MIGRATIONS
-
-    def __init__(self, path: str | Path, *, create: bool = True, busy_timeout: float = 10.0):
+    def __init__(self, path: str | Path, *, create: bool = True, busy_timeout: float = 10.0,
+                 migrations: tuple[schema.Migration, ...] = schema.MIGRATIONS):
         if str(path) in ("", ":memory:") or str(path).startswith("file:"):
             raise ValueError(f"MapStore needs a file path, got {str(path)!r}")
         self.path = Path(path)
         self.busy_timeout = float(busy_timeout)
+        #: migrations[i] upgrades schema version i to i + 1; the current version is their count.
+        self.migrations = tuple(migrations)
         if self.path.is_dir():
             raise StoreError(f"{self.path} is a directory, not a database file")
         if not create and not self.path.exists():
@@ -68,11 +70,11 @@ class Connection:
         self._writer = self._connect("rwc" if create else "rw")
         try:
             self._configure_writer()
-            self.db = sqlite_utils.Database(self._writer, execute_plugins=False)
+            self._utils = sqlite_utils.Database(self._writer, execute_plugins=False)  # (the migrations')
             self._migrate(create)
-            self._rtree = self._writer.execute(
+            self.rtree = self._writer.execute(
                 "SELECT 1 FROM sqlite_master WHERE name = 'nodes_rtree'").fetchone() is not None
-            if self._rtree and not schema.has_rtree(self._writer):
+            if self.rtree and not schema.has_rtree(self._writer):
                 raise StoreError(f"{self.path} uses an R*Tree index but this SQLite build has no R*Tree module")
         except BaseException:
             self._closed = True
@@ -114,9 +116,9 @@ class Connection:
             log.warning("%s: journal_mode is %s, not WAL (file system without shared memory?): "
                         "readers will wait for writers", self.path, mode)
 
-    _CHECKPOINT_COMMITS = 32  # wake the checkpointer after this many commits
-    _CHECKPOINT_PERIOD = 2.0  # seconds; and at least this often when there were commits
-    _WAL_PAGES = 4096  # WAL size (pages, 16 MB at 4 kB) past which a checkpoint briefly holds the writer
+    CHECKPOINT_COMMITS = 32  # wake the checkpointer after this many commits
+    CHECKPOINT_PERIOD = 2.0  # seconds; and at least this often when there were commits
+    WAL_PAGES = 4096  # WAL size (pages, 16 MB at 4 kB) past which a checkpoint briefly holds the writer
 
     def _checkpoint_loop(self) -> None:
         try:
@@ -129,7 +131,7 @@ class Connection:
             return
         try:
             while True:
-                self._checkpoint_wake.wait(self._CHECKPOINT_PERIOD)
+                self._checkpoint_wake.wait(self.CHECKPOINT_PERIOD)
                 self._checkpoint_wake.clear()
                 if self._closed:
                     return
@@ -140,7 +142,7 @@ class Connection:
                     # PASSIVE: copies what is committed, never waits for (nor blocks) the
                     # writer or readers.
                     (_, wal_pages, _), = conn.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchall()
-                    if wal_pages > self._WAL_PAGES:
+                    if wal_pages > self.WAL_PAGES:
                         # The WAL restarts from its beginning only when a write starts after a
                         # checkpoint has caught up with it, which never happens under
                         # continuous writes. Catch up without the lock while that shrinks the
@@ -184,7 +186,7 @@ class Connection:
             raise StoreError(f"the store {self.path} is closed")
 
     @contextmanager
-    def _write(self, what: str) -> Iterator[sqlite3.Connection]:
+    def write(self, what: str) -> Iterator[sqlite3.Connection]:
         """One write transaction (BEGIN IMMEDIATE … COMMIT) on the writer connection; rolled
         back on any exception. sqlite3 errors come out as StoreError."""
         with self._lock:
@@ -198,7 +200,7 @@ class Connection:
                 yield conn
                 conn.execute("COMMIT")
                 self._commits += 1
-                if self._commits >= self._CHECKPOINT_COMMITS:
+                if self._commits >= self.CHECKPOINT_COMMITS:
                     self._checkpoint_wake.set()
             except BaseException as e:
                 if conn.in_transaction:
@@ -208,7 +210,7 @@ class Connection:
                 raise
 
     @contextmanager
-    def _read(self, snapshot: bool = False) -> Iterator[sqlite3.Connection]:
+    def read(self, snapshot: bool = False) -> Iterator[sqlite3.Connection]:
         """A pooled read connection; with `snapshot`, all its queries see one committed state."""
         self._check_open()
         with self._pool_lock:
@@ -266,12 +268,12 @@ class Connection:
     @property
     def current_version(self) -> int:
         """The schema version this code writes (the number of migrations)."""
-        return len(self.MIGRATIONS)
+        return len(self.migrations)
 
     @property
     def schema_version(self) -> int:
         """The schema version stored in the file."""
-        with self._read() as c:
+        with self.read() as c:
             return c.execute("PRAGMA user_version").fetchone()[0]
 
     def _migrate(self, create: bool) -> None:
@@ -292,7 +294,7 @@ class Connection:
             if not create:
                 raise StoreError(f"{self.path} is not a mnemoslam database (no schema)")
         while True:
-            with self._write("schema migration") as c:
+            with self.write("schema migration") as c:
                 # Re-read under the write lock: another process may have migrated meanwhile.
                 version = c.execute("PRAGMA user_version").fetchone()[0]
                 if version > target:
@@ -300,8 +302,8 @@ class Connection:
                 if version == target:
                     break
                 log.info("%s: migrating schema v%d -> v%d (%s)", self.path, version, version + 1,
-                         getattr(self.MIGRATIONS[version], "__name__", "migration"))
-                self.MIGRATIONS[version](self.db)
+                         getattr(self.migrations[version], "__name__", "migration"))
+                self.migrations[version](self._utils)
                 c.execute(f"PRAGMA user_version = {version + 1}")
                 c.execute("INSERT OR REPLACE INTO admin (key, value) VALUES ('schema_version', ?)",
                           (json.dumps(version + 1),))
@@ -315,7 +317,7 @@ class Connection:
 
     def get_info(self, key: str, default: Any = None) -> Any:
         """A value of the `admin` key-value table (JSON-decoded)."""
-        with self._read() as c:
+        with self.read() as c:
             row = c.execute("SELECT value FROM admin WHERE key = ?", (key,)).fetchone()
         return default if row is None or row[0] is None else json.loads(row[0])
 
@@ -323,7 +325,46 @@ class Connection:
         """Store a JSON-encodable value in the `admin` key-value table."""
         if not isinstance(key, str) or not key:
             raise ValueError("info key must be a non-empty string")
-        text = _to_json(value, f"info[{key!r}]")
-        with self._write("set_info") as c:
+        text = to_json(value, f"info[{key!r}]")
+        with self.write("set_info") as c:
             c.execute("INSERT OR REPLACE INTO admin (key, value) VALUES (?, ?)", (key, text))
 
+
+    def change_counter(self) -> ChangeCounter:
+        """A cheap change counter of the file (see `ChangeCounter`); close it when done."""
+        self._check_open()
+        return ChangeCounter(self.path)
+
+
+class ChangeCounter:
+    """`PRAGMA data_version` of the file on a read-only connection of its own: calling it
+    gives a number that changes whenever another connection or process commits (the store's
+    own writer included), for a cache of the map that rebuilds when it changed
+    (`service.semantics.queries.ObjectIndex`). Any thread; StoreError once closed."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        try:
+            self._conn = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True, check_same_thread=False)
+        except sqlite3.Error as e:
+            raise StoreError(f"cannot open {path} for its change counter: {e}") from e
+        self._lock = threading.Lock()
+
+    def __call__(self) -> int:
+        with self._lock:
+            try:
+                return self._conn.execute("PRAGMA data_version").fetchone()[0]
+            except sqlite3.Error as e:
+                raise StoreError(f"change counter of {self.path}: {e}") from e
+
+    def close(self) -> None:
+        with self._lock:
+            self._conn.close()
+
+
+class Part:
+    """One part of `MapStore` (a group of tables and the methods on them), on the store's one
+    `Connection`: its reads and writes go through `db.read()` / `db.write()`."""
+
+    def __init__(self, db: Connection):
+        self.db = db

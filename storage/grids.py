@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .connection import Connection
-from .records import UnknownIdError, _as_int, _rigid
+from .codec import as_int, as_rigid
+from .connection import Part
+from .records import UnknownIdError
 
 
 @dataclass
@@ -38,7 +39,7 @@ def _record(row) -> LocalGridRecord:
                            int(row[3]), int(row[4]), bytes(row[5]), row[6], int(row[7]))
 
 
-class Grids(Connection):
+class Grids(Part):
     """Local grids of the keyframes (the `MapStore` methods of those)."""
 
     def save_local_grids(self, grids: Iterable[LocalGridRecord]) -> int:
@@ -49,13 +50,13 @@ class Grids(Connection):
             cs = float(g.cell_size)
             if not (cs > 0 and np.isfinite(cs)):
                 raise ValueError(f"cell_size must be > 0, got {g.cell_size!r}")
-            T = np.ascontiguousarray(_rigid(g.transform, "local grid transform"), "<f8")
-            rows.append((_as_int(g.node_id, "node id"), cs, T.tobytes(), _as_int(g.origin_x, "origin_x"),
-                         _as_int(g.origin_y, "origin_y"), bytes(g.cells), str(g.up_source),
-                         _as_int(g.floor_points, "floor_points")))
+            T = np.ascontiguousarray(as_rigid(g.transform, "local grid transform"), "<f8")
+            rows.append((as_int(g.node_id, "node id"), cs, T.tobytes(), as_int(g.origin_x, "origin_x"),
+                         as_int(g.origin_y, "origin_y"), bytes(g.cells), str(g.up_source),
+                         as_int(g.floor_points, "floor_points")))
         if not rows:
             return 0
-        with self._write("save_local_grids") as c:
+        with self.db.write("save_local_grids") as c:
             known = {r[0] for r in c.execute("SELECT id FROM nodes WHERE id IN (SELECT value FROM json_each(?))",
                                              (json.dumps([r[0] for r in rows]),))}
             missing = sorted({r[0] for r in rows} - known)
@@ -66,14 +67,14 @@ class Grids(Connection):
 
     def local_grids(self, node_ids: Iterable[int]) -> dict[int, LocalGridRecord]:
         """{node id: its local grid} of those that have one."""
-        js = json.dumps([_as_int(i, "node id") for i in node_ids])
-        with self._read() as c:
+        js = json.dumps([as_int(i, "node id") for i in node_ids])
+        with self.db.read() as c:
             rows = c.execute(f"SELECT {_COLUMNS} FROM local_grids WHERE node_id IN (SELECT value FROM json_each(?))",
                              (js,)).fetchall()
         return {r[0]: _record(r) for r in rows}
 
     def count_local_grids(self) -> int:
-        with self._read() as c:
+        with self.db.read() as c:
             return c.execute("SELECT COUNT(*) FROM local_grids").fetchone()[0]
 
     def grid_nodes(self, has_grid: bool = True) -> dict[str, np.ndarray]:
@@ -83,7 +84,7 @@ class Grids(Connection):
         sql = ("SELECT n.id, n.session_id, n.pose, g.node_id IS NOT NULL FROM nodes n "
                "LEFT JOIN local_grids g ON g.node_id = n.id ORDER BY n.id") if has_grid else \
             "SELECT id, session_id, pose FROM nodes ORDER BY id"
-        with self._read(snapshot=True) as c:
+        with self.db.read(snapshot=True) as c:
             rows = c.execute(sql).fetchall()
         n = len(rows)
         cols = list(zip(*rows)) if rows else [()] * 4
@@ -100,6 +101,6 @@ class Grids(Connection):
         params: tuple = ()
         if node_ids is not None:
             sql += " AND n.id IN (SELECT value FROM json_each(?))"
-            params = (json.dumps([_as_int(i, "node id") for i in node_ids]),)
-        with self._read() as c:
+            params = (json.dumps([as_int(i, "node id") for i in node_ids]),)
+        with self.db.read() as c:
             return [r[0] for r in c.execute(sql + " ORDER BY n.id", params)]

@@ -4,7 +4,7 @@ anchor node's camera frame and its world `position` is computed on every read fr
 node's current pose (one query joining `nodes`), so objects follow loop-closure
 corrections without being rewritten, and stay valid when the node leaves working memory
 (its row stays in the file; a merged node keeps its pose row, which the map update keeps
-moving). Encodings and checks are `storage.records`'."""
+moving). Encodings and checks are `storage.codec`'s."""
 from __future__ import annotations
 
 import json
@@ -14,26 +14,27 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from .connection import Connection
-from .records import _OBJECT_COLUMNS, ObjectRecord, StoreError, UnknownIdError, _as_int, _object, _prepare_object
+from .codec import OBJECT_COLUMNS, as_int, object_from_row, prepare_object
+from .connection import Part
+from .records import ObjectRecord, StoreError, UnknownIdError
 
 _FROM = " FROM objects o JOIN nodes n ON n.id = o.node_id"
 
 
-class Objects(Connection):
+class Objects(Part):
     """3-D objects of the semantic map (the `MapStore` methods of those)."""
 
     def save_objects(self, objects: Iterable[ObjectRecord]) -> list[int]:
         """Insert the objects whose `id` is None and update the others, in one transaction;
         returns their ids in order. All or nothing: a bad record (ValueError, before any
         write), an unknown anchor node or object id (UnknownIdError) writes nothing."""
-        rows = [_prepare_object(o) for o in objects]
+        rows = [prepare_object(o) for o in objects]
         if not rows:
             return []
         now = time.time()
         ids: list[int | None] = [r[0] for r in rows]
         new = [r[1:] + (now,) for r in rows if r[0] is None]
-        with self._write("save_objects") as c:
+        with self.db.write("save_objects") as c:
             try:
                 for r in rows:
                     if r[0] is not None:
@@ -69,27 +70,27 @@ class Objects(Connection):
 
     def delete_objects(self, ids: Iterable[int]) -> int:
         """Delete objects by id (unknown ids are ignored); returns how many were deleted."""
-        js = json.dumps([_as_int(i, "object id") for i in ids])
-        with self._write("delete_objects") as c:
+        js = json.dumps([as_int(i, "object id") for i in ids])
+        with self.db.write("delete_objects") as c:
             return c.execute("DELETE FROM objects WHERE id IN (SELECT value FROM json_each(?))", (js,)).rowcount
 
     def objects(self, label: str | None = None) -> list[ObjectRecord]:
         """Every object (of `label`), ordered by id, with its world `position`: one query."""
-        sql, params = f"SELECT {_OBJECT_COLUMNS}{_FROM}", ()
+        sql, params = f"SELECT {OBJECT_COLUMNS}{_FROM}", ()
         if label is not None:
             sql, params = sql + " WHERE o.label = ?", (str(label),)
-        with self._read() as c:
+        with self.db.read() as c:
             rows = c.execute(sql + " ORDER BY o.id", params).fetchall()
-        return [_object(r) for r in rows]
+        return [object_from_row(r) for r in rows]
 
     def get_object(self, object_id: int) -> ObjectRecord | None:
-        with self._read() as c:
-            row = c.execute(f"SELECT {_OBJECT_COLUMNS}{_FROM} WHERE o.id = ?",
-                            (_as_int(object_id, "object id"),)).fetchone()
-        return None if row is None else _object(row)
+        with self.db.read() as c:
+            row = c.execute(f"SELECT {OBJECT_COLUMNS}{_FROM} WHERE o.id = ?",
+                            (as_int(object_id, "object id"),)).fetchone()
+        return None if row is None else object_from_row(row)
 
     def count_objects(self) -> int:
-        with self._read() as c:
+        with self.db.read() as c:
             return c.execute("SELECT COUNT(*) FROM objects").fetchone()[0]
 
     # -- which keyframes the semantic map has taken (schema v6) ------------------------------------
@@ -97,8 +98,8 @@ class Objects(Connection):
         """Record that the semantic worker dealt with these nodes (`source` "camera" or "model";
         `status` "fused" or "skipped"); a node already recorded is overwritten, an unknown one
         (deleted meanwhile) ignored. Returns the rows written."""
-        js = json.dumps([_as_int(i, "node id") for i in node_ids])
-        with self._write("mark_segmented") as c:
+        js = json.dumps([as_int(i, "node id") for i in node_ids])
+        with self.db.write("mark_segmented") as c:
             return c.execute(
                 "INSERT OR REPLACE INTO segmentations (node_id, source, status, at) "
                 "SELECT id, ?, ?, ? FROM nodes WHERE id IN (SELECT value FROM json_each(?))",
@@ -107,7 +108,7 @@ class Objects(Connection):
     def unsegmented_nodes(self, limit: int = 8) -> list[int]:
         """The newest map nodes (not merged by rehearsal) with stored colour and depth that the
         semantic worker has not dealt with, newest first: what it back-fills from the store."""
-        with self._read() as c:
+        with self.db.read() as c:
             rows = c.execute(
                 "SELECT n.id FROM nodes n JOIN images i ON i.node_id = n.id WHERE n.merged_into IS NULL "
                 "AND i.color IS NOT NULL AND i.depth IS NOT NULL "
@@ -118,7 +119,7 @@ class Objects(Connection):
     def segmentation_coverage(self) -> dict[str, int]:
         """{"keyframes": the map's nodes (not merged by rehearsal), "segmented": those whose
         labels are in the semantic map, "skipped": those dealt with but with nothing to fuse}."""
-        with self._read(snapshot=True) as c:
+        with self.db.read(snapshot=True) as c:
             keyframes = c.execute("SELECT COUNT(*) FROM nodes WHERE merged_into IS NULL").fetchone()[0]
             by = dict(c.execute("SELECT s.status, COUNT(*) FROM segmentations s JOIN nodes n ON n.id = s.node_id "
                                 "WHERE n.merged_into IS NULL GROUP BY s.status").fetchall())
@@ -134,7 +135,7 @@ class Objects(Connection):
             "o.extent FROM objects o", ()
         if label is not None:
             sql, params = sql + " WHERE o.label = ?", (str(label),)
-        with self._read(snapshot=True) as c:
+        with self.db.read(snapshot=True) as c:
             rows = c.execute(sql + " ORDER BY o.id", params).fetchall()
             # the anchors' poses once per node, not once per object (≈ 2× faster at 100k)
             poses = c.execute("SELECT id, pose FROM nodes WHERE id IN "

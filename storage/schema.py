@@ -8,7 +8,7 @@ migration leaves the previous version intact. To change the schema, append a fun
 never edit one that has shipped.
 
 Table and column names follow RTAB-Map's schema where it has an equivalent (Node, Link,
-Feature, Word, Data, Statistics, Admin); see docs in storage/store.py for the encodings.
+Feature, Word, Data, Statistics, Admin); see storage/codec.py for the encodings.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Visual words: `Words` stores the words a vocabulary creates with the word ids of a node's
 features (`save_node_words`, one transaction, so a node never points at an unsaved word),
 loads them (all, some, or with the inverted index rebuilt: `load_vocabulary_state`),
-counts, deletes and prunes them. Encodings and checks are `storage.records`';
+counts, deletes and prunes them. Encodings and checks are `storage.codec`'s;
 transactions are `storage.connection`'s."""
 from __future__ import annotations
 
@@ -12,20 +12,21 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from .connection import Connection
-from .records import StoreError, UnknownIdError, _as_int, _features_array, _pack, _word_ids
+from .codec import as_features, as_int, as_word_ids, pack
+from .connection import Part
+from .records import StoreError, UnknownIdError
 
 
-class Words(Connection):
+class Words(Part):
     """The vocabulary's words and the nodes' word ids (the `MapStore` methods of those)."""
 
     def set_word_ids(self, node_id: int, word_ids: np.ndarray | None) -> None:
         """Attach (or clear) the visual-word id of each feature of a node."""
-        nid = _as_int(node_id, "node_id")
+        nid = as_int(node_id, "node_id")
         blob = None
         if word_ids is not None:
-            blob = _pack(_features_array(word_ids, "word_ids", np.int32, None), np.int32)
-        with self._write("set_word_ids") as c:
+            blob = pack(as_features(word_ids, "word_ids", np.int32, None), np.int32)
+        with self.db.write("set_word_ids") as c:
             row = c.execute("SELECT count FROM features WHERE node_id = ?", (nid,)).fetchone()
             if row is None:
                 raise UnknownIdError(f"no node {nid}")
@@ -41,22 +42,22 @@ class Words(Connection):
         node never points at an unsaved word, even after a kill -9. Ids are never reused: a
         word id already stored is a StoreError, and the highest id ever stored is kept
         (admin `next_word_id`) so that pruning the newest words does not free their ids."""
-        nid = _as_int(node_id, "node_id")
-        wid = _word_ids(word_ids, "word_ids", -1)
+        nid = as_int(node_id, "node_id")
+        wid = as_word_ids(word_ids, "word_ids", -1)
         if (new_word_ids is None) != (new_descriptors is None):
             raise ValueError("new_word_ids and new_descriptors go together")
-        new = np.zeros(0, np.int64) if new_word_ids is None else _word_ids(new_word_ids, "new_word_ids", 0)
+        new = np.zeros(0, np.int64) if new_word_ids is None else as_word_ids(new_word_ids, "new_word_ids", 0)
         desc = b""
         if new_descriptors is not None:
-            d = _features_array(new_descriptors, "new_descriptors", np.uint8, 32)
+            d = as_features(new_descriptors, "new_descriptors", np.uint8, 32)
             if len(d) != len(new):
                 raise ValueError(f"{len(d)} new_descriptors for {len(new)} new_word_ids")
             if len(np.unique(new)) != len(new):
                 raise ValueError("new_word_ids has duplicates")
-            desc = _pack(d, np.uint8)
+            desc = pack(d, np.uint8)
         used = np.unique(wid[wid >= 0])
-        blob = _pack(wid, np.int32)
-        with self._write("save_node_words") as c:
+        blob = pack(wid, np.int32)
+        with self.db.write("save_node_words") as c:
             row = c.execute("SELECT count FROM features WHERE node_id = ?", (nid,)).fetchone()
             if row is None:
                 raise UnknownIdError(f"no node {nid}")
@@ -92,16 +93,16 @@ class Words(Connection):
             c.execute("UPDATE features SET word_ids = ? WHERE node_id = ?", (blob, nid))
 
     def count_words(self) -> int:
-        with self._read() as c:
+        with self.db.read() as c:
             return c.execute("SELECT COUNT(*) FROM words").fetchone()[0]
 
     def load_words(self, word_ids: Iterable[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(ids (W,) int64 ascending, descriptors W×32 uint8) of the given (default: all)
         stored words; unknown ids are left out."""
-        with self._read(snapshot=True) as c:
+        with self.db.read(snapshot=True) as c:
             if word_ids is None:
                 return self._words(c)
-            ids = np.unique(_word_ids(word_ids, "word_ids", 0))
+            ids = np.unique(as_word_ids(word_ids, "word_ids", 0))
             return self._words(c, json.dumps(ids.tolist()))
 
     _WORD_CHUNK = 1 << 18  # words per aggregate query of the loader (8 MB of descriptors)
@@ -139,7 +140,7 @@ class Words(Connection):
     def next_word_id(self) -> int:
         """One past the highest word id ever stored (what a vocabulary that loads no words
         must hand out next: ids are never reused)."""
-        with self._read(snapshot=True) as c:
+        with self.db.read(snapshot=True) as c:
             top = c.execute("SELECT MAX(id) FROM words").fetchone()[0]
             mark = c.execute("SELECT value FROM admin WHERE key = 'next_word_id'").fetchone()
         return max(0 if top is None else int(top) + 1, 0 if mark is None else int(mark[0]))
@@ -151,7 +152,7 @@ class Words(Connection):
         indexed): `post_word`, `post_node`, `post_count` (one row per distinct (node, word),
         words missing from `words` left out), `node_ids` and `node_nfeat` (features with a
         word id ≥ 0); `next_id` (1,) = one past the highest word id ever stored or referenced."""
-        with self._read(snapshot=True) as c:
+        with self.db.read(snapshot=True) as c:
             ids, desc = self._words(c)
             mark = c.execute("SELECT value FROM admin WHERE key = 'next_word_id'").fetchone()
             rows = c.execute("SELECT node_id, count, word_ids FROM features WHERE word_ids IS NOT NULL "
@@ -186,16 +187,16 @@ class Words(Connection):
         """Delete words (e.g. ones whose nodes are all gone); unknown ids are ignored. The
         caller makes sure no stored node still refers to them (`prune_words` checks it
         itself). Returns the number deleted."""
-        ids = np.unique(_word_ids(word_ids, "word_ids", 0))
+        ids = np.unique(as_word_ids(word_ids, "word_ids", 0))
         if not len(ids):
             return 0
-        with self._write("delete_words") as c:
+        with self.db.write("delete_words") as c:
             return c.execute("DELETE FROM words WHERE id IN (SELECT value FROM json_each(?))",
                              (json.dumps(ids.tolist()),)).rowcount
 
     def prune_words(self) -> np.ndarray:
         """Delete every word no stored node refers to, in one transaction; returns their ids."""
-        with self._write("prune_words") as c:
+        with self.db.write("prune_words") as c:
             (id_json,) = c.execute("SELECT json_group_array(id) FROM words").fetchone()
             ids = np.asarray(json.loads(id_json), np.int64)
             used = [np.frombuffer(r[0], np.dtype("<i4")) for r in

@@ -148,24 +148,6 @@ def test_refreshes_when_the_version_changes():
         index.nearest("door", (0, 0, 0))
 
 
-def test_real_sqlite_data_version_sees_other_connections(tmp_path):
-    import sqlite3
-
-    from mnemoslam.service.semantics.queries import data_version_of
-    db = tmp_path / "a map #1?.db"  # characters a file: URI must escape
-    w = sqlite3.connect(db)
-    w.execute("PRAGMA journal_mode=WAL")
-    w.execute("CREATE TABLE t (x)")
-    w.commit()
-    version = data_version_of(db)
-    v0 = version()
-    assert version() == v0
-    w.execute("INSERT INTO t VALUES (1)")
-    w.commit()
-    assert version() != v0
-    version.close()
-
-
 def test_concurrent_queries_during_rebuilds():
     store = FakeStore(arrays(2000))
     version = [0]

@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import pytest
@@ -20,16 +21,29 @@ import pytest
 from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
 from mnemoslam.client.kernel.trajectory import read_tum
 from mnemoslam.storage import (
+    ApiStore,
+    GridStore,
+    KeyframeLog,
     KeyframeRecord,
     LinkType,
-    MapRepository,
+    MapReader,
     MapStore,
+    MapUpdateStore,
     ObjectRecord,
+    SemanticStore,
     StoreError,
     UnknownIdError,
+    WordStore,
 )
 from mnemoslam.storage.cli import db_export, db_info
-from mnemoslam.storage.store import _pack, _unpack
+from mnemoslam.storage.codec import pack, unpack
+from mnemoslam.storage.connection import Connection
+from mnemoslam.storage.grids import Grids
+from mnemoslam.storage.nodes import Nodes
+from mnemoslam.storage.objects import Objects
+from mnemoslam.storage.queries import Queries
+from mnemoslam.storage.sessions import Sessions
+from mnemoslam.storage.words import Words
 
 ROOT = Path(__file__).resolve().parents[1]
 CAL = Calibration(PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480), None, 5000.0)
@@ -77,25 +91,83 @@ def store(tmp_path):
         yield s
 
 
-# -- the repository interface ---------------------------------------------------------------
+# -- the store's parts and roles ----------------------------------------------------------------
+
+ROLES = (KeyframeLog, WordStore, MapUpdateStore, SemanticStore, MapReader, ApiStore, GridStore)
+PARTS = (Connection, Sessions, Nodes, Queries, Words, Objects, Grids)
 
 
-def test_map_store_implements_the_repository_protocol(store):
-    protocol = {n for n, v in vars(MapRepository).items() if callable(v) and not n.startswith("_")}
-    assert isinstance(store, MapRepository)
-    for name in sorted(protocol):  # same parameters, defaults and annotations
-        assert inspect.signature(getattr(MapStore, name)) == inspect.signature(getattr(MapRepository, name)), name
+def _methods(cls) -> set[str]:
+    """The public methods `cls` declares (with those of the protocols it extends)."""
+    out = set()
+    for c in cls.__mro__:
+        if c in (object, Protocol) or c.__module__ == "typing":
+            continue
+        out |= {n for n, v in vars(c).items() if callable(v) and not n.startswith("_")}
+    return out
 
-    class Partial:  # any method missing: not a repository
-        pass
-    for name in protocol - {"close"}:
-        setattr(Partial, name, getattr(MapStore, name))
-    assert not isinstance(Partial(), MapRepository)
 
-    # Every map method the service calls is in the protocol.
-    called = {m.group(1) for p in (ROOT / "service").rglob("*.py")
-              for m in re.finditer(r"(?<![\w])_?store(?:\(\))?\.(\w+)\(", p.read_text())}
-    assert called and called <= protocol, sorted(called - protocol)
+def test_map_store_is_its_parts_each_method_unchanged(store):
+    """MapStore is composed of its parts: every public method of every part is a MapStore
+    method with the part's signature and docstring (calling it reaches the part)."""
+    for part in PARTS:
+        for name in sorted(_methods(part) - {"read", "write"}):  # (the parts' transactions)
+            assert inspect.signature(getattr(MapStore, name)) == inspect.signature(getattr(part, name)), name
+            assert getattr(MapStore, name).__doc__ == getattr(part, name).__doc__, name
+    assert not isinstance(store, PARTS)  # composed, not inherited
+    assert store.db.path == store.path
+
+
+def test_map_store_implements_every_role(store):
+    for role in ROLES:
+        assert isinstance(store, role), role.__name__
+        for name in sorted(_methods(role)):  # same parameters, defaults and annotations
+            assert inspect.signature(getattr(MapStore, name)) == inspect.signature(getattr(role, name)), \
+                (role.__name__, name)
+
+    class Partial:  # any method missing: not a keyframe log
+        begin_session = MapStore.begin_session
+        end_session = MapStore.end_session
+    assert not isinstance(Partial(), KeyframeLog)
+    assert not isinstance(store, type("Other", (), {}))
+    assert _methods(KeyframeLog) == {"begin_session", "end_session", "add_keyframe", "save_local_grids"}
+    assert not _methods(MapReader) & {"add_keyframe", "add_link", "update_poses", "set_statistics", "merge_node",
+                                      "set_label", "save_objects", "delete_objects", "mark_segmented"}
+
+
+# Each caller's role, and the modules that call the store as that role.
+CALLERS = {
+    KeyframeLog: ["service/memory/keyframes.py"],
+    MapUpdateStore: ["service/memory/manager.py", "service/memory/views.py", "service/memory/vocabulary.py"],
+    SemanticStore: ["service/semantics/worker.py"],
+    ApiStore: ["service/api/**/*.py", "service/viewer.py", "service/metrics.py", "service/semantics/queries.py"],
+    GridStore: ["service/grid/*.py"],
+}
+
+
+def store_calls(source: str) -> set[str]:
+    """The methods `source` calls on a map (`store.x(`, `self.store.x(`, `self._store.x(`)."""
+    return {m.group(1) for m in re.finditer(r"(?<![\w])_?store(?:\(\))?\.(\w+)\(", source)}
+
+
+def test_each_caller_calls_only_its_role():
+    """What each module handed a map calls on it is in the role its annotation names: a new
+    call outside the role fails here (add it to the role, or go through the right caller)."""
+    assert store_calls("self.store.add_link(a, b)\nx = self._store.load_images(n)\nstore.stats()") == {
+        "add_link", "load_images", "stats"}
+    for role, patterns in CALLERS.items():
+        files = sorted({p for pattern in patterns for p in ROOT.glob(pattern)})
+        assert files, patterns
+        called = set().union(*(store_calls(p.read_text()) for p in files))
+        assert called and called <= _methods(role), (role.__name__, sorted(called - _methods(role)))
+
+
+def test_the_map_update_reaches_the_store_through_memory_only():
+    """RTAB-Map's Memory is the only path to its DBDriver: `service/mapping` calls no store
+    method itself (the mapping child, which opens the file, only closes it); memory does."""
+    for p in sorted((ROOT / "service" / "mapping").glob("*.py")):
+        called = store_calls(p.read_text())
+        assert called <= ({"close"} if p.name == "process.py" else set()), (p.name, sorted(called))
 
 
 # -- round trip / encodings -----------------------------------------------------------------
@@ -155,12 +227,30 @@ def test_pose_blob_layout_and_empty_features(store, rng, tmp_path):
 
 def test_pack_unpack_little_endian():
     a = np.arange(6, dtype=">f4").reshape(3, 2)  # big-endian input is stored little-endian
-    blob = _pack(a, np.float32)
+    blob = pack(a, np.float32)
     assert blob == np.arange(6, dtype="<f4").tobytes()
-    b = _unpack(blob, np.float32, (3, 2))
+    b = unpack(blob, np.float32, (3, 2))
     assert b.dtype == np.float32 and np.array_equal(a, b)
     with pytest.raises(StoreError, match="corrupt blob"):
-        _unpack(blob[:-1], np.float32, (3, 2))
+        unpack(blob[:-1], np.float32, (3, 2))
+
+
+def test_change_counter_sees_every_commit(tmp_path):
+    """The object index's freshness check: `PRAGMA data_version` on a connection of its own
+    changes with each commit of the store's writer and of any other connection or process."""
+    path = tmp_path / "a map #1?.db"  # characters a file: URI must escape
+    with MapStore(path) as s:
+        counter = s.change_counter()
+        v0 = counter()
+        assert counter() == v0 and s.sessions() == [] and counter() == v0  # reads change nothing
+        s.begin_session("r1", CAL)  # the store's own writer
+        v1 = counter()
+        assert v1 != v0
+        rows(path, "INSERT INTO admin (key, value) VALUES ('note', '1')")  # another connection
+        assert counter() != v1
+        counter.close()
+        with pytest.raises(StoreError, match="change counter"):
+            counter()
 
 
 # -- bad input ------------------------------------------------------------------------------
@@ -906,15 +996,15 @@ def test_stats_counts_and_file_size(store, rng):
     json.dumps(st)
 
 
-def test_wal_restarts_after_a_checkpoint(tmp_path):
+def test_wal_restarts_after_a_checkpoint(tmp_path, monkeypatch):
     path = tmp_path / "wal.db"
     wal = Path(str(path) + "-wal")
     rng = np.random.default_rng(5)
+    # only the explicit checkpoint below, for a deterministic WAL
+    monkeypatch.setattr(Connection, "CHECKPOINT_COMMITS", 1e9)
+    monkeypatch.setattr(Connection, "CHECKPOINT_PERIOD", 1e9)
 
-    class NoBackground(MapStore):  # only the explicit checkpoint below, for a deterministic WAL
-        _CHECKPOINT_COMMITS = _CHECKPOINT_PERIOD = 1e9
-
-    with NoBackground(path) as s:
+    with MapStore(path) as s:
         assert rows(path, "PRAGMA journal_mode") == [("wal",)]
         sid = s.begin_session("r1", CAL)
         for i in range(100):  # ~27 kB each
@@ -931,13 +1021,11 @@ def test_wal_restarts_after_a_checkpoint(tmp_path):
         assert s.count_nodes() == 200
 
 
-def test_background_checkpointer_copies_the_wal(tmp_path):
-    class Eager(MapStore):
-        _CHECKPOINT_COMMITS = 4
-
+def test_background_checkpointer_copies_the_wal(tmp_path, monkeypatch):
+    monkeypatch.setattr(Connection, "CHECKPOINT_COMMITS", 4)
     path = tmp_path / "bg.db"
     rng = np.random.default_rng(5)
-    with Eager(path) as s:
+    with MapStore(path) as s:
         sid = s.begin_session("r1", CAL)
         for i in range(40):  # ~1 MB, all in the WAL at first
             s.add_keyframe(record(rng, sid, i, n=500))

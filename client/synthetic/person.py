@@ -23,7 +23,7 @@ import numpy as np
 from ..kernel.frames import PinholeCamera
 from . import textures as tx
 from .raster import NEAR, Rasterizer, RenderResult, detail_offsets
-from .scene import TEXEL_OBJECT, _Builder, _pack, quad_set
+from .scene import TEXEL_OBJECT, Builder, pack_atlas, quad_set
 
 PERSON = 13  # ADE20K-32 "person"
 HEIGHT = 1.75  # m, head top
@@ -61,7 +61,7 @@ class Person:
     def __init__(self, walk: Walk, seed: int = 0, instance_id: int = 1000, detail: np.ndarray | None = None):
         self.walk = walk
         self.instance_id = int(instance_id)
-        bd = _Builder([int(seed), 0x9E4503])  # its own textures: the scene's stay as they are
+        bd = Builder([int(seed), 0x9E4503])  # its own textures: the scene's stay as they are
         dx, dy = np.subtract(walk.end, walk.start)
         across_x = abs(dy) > abs(dx)  # walking along y: the shoulders (WIDTH) along x
         wx, wy = (WIDTH, DEPTH) if across_x else (DEPTH, WIDTH)
@@ -77,7 +77,7 @@ class Person:
         bd.box((-wx / 2, -wy / 2, LEGS), (wx / 2, wy / 2, SHOULDERS), PERSON, iid, fabric(shirt), skip=("-z",))
         bd.box((-HEAD / 2, -HEAD / 2, SHOULDERS), (HEAD / 2, HEAD / 2, HEIGHT), PERSON, iid, fabric(skin),
                skip=("-z",))
-        self.quads = quad_set(bd, _pack(bd.regions), detail, detail_offsets(int(seed) + 0x9E45, len(bd.quads)))
+        self.quads = quad_set(bd, pack_atlas(bd.regions), detail, detail_offsets(int(seed) + 0x9E45, len(bd.quads)))
         self._raster = Rasterizer(self.quads)
         self.corners = np.array([[x, y, z] for x in (-wx / 2, wx / 2) for y in (-wy / 2, wy / 2)
                                  for z in (0.0, HEIGHT)])

@@ -93,7 +93,7 @@ def _others(axis: int) -> tuple[int, int]:
     return {0: (1, 2), 1: (0, 2), 2: (0, 1)}[axis]
 
 
-class _Builder:
+class Builder:
     def __init__(self, seed: int):
         self.seed = seed
         self.rng = np.random.default_rng(seed)
@@ -366,7 +366,7 @@ DOORWAYS = {
 }
 
 
-def _build(bd: _Builder) -> None:
+def _build(bd: Builder) -> None:
     H = HEIGHT
     # ---- living room: x 0..6, y 0..5
     bd.wall(0, 0.0, 1, (0.0, 5.0))  # west
@@ -470,10 +470,10 @@ class SyntheticScene:
 
     def __init__(self, seed: int = 0):
         self.seed = int(seed)
-        bd = _Builder(self.seed)
+        bd = Builder(self.seed)
         _build(bd)
         self.objects: list[SceneObject] = bd.objects
-        self.atlas = _pack(bd.regions)
+        self.atlas = pack_atlas(bd.regions)
         self.quads = quad_set(bd, self.atlas, detail_table(self.seed), detail_offsets(self.seed, len(bd.quads)))
         self._raster = Rasterizer(self.quads)
 
@@ -540,7 +540,7 @@ class SyntheticScene:
         return inside
 
 
-def _pack(regions: list[_Region]) -> np.ndarray:
+def pack_atlas(regions: list[_Region]) -> np.ndarray:
     """Shelf-pack the texture regions into one atlas (sets each region's ox, oy)."""
     order = sorted(range(len(regions)), key=lambda i: -regions[i].image.shape[0])
     x, y, shelf_h = 4, 0, 4  # keep (0..3, 0..3) black for 'nothing hit'
@@ -565,8 +565,8 @@ def _pack(regions: list[_Region]) -> np.ndarray:
     return atlas
 
 
-def quad_set(bd: _Builder, atlas: np.ndarray, detail: np.ndarray | None, offsets: np.ndarray | None) -> QuadSet:
-    """A builder's quads as the renderer's `QuadSet`, their textures in `atlas` (packed by `_pack`)."""
+def quad_set(bd: Builder, atlas: np.ndarray, detail: np.ndarray | None, offsets: np.ndarray | None) -> QuadSet:
+    """A builder's quads as the renderer's `QuadSet`, their textures in `atlas` (packed by `pack_atlas`)."""
     q = bd.quads
     tex = []
     for d in q:

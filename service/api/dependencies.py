@@ -15,7 +15,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from mnemoslam.storage import MapRepository, SessionRecord
+from mnemoslam.storage import ApiStore, SessionRecord
 
 from ..config import Config
 from ..semantics.queries import NotFound, ObjectIndex, QueryError, Unavailable
@@ -96,14 +96,14 @@ async def viewer_access(request: Request, credentials: Credentials,
 ServiceDep = Annotated[SlamService, Depends(get_service)]
 
 
-async def get_store(service: ServiceDep) -> MapRepository:
+async def get_store(service: ServiceDep) -> ApiStore:
     store = service.store
     if store is None:
         raise HTTPException(503, "the service is not running")
     return store
 
 
-StoreDep = Annotated[MapRepository, Depends(get_store)]
+StoreDep = Annotated[ApiStore, Depends(get_store)]
 
 
 def get_session(session_id: DbId, store: StoreDep) -> SessionRecord:
@@ -153,7 +153,7 @@ class ObjectContext:
     to solve per request; the nearest query itself ~50 µs): the service, its store, the
     object index and the semantic state; `errors()` turns query-layer exceptions into HTTP."""
 
-    def __init__(self, service: SlamService, store: MapRepository, index: ObjectIndex, semantics: dict):
+    def __init__(self, service: SlamService, store: ApiStore, index: ObjectIndex, semantics: dict):
         self.service, self.store, self.index, self.semantics = service, store, index, semantics
 
     def errors(self) -> "QueryErrors":

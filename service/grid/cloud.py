@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mnemoslam.storage import GridStore
+
 from ..memory.keyframes import decode_images
 
 
@@ -50,7 +52,7 @@ def voxel_filter(P: np.ndarray, C: np.ndarray, voxel: float) -> tuple[np.ndarray
     return out_p.astype(np.float32), np.rint(out_c).astype(np.uint8)
 
 
-def map_cloud(store, node_ids, poses, voxel: float = 0.02, decimation: int = 4,
+def map_cloud(store: GridStore, node_ids, poses, voxel: float = 0.02, decimation: int = 4,
               max_depth: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
     """The cloud of these keyframes at these poses (map frame), voxel-filtered. Keyframes are
     filtered one by one as they come (bounded memory), then once more together."""

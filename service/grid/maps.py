@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from mnemoslam.storage import GridStore
 from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import GridConfig
@@ -32,7 +33,7 @@ class NoMap(LookupError):
 class MapGrids:
     """The store's maps' occupancy grids."""
 
-    def __init__(self, store, config: GridConfig):
+    def __init__(self, store: GridStore, config: GridConfig):
         self.store, self.config = store, config
         self._lock = threading.Lock()
         self._links = MapConnectivity()
@@ -193,7 +194,7 @@ class GridHolder:
         self._store = None
         self._grids: MapGrids | None = None
 
-    def get(self, store) -> MapGrids:
+    def get(self, store: GridStore) -> MapGrids:
         with self._lock:
             if self._grids is None or self._store is not store:
                 self._store, self._grids = store, MapGrids(store, self.config)

@@ -22,15 +22,13 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-import cv2
 import numpy as np
 
 from mnemoslam.client.kernel.frames import PinholeCamera
 from mnemoslam.client.kernel.geometry import invert, nearby, rotation_angle
-from mnemoslam.storage import LinkType, MapStore, UnknownIdError
+from mnemoslam.storage import LinkType, MapUpdateStore
 
 from ..config import LoopConfig, MemoryConfig
-from ..memory.keyframes import decode_images
 from ..memory.manager import Memory, series_information
 from ..memory.vocabulary import Vocabulary
 from ..tracking.features import FrameFeatures
@@ -58,30 +56,6 @@ class KeyframeUpdate:
     information: np.ndarray | None
     # per feature: the tracker's stable local-map point id or -1 (local BA's tracks); None: unknown
     point_ids: np.ndarray | None = None
-
-    @classmethod
-    def from_store(cls, store: MapStore, node_id: int, images: bool = True) -> "KeyframeUpdate":
-        """The update tracking handed over for a stored keyframe, rebuilt from the database:
-        its stamp and stored pose (the odometry's until the map update moves it), features
-        (without octaves: the map update does not use them), odometry link and, with
-        `images`, the depth and grey image decoded from its stored PNG-16 / JPEG (for dense
-        refinement; lossy JPEG, millimetre depth)."""
-        node = store.get_node(node_id)
-        if node is None:
-            raise UnknownIdError(f"no node {node_id}")
-        keypoints, descriptors, points, _ = store.load_features(node.id)
-        depth = grey = None
-        if images:
-            image, depth = decode_images(*store.load_images(node.id))
-            if image is None or depth is None:
-                depth = None
-            else:
-                grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        links = [lk for lk in store.links(node_ids=[node.id], type=LinkType.NEIGHBOR) if lk.to_id == node.id]
-        odom = links[0] if links else None
-        features = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8), depth, grey)
-        return cls(node.id, node.stamp, node.pose, features, odom.from_id if odom else None,
-                   odom.transform if odom else None, odom.information if odom else None)
 
 
 @dataclass
@@ -118,13 +92,12 @@ class Rehearsal:
 
 
 class Mapper:
-    def __init__(self, camera: PinholeCamera, config: LoopConfig, store: MapStore | None = None,
+    def __init__(self, camera: PinholeCamera, config: LoopConfig, store: MapUpdateStore | None = None,
                  on_event: Callable[[str, dict], None] | None = None, background: bool = False,
                  memory: MemoryConfig | None = None, previous_map: bool = True):
         self.camera = camera
         self.config = config
         self.memory_config = mc = memory if memory is not None else MemoryConfig()
-        self.store = store
         self.on_event = on_event or (lambda kind, data: None)
         # STM / WM / LTM: which keyframes are loop candidates, with their features, words and views
         # in RAM, and the map's vocabulary (shared by every mapper of that store)
@@ -155,18 +128,18 @@ class Mapper:
             self._thread.start()
 
     @classmethod
-    def resume(cls, store: MapStore, session_id: int, config: LoopConfig, camera: PinholeCamera | None = None,
+    def resume(cls, store: MapUpdateStore, session_id: int, config: LoopConfig, camera: PinholeCamera | None = None,
                on_event: Callable[[str, dict], None] | None = None, memory: MemoryConfig | None = None) -> "Mapper":
         """A (synchronous) mapper that continues a stored session's map update, e.g. after
         the service was killed with keyframes still in its backlog. It holds the session's
         mapped keyframes (those with a statistics row) as the interrupted mapper did
         (`Memory.resume`); the map's vocabulary comes from the store as for any mapper.
         Then `submit` the session's unmapped keyframes in id order (see
-        `KeyframeUpdate.from_store`) and they close loops to the mapped ones. The loop
+        `stored_update`) and they close loops to the mapped ones. The loop
         detector's belief starts afresh and `to_map` gives the identity until the first
         update. `camera` defaults to the session's."""
         if camera is None:
-            camera = store.calibration(int(session_id)).camera
+            camera = Memory.session_camera(store, session_id)
         m = cls(camera, config, store, on_event=on_event, memory=memory, previous_map=False)
         r = m.memory.resume(session_id)
         m.graph.restore(r.poses, r.odometry, r.loops)
@@ -177,6 +150,16 @@ class Mapper:
             m.merge_links.add(a, b, t, info, check=False)
         m.loops = r.closures
         return m
+
+    def stored_update(self, node_id: int, images: bool = True) -> KeyframeUpdate:
+        """The update tracking handed over for a stored keyframe, rebuilt from the database
+        (`Memory.stored_keyframe`): its stamp and stored pose (the odometry's until the map
+        update moves it), features, odometry link and, with `images`, the depth and grey image
+        decoded from its stored images (for dense refinement)."""
+        k = self.memory.stored_keyframe(node_id, images)
+        odom = k.odometry
+        return KeyframeUpdate(k.node.id, k.node.stamp, k.node.pose, k.features, odom.from_id if odom else None,
+                              odom.transform if odom else None, odom.information if odom else None)
 
     # -- tracking side ---------------------------------------------------------------------
     def submit(self, update: KeyframeUpdate) -> None:
@@ -245,8 +228,8 @@ class Mapper:
         moves above its tolerance), and the merged keyframes' poses, so that the database
         holds the graph's final estimate."""
         self._write_moved((0.0, 0.0))
-        if self.memory.merged and self.store is not None:
-            self.store.update_poses({m: self.pose(m) for m in self.memory.merged})
+        if self.memory.merged:
+            self.memory.save_poses({m: self.pose(m) for m in self.memory.merged})
 
     # -- map update ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -376,9 +359,8 @@ class Mapper:
         if T is not None:
             stored.append((u.odom_from, u.node_id, T, u.information))
             u = dataclasses.replace(u, transform=T)
-        if self.store is not None:
-            for a, b, T_ab, information in stored:
-                self.store.add_link(a, b, LinkType.NEIGHBOR, T_ab, information, replace=True)
+        for a, b, T_ab, information in stored:
+            self.memory.save_link(a, b, LinkType.NEIGHBOR, T_ab, information, replace=True)
         return u, info
 
     # -- rehearsal ---------------------------------------------------------------------------
@@ -424,8 +406,7 @@ class Mapper:
         r["decision"] = "merged"
         # came back to c's part of the map?
         r["loop"] = entering = self.memory.merge(u.node_id, c, p, v.transform, v.information)
-        if self.store is not None:
-            self.store.update_poses({u.node_id: self.pose(u.node_id)})
+        self.memory.save_poses({u.node_id: self.pose(u.node_id)})
         if entering:
             self.loops.append((c, p))
             self.on_event("loop_closed", {"from": c, "to": u.node_id, "inliers": v.inliers,
@@ -585,8 +566,7 @@ class Mapper:
             self.loops.append((candidate, u.node_id))
             self.memory.loop_closed(candidate)
             self.memory.link(u.node_id, candidate)
-        if self.store is not None:
-            self.store.add_link(candidate, u.node_id, kind, v.transform, v.information)
+        self.memory.save_link(candidate, u.node_id, kind, v.transform, v.information)
         if kind != LinkType.LOCAL_TIME:
             self.on_event("loop_closed", {"from": candidate, "to": u.node_id, "inliers": v.inliers,
                                           "link": kind.label})
@@ -603,14 +583,12 @@ class Mapper:
         moved = self._write_moved()
         if set(moved) - {stats.node_id}:
             self.on_event("map_corrected", {"nodes": len(moved)})
-        if self.store is not None:
-            self.store.set_statistics(stats.node_id, stats.__dict__)
+        self.memory.save_statistics(stats.node_id, stats.__dict__)
 
     def _write_moved(self, tolerance: tuple[float, float] | None = None) -> dict[int, np.ndarray]:
         """Write the poses the graph moved by more than `tolerance` (default: the graph's)."""
         moved = self.graph.changed_poses(tolerance)
-        if moved and self.store is not None:
-            self.store.update_poses(moved)
+        self.memory.save_poses(moved)
         return moved
 
     def _close_loop(self, u: KeyframeUpdate, candidate: int, kind: LinkType,

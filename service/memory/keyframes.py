@@ -11,7 +11,7 @@ import numpy as np
 
 from mnemoslam.client.kernel.frames import Calibration, Frame
 from mnemoslam.client.kernel.geometry import invert
-from mnemoslam.storage import KeyframeRecord, LocalGridRecord, MapRepository, StoreError
+from mnemoslam.storage import KeyframeLog, KeyframeRecord, LocalGridRecord, StoreError
 
 from ..config import Config, to_dict
 from ..grid.local import LocalGridMaker
@@ -31,7 +31,7 @@ def odometry_information(inliers: int) -> np.ndarray:
 class KeyframeWriter:
     """A session of one robot in the map: its keyframes written as tracking makes them."""
 
-    def __init__(self, store: MapRepository, robot: str, calibration: Calibration, config: Config):
+    def __init__(self, store: KeyframeLog, robot: str, calibration: Calibration, config: Config):
         self.store = store
         self.config = config
         self.session_id = store.begin_session(robot, calibration, to_dict(config))

@@ -17,15 +17,17 @@ import dataclasses
 from types import MappingProxyType
 from typing import Callable, Mapping
 
+import cv2
 import numpy as np
 
 from mnemoslam.client.kernel.frames import PinholeCamera
 from mnemoslam.client.kernel.geometry import invert, nearby
-from mnemoslam.storage import LinkType, MapStore, UnknownIdError
+from mnemoslam.storage import LinkRecord, LinkType, MapUpdateStore, NodeRecord, UnknownIdError
 from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import LoopConfig, MemoryConfig
 from ..tracking.features import FrameFeatures
+from .keyframes import decode_images
 from .views import DenseView, StoredViews
 from .vocabulary import Vocabulary
 from .working_memory import WorkingMemory
@@ -50,6 +52,17 @@ class ResumedSession:
     closures: list[tuple[int, int]]
 
 
+@dataclasses.dataclass
+class StoredKeyframe:
+    """A keyframe as tracking stored it (`Memory.stored_keyframe`): its node (stamp, stored
+    pose), features (no octaves; with its depth and grey image when asked for) and the
+    odometry link to it (None: the first of a segment)."""
+
+    node: NodeRecord
+    features: FrameFeatures
+    odometry: LinkRecord | None
+
+
 class Memory:
     """`tiers`: which node is in STM, WM or LTM, and their weights; `features` and `views`:
     the features and dense views of the nodes in RAM; `neighbours`: graph adjacency of every
@@ -58,7 +71,8 @@ class Memory:
     map update reads these (read-only views) and reports what it did (`add`, `add_words`,
     `add_view`, `link`, `loop_closed`, `merge`); only memory changes them."""
 
-    def __init__(self, config: MemoryConfig, loop: LoopConfig, store: MapStore | None, camera: PinholeCamera):
+    def __init__(self, config: MemoryConfig, loop: LoopConfig, store: MapUpdateStore | None,
+                 camera: PinholeCamera):
         self.config, self.loop_config, self.store, self.camera = config, loop, store, camera
         # The map's vocabulary: shared by every mapper (robot) of that store, persisted with each
         # keyframe; on a reopened map with a WM limit it starts without words (those of the nodes
@@ -417,6 +431,51 @@ class Memory:
                 return
             missing = self._vocabulary.missing_words(np.concatenate([np.asarray(w, np.int64) for w in todo.values()]))
             self._vocabulary.reload_nodes(todo, descriptors=self.store.load_words(missing) if len(missing) else None)
+
+    # -- the map update's other reads and writes (memory is its one way to the store) ------------
+    @staticmethod
+    def session_camera(store: MapUpdateStore, session_id: int) -> PinholeCamera:
+        """The camera of a stored session (for a map update resumed on it)."""
+        return store.calibration(int(session_id)).camera
+
+    def stored_keyframe(self, node_id: int, images: bool = True) -> StoredKeyframe:
+        """A keyframe as tracking stored it, read back from the database: its node, features
+        (without octaves: the map update does not use them), odometry link and, with `images`,
+        the depth and grey image decoded from its stored PNG-16 / JPEG (for dense refinement;
+        lossy JPEG, millimetre depth). UnknownIdError for an unknown node."""
+        store = self.store
+        node = store.get_node(node_id)
+        if node is None:
+            raise UnknownIdError(f"no node {node_id}")
+        keypoints, descriptors, points, _ = store.load_features(node.id)
+        depth = grey = None
+        if images:
+            image, depth = decode_images(*store.load_images(node.id))
+            if image is None or depth is None:
+                depth = None
+            else:
+                grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        links = [lk for lk in store.links(node_ids=[node.id], type=LinkType.NEIGHBOR) if lk.to_id == node.id]
+        features = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8), depth, grey)
+        return StoredKeyframe(node, features, links[0] if links else None)
+
+    def save_link(self, from_id: int, to_id: int, kind: LinkType, transform: np.ndarray, information: np.ndarray,
+                  *, replace: bool = False) -> None:
+        """Store a link the map update put in its graph (loop, proximity, path; with `replace`,
+        an odometry link local BA refined)."""
+        if self.store is not None:
+            self.store.add_link(from_id, to_id, kind, transform, information, replace=replace)
+
+    def save_poses(self, poses: Mapping[int, np.ndarray]) -> None:
+        """Store keyframes' map poses ({node: 4×4}) as the graph places them."""
+        if self.store is not None and poses:
+            self.store.update_poses(poses)
+
+    def save_statistics(self, node: int, statistics: dict) -> None:
+        """Store an update's statistics: its last write for the keyframe (a keyframe without them
+        has had no map update, `MapStore.unmapped_nodes`)."""
+        if self.store is not None:
+            self.store.set_statistics(node, statistics)
 
 
 def series_information(a: np.ndarray | None, b: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from mnemoslam.client.kernel.frames import PinholeCamera
-from mnemoslam.storage import MapStore
+from mnemoslam.storage import MapUpdateStore
 
 from ..tracking import icp
 from .keyframes import decode_images
@@ -50,7 +50,7 @@ class StoredViews(dict):
     their stored images when first asked for (`in` or `[]`), so that a resumed session or a
     retrieved node costs a decode only when it becomes a loop candidate."""
 
-    def __init__(self, store: MapStore, camera: PinholeCamera):
+    def __init__(self, store: MapUpdateStore, camera: PinholeCamera):
         super().__init__()
         self._store, self._camera, self._stored = store, camera, set()
 

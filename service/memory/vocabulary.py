@@ -22,8 +22,8 @@ word found, makes a new word; otherwise it votes for the nearest word. Descripto
 same batch that would all make new words are first matched among themselves (brute force,
 bounded by the batch size) so that repeated descriptors of one node share a word.
 
-Persistence with the map (`storage.MapStore`, passed in duck-typed: storage never imports
-the service): `add(..., store=)` commits the node's word ids and the words it created in
+Persistence with the map (its role `storage.WordStore`, which `MapStore` implements):
+`add(..., store=)` commits the node's word ids and the words it created in
 one transaction, `from_store` rebuilds the vocabulary of a reopened map from the `words`
 table and the nodes' word ids without any search, and `for_store` gives the one vocabulary
 that every mapper of a map shares (word ids are the map's, so two vocabularies must not
@@ -48,6 +48,8 @@ import threading
 import weakref
 
 import numpy as np
+
+from mnemoslam.storage import WordStore
 
 _NONE_DIST = 257  # larger than any 256-bit Hamming distance
 
@@ -406,7 +408,7 @@ class Vocabulary:
         return np.where(self._accept(d1, d2), w1, -1)
 
     # -- insertion ----------------------------------------------------------------------
-    def add(self, node_id: int, descriptors: np.ndarray, store=None) -> np.ndarray:
+    def add(self, node_id: int, descriptors: np.ndarray, store: WordStore | None = None) -> np.ndarray:
         """Quantize a node's descriptors, creating new words as needed, and index the node.
         Returns the word id of each descriptor (N,) int64; `last_new_words` holds the ids of
         the words created. With a `store` (MapStore holding the node's features) the word
@@ -801,7 +803,7 @@ class Vocabulary:
         return v
 
     @classmethod
-    def from_store(cls, store, **params) -> Vocabulary:
+    def from_store(cls, store: WordStore, **params) -> Vocabulary:
         """The vocabulary of a stored map (`MapStore.load_vocabulary_state`: its words and
         the word ids of its nodes), hash tables and inverted index rebuilt without any
         search; empty for a map without words. `params` are the constructor's (the hashing
@@ -809,7 +811,7 @@ class Vocabulary:
         return cls.from_state(store.load_vocabulary_state(), **params)
 
     @classmethod
-    def for_store(cls, store, words: bool = True, **params) -> Vocabulary:
+    def for_store(cls, store: WordStore, words: bool = True, **params) -> Vocabulary:
         """The one vocabulary of a map for this process: loaded with `from_store` by the
         first caller (with `words=False`: `empty_for` instead, the caller reloads the nodes
         it wants in RAM), the same object for every later one while that `store` object
@@ -823,7 +825,7 @@ class Vocabulary:
             return v
 
     @classmethod
-    def empty_for(cls, store, **params) -> Vocabulary:
+    def empty_for(cls, store: WordStore, **params) -> Vocabulary:
         """A vocabulary of a stored map that holds none of its words yet (RTAB-Map's start-up
         loads only working memory's): new words get ids after the map's
         (`MapStore.next_word_id`); nodes come in with `reload_node(s)` and the descriptors

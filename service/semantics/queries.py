@@ -32,15 +32,14 @@ from __future__ import annotations
 import heapq
 import logging
 import math
-import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
+from mnemoslam.storage import ApiStore, MapReader, StoreError
 from mnemoslam.storage.connectivity import MapConnectivity
 
 log = logging.getLogger("mnemoslam.semantics.queries")
@@ -284,34 +283,20 @@ _EMPTY = {"id": np.zeros(0, np.int64), "class_id": np.zeros(0, np.int64), "label
           "observations": np.zeros(0, np.int64), "node_id": np.zeros(0, np.int64)}
 
 
-def data_version_of(path) -> Callable[[], int]:
-    """A cheap change counter of the SQLite file at `path`: `PRAGMA data_version` on a
-    private read-only connection (it changes whenever another connection or process commits)."""
-    conn = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True, check_same_thread=False)
-    lock = threading.Lock()
-
-    def version() -> int:
-        with lock:
-            return conn.execute("PRAGMA data_version").fetchone()[0]
-
-    version.close = conn.close  # type: ignore[attr-defined]
-    return version
-
-
 class ObjectIndex:
     """The map's objects for queries (see the module docstring). `store` provides
     `object_arrays()` (and, for paths, `nodes()` / `link_pairs()` / `get_node()`); `version`
-    is a change counter of it (default: `PRAGMA data_version` of `store.path`, or none: then
-    only `refresh()` rebuilds). Thread-safe."""
+    is a change counter of it (default: the store's `change_counter()`, `PRAGMA data_version`
+    of its file, or none: then only `refresh()` rebuilds). Thread-safe."""
 
-    def __init__(self, store, *, version: Callable[[], object] | None = None, check_interval: float = 0.05,
+    def __init__(self, store: ApiStore, *, version: Callable[[], object] | None = None, check_interval: float = 0.05,
                  min_rebuild_interval: float = 0.5):
         self.store = store
-        if version is None and getattr(store, "path", None) is not None:
+        if version is None and hasattr(store, "change_counter"):
             try:
-                version = data_version_of(store.path)
-            except sqlite3.Error as e:  # noqa: PERF203
-                log.warning("object index: no change counter for %s (%s); refresh() only", store.path, e)
+                version = store.change_counter()
+            except StoreError as e:
+                log.warning("object index: no change counter for %s (%s); refresh() only", store, e)
         self._version = version
         self.check_interval = check_interval
         self.min_rebuild_interval = min_rebuild_interval
@@ -337,7 +322,7 @@ class ObjectIndex:
     def _current_version(self):
         try:
             return self._version() if self._version is not None else None
-        except sqlite3.Error:
+        except StoreError:
             return None
 
     def refresh(self) -> None:
@@ -582,7 +567,7 @@ class ObjectIndex:
         return int(np.argmin(np.einsum("ij,ij->i", d, d)))
 
 
-def robot_location(robots: Iterable[dict], robot: str, store=None) -> RobotLocation:
+def robot_location(robots: Iterable[dict], robot: str, store: MapReader | None = None) -> RobotLocation:
     """Where `robot` is: its last tracked pose and latest keyframe from the service's robot
     status (`SlamService.robots()`: "position" / "pose" and "node_id" when reported), else its
     session's latest keyframe in the map. NotFound when the robot is unknown or has no pose."""

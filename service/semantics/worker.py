@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.storage import SemanticStore
 from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import SemanticsConfig
@@ -72,7 +73,7 @@ WAITING_LABELS = 512  # deferred keyframes whose camera labels wait in RAM for t
 class SemanticWorker:
     """Segments (model source) and fuses keyframes into objects, and stores them."""
 
-    def __init__(self, store, segmenter: Segmenter, config: SemanticsConfig, *, background: bool = True):
+    def __init__(self, store: SemanticStore, segmenter: Segmenter, config: SemanticsConfig, *, background: bool = True):
         self.store = store
         self.segmenter = segmenter
         self.config = config
