@@ -12,6 +12,7 @@ import zenoh
 
 from mnemoslam.client.datasets import open_dataset
 from mnemoslam.client.kernel import protocol
+from mnemoslam.client.planner import ApiError
 from mnemoslam.client.streamer import stream_dataset
 from mnemoslam.client.transport import ZenohSettings, open_session
 from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
@@ -202,11 +203,20 @@ def test_decoded_size_bomb_is_refused_before_decoding(svc, z, dataset):
         for _ in range(8):
             pub.put(bytes(wire) + colour + depth)
         pub.undeclare()
+    # the robot's own count first, polled while it is still there (it sends nothing valid, so it
+    # expires idle_timeout after its camera info: a loaded machine must not outwait that)
+    def counted():
+        try:
+            r = svc.api.robot("small")
+        except ApiError:  # expired: the assertion below says so
+            return None
+        return r if r["frames_rejected"].get("size_mismatch", 0) >= 8 else None
+    small = _until(counted)
+    assert small and small["frames_rejected"] == {"size_mismatch": 8}, small
     after = _until(lambda: (lambda r: r if r.get("size_mismatch", 0) - before.get("size_mismatch", 0) == 8
                             and r.get("no_calibration", 0) - before.get("no_calibration", 0) == 8 else None)(
         _rejected(svc)))
     assert after, _rejected(svc)
-    assert svc.api.robot("small")["frames_rejected"] == {"size_mismatch": 8}
     assert _rss_mb(svc.proc.pid) - rss0 < 60  # nothing was decoded (one decode would be 112 MB)
 
 
