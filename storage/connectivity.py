@@ -15,18 +15,27 @@ relink) joins the same nodes again, so components never split here.
 """
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
+
+
+class LinkLog(Protocol):
+    """What `MapConnectivity.refresh` reads: the links stored after a links rowid (every role
+    whose caller keeps a `MapConnectivity` has it)."""
+
+    def links_after(self, rowid: int = 0) -> tuple[int, np.ndarray]: ...
 
 
 class MapConnectivity:
     """Union–find over the map's node ids, joined by every link stored so far."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._parent: dict[int, int] = {}
         self._rowid = 0  # the newest links row seen
         self.joins = 0  # links read so far that joined two parts both known before (maps joined)
 
-    def refresh(self, store) -> int:
+    def refresh(self, store: LinkLog) -> int:
         """Join the nodes of the links stored since the last call; returns how many were read."""
         self._rowid, pairs = store.links_after(self._rowid)
         for a, b in pairs.tolist():

@@ -37,6 +37,7 @@ class Nodes(Part):
                 "INSERT INTO nodes (session_id, robot, stamp, pose, x, y, z, weight, time_enter) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (k.session_id, row[0], k.stamp, k.pose, *k.xyz, k.weight, time.time())).lastrowid
+            assert node_id is not None  # (set by every INSERT into a rowid table)
             c.execute("INSERT INTO features (node_id, count, keypoints, descriptors, points, word_ids) "
                       "VALUES (?, ?, ?, ?, ?, ?)",
                       (node_id, k.count, k.keypoints, k.descriptors, k.points, k.word_ids))

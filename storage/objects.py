@@ -34,6 +34,7 @@ class Objects(Part):
         now = time.time()
         ids: list[int | None] = [r[0] for r in rows]
         new = [r[1:] + (now,) for r in rows if r[0] is None]
+        new_ids = range(0)  # the ids the new rows got, in order
         with self.db.write("save_objects") as c:
             try:
                 for r in rows:
@@ -55,8 +56,7 @@ class Objects(Part):
                     last = c.execute("SELECT seq FROM sqlite_sequence WHERE name = 'objects'").fetchone()[0]
                     if last - first + 1 != len(new):  # pragma: no cover - SQLite's documented behaviour
                         raise StoreError(f"save_objects: ids {first}..{last} for {len(new)} new objects")
-                    it = iter(range(first, last + 1))
-                    ids = [next(it) if i is None else i for i in ids]
+                    new_ids = range(first, last + 1)
             except sqlite3.IntegrityError as e:
                 if "FOREIGN KEY" in str(e):
                     known = {x[0] for x in c.execute(
@@ -66,7 +66,8 @@ class Objects(Part):
                     raise UnknownIdError(f"save_objects: no anchor node {', '.join(map(str, missing[:10]))}; "
                                          "nothing saved") from e
                 raise
-        return ids
+        it = iter(new_ids)
+        return [next(it) if i is None else i for i in ids]
 
     def delete_objects(self, ids: Iterable[int]) -> int:
         """Delete objects by id (unknown ids are ignored); returns how many were deleted."""
@@ -76,7 +77,8 @@ class Objects(Part):
 
     def objects(self, label: str | None = None) -> list[ObjectRecord]:
         """Every object (of `label`), ordered by id, with its world `position`: one query."""
-        sql, params = f"SELECT {OBJECT_COLUMNS}{_FROM}", ()
+        sql = f"SELECT {OBJECT_COLUMNS}{_FROM}"
+        params: tuple[str, ...] = ()
         if label is not None:
             sql, params = sql + " WHERE o.label = ?", (str(label),)
         with self.db.read() as c:
@@ -131,8 +133,9 @@ class Objects(Part):
         centroid), `extent` (N, 3), `confidence` (N,) float64, `observations` (N,) int64,
         `node_id` (N,) int64, `labels` (N,) object array of str. One query, decoded with
         vectorised numpy (≈ 0.1 s at 100k objects)."""
-        sql, params = "SELECT o.id, o.class_id, o.confidence, o.observations, o.node_id, o.label, o.centroid, " \
-            "o.extent FROM objects o", ()
+        sql = "SELECT o.id, o.class_id, o.confidence, o.observations, o.node_id, o.label, o.centroid, " \
+            "o.extent FROM objects o"
+        params: tuple[str, ...] = ()
         if label is not None:
             sql, params = sql + " WHERE o.label = ?", (str(label),)
         with self.db.read(snapshot=True) as c:

@@ -209,7 +209,8 @@ class Queries(Part):
         return out
 
     def _node_filter(self, session_id, robot, bbox, merged=None) -> tuple[str, list]:
-        where, params = [], []
+        where: list[str] = []
+        params: list[int | float | str] = []
         if merged is not None:
             where.append("n.merged_into IS NOT NULL" if merged else "n.merged_into IS NULL")
         if session_id is not None:
@@ -258,7 +259,8 @@ class Queries(Part):
             return self._links(c, session_id, node_ids, type)
 
     def _links(self, c, session_id=None, node_ids=None, type=None, both_in_session=False) -> list[LinkRecord]:
-        where, params = [], []
+        where: list[str] = []
+        params: list[int | str] = []
         if session_id is not None:
             sub = "(SELECT id FROM nodes WHERE session_id = ?)"
             where.append(f"(from_id IN {sub} {'AND' if both_in_session else 'OR'} to_id IN {sub})")

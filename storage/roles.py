@@ -196,8 +196,8 @@ class ApiStore(MapReader, Protocol):
 @runtime_checkable
 class GridStore(Protocol):
     """The map's occupancy grid and cloud (`service.grid`): which nodes have local grids, the
-    grids, and the stored depth of keyframes written before grids were (their grid is made
-    once, then saved)."""
+    grids, the stored depth of keyframes written before grids were (their grid is made once,
+    then saved), and the links that join keyframes into maps (`MapConnectivity.refresh`)."""
 
     def sessions(self, robot: str | None = None) -> list[SessionRecord]: ...
 
@@ -214,3 +214,5 @@ class GridStore(Protocol):
     def nodes_without_grid(self, node_ids: Iterable[int] | None = None) -> list[int]: ...
 
     def save_local_grids(self, grids: Iterable[LocalGridRecord]) -> int: ...
+
+    def links_after(self, rowid: int = 0) -> tuple[int, np.ndarray]: ...

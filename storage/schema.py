@@ -56,10 +56,10 @@ def m001_initial(db: sqlite_utils.Database) -> None:
         defaults={"weight": 0},
         foreign_keys=[_fk("nodes", "session_id", "sessions", on_delete="NO ACTION")],
     )
-    db["nodes"].create_index(["session_id", "stamp"], index_name="idx_nodes_session")
-    db["nodes"].create_index(["robot"], index_name="idx_nodes_robot")
+    db.table("nodes").create_index(["session_id", "stamp"], index_name="idx_nodes_session")
+    db.table("nodes").create_index(["robot"], index_name="idx_nodes_robot")
     # Labels are unique like RTAB-Map's Node.label (goals are set by label); NULLs don't clash.
-    db["nodes"].create_index(["label"], index_name="idx_nodes_label", unique=True)
+    db.table("nodes").create_index(["label"], index_name="idx_nodes_label", unique=True)
     if has_rtree(db.conn):
         # R*Tree of the node positions (degenerate boxes), kept in sync by triggers. Its
         # coordinates are float32 rounded outwards, so queries re-check the exact x, y, z.
@@ -72,14 +72,14 @@ def m001_initial(db: sqlite_utils.Database) -> None:
         db.execute("""CREATE TRIGGER nodes_rtree_delete AFTER DELETE ON nodes BEGIN
             DELETE FROM nodes_rtree WHERE id = old.id; END""")
     else:
-        db["nodes"].create_index(["x", "y", "z"], index_name="idx_nodes_xyz")
+        db.table("nodes").create_index(["x", "y", "z"], index_name="idx_nodes_xyz")
     _create(
         db, "links",
         {"from_id": int, "to_id": int, "type": int, "transform": bytes, "information": bytes},
         pk=("from_id", "to_id", "type"), not_null=["from_id", "to_id", "type", "transform", "information"],
         foreign_keys=[_fk("links", "from_id", "nodes"), _fk("links", "to_id", "nodes")],
     )
-    db["links"].create_index(["to_id"], index_name="idx_links_to")
+    db.table("links").create_index(["to_id"], index_name="idx_links_to")
     _create(
         db, "features",
         {"node_id": int, "count": int, "keypoints": bytes, "descriptors": bytes, "points": bytes,
@@ -131,8 +131,8 @@ def m004_objects(db: sqlite_utils.Database) -> None:
                   "observations", "keyframes", "updated"],
         foreign_keys=[_fk("objects", "node_id", "nodes")],
     )
-    db["objects"].create_index(["label"], index_name="idx_objects_label")
-    db["objects"].create_index(["node_id"], index_name="idx_objects_node")
+    db.table("objects").create_index(["label"], index_name="idx_objects_label")
+    db.table("objects").create_index(["node_id"], index_name="idx_objects_node")
 
 
 def m005_rtree_map_nodes(db: sqlite_utils.Database) -> None:

@@ -33,6 +33,7 @@ class Sessions(Part):
             cur = c.execute(
                 "INSERT INTO sessions (robot, map_id, started_at, calibration, config) VALUES (?, ?, ?, ?, ?)",
                 (robot, map_id, time.time(), calib, conf))
+            assert cur.lastrowid is not None  # (set by every INSERT into a rowid table)
             return cur.lastrowid
 
     def end_session(self, session_id: int, reason: str = "stopped") -> None:
@@ -66,7 +67,8 @@ class Sessions(Part):
         return [session_from_row(r) for r in rows]
 
     def sessions(self, robot: str | None = None) -> list[SessionRecord]:
-        sql, params = f"SELECT {SESSION_COLUMNS} FROM sessions", ()
+        sql = f"SELECT {SESSION_COLUMNS} FROM sessions"
+        params: tuple[str, ...] = ()
         if robot is not None:
             sql, params = sql + " WHERE robot = ?", (robot,)
         with self.db.read() as c:

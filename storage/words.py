@@ -131,11 +131,11 @@ class Words(Part):
                 break
         if not ids:
             return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
-        ids, desc = np.concatenate(ids), np.concatenate(descs)
-        if np.any(np.diff(ids) <= 0):
-            order = np.argsort(ids, kind="stable")
-            ids, desc = ids[order], desc[order]
-        return ids, desc
+        all_ids, desc = np.concatenate(ids), np.concatenate(descs)
+        if np.any(np.diff(all_ids) <= 0):
+            order = np.argsort(all_ids, kind="stable")
+            all_ids, desc = all_ids[order], desc[order]
+        return all_ids, desc
 
     def next_word_id(self) -> int:
         """One past the highest word id ever stored (what a vocabulary that loads no words

@@ -26,6 +26,7 @@ the image (the camera was there; RTAB-Map's GridGlobal/FootprintRadius), whateve
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -128,6 +129,10 @@ class GlobalGrid:
     def __init__(self, config: GridConfig, resolution: float | None = None):
         self.config = config
         self.resolution = float(resolution or config.cell_size)
+        self._clear()
+
+    def _clear(self) -> None:
+        """Empty: no frame, no keyframe placed, no counts (the config and resolution stay)."""
         self.map_to_grid: np.ndarray | None = None
         self._frame_key: tuple | None = None  # (frame node ids, their poses at the frame's making)
         self._pids = np.zeros(0, np.int64)  # the keyframes placed, ascending ...
@@ -155,7 +160,7 @@ class GlobalGrid:
         use = use[: max(1, self.config.frame_nodes)]
         return ids[use], poses[use]
 
-    def update(self, ids, poses, grids: dict[int, LocalGrid], known: np.ndarray | None = None,
+    def update(self, ids, poses, grids: Mapping[int, LocalGrid], known: np.ndarray | None = None,
                good: np.ndarray | None = None) -> dict:
         """Bring the grid to these keyframes (ids ascending) at these poses (N, 4, 4); `grids`
         holds the local grid of each (those without one are left out). `known` (the sorted ids
@@ -173,7 +178,7 @@ class GlobalGrid:
             good = None if good is None else np.asarray(good, bool)[keep]
         stats = {"added": 0, "moved": 0, "removed": 0, "rebuilt": False}
         if len(ids) == 0:
-            self.__init__(self.config, self.resolution)
+            self._clear()
             return stats
         if good is None:
             good = np.fromiter((grids[int(n)].up_source != "config" for n in ids), bool, len(ids))
@@ -182,7 +187,7 @@ class GlobalGrid:
                   and not self._moved(self._frame_key[1], fposes).any())
         if not key_ok:
             rebuilds = self.rebuilds + 1
-            self.__init__(self.config, self.resolution)
+            self._clear()
             self.rebuilds = rebuilds
             self.map_to_grid = grid_frame(fposes, np.stack([grids[int(n)].T_cam_local for n in fids]))
             self._frame_key = (fids, fposes)
@@ -198,7 +203,7 @@ class GlobalGrid:
             # most keyframes moved (a loop closure): adding them all to empty counts is half the
             # work of taking each out and adding it again, and the same counts
             rebuilds, frame, key = self.rebuilds + 1, self.map_to_grid, self._frame_key
-            self.__init__(self.config, self.resolution)
+            self._clear()
             self.rebuilds, self.map_to_grid, self._frame_key = rebuilds, frame, key
             stats["rebuilt"] = full = True
         placed = poses.copy()
@@ -223,6 +228,7 @@ class GlobalGrid:
 
     # -- placing one local grid -----------------------------------------------------------------------
     def _patch(self, pose: np.ndarray, g: LocalGrid) -> tuple[int, int, np.ndarray]:
+        assert self.map_to_grid is not None  # (`update` makes the frame before it places a keyframe)
         T = self.map_to_grid @ pose @ g.T_cam_local
         A, b = T[:2, :2], T[:2, 3]
         r, cs = self.resolution, g.cell_size
@@ -285,13 +291,14 @@ class GlobalGrid:
         L = np.clip(L, logodds(cfg.prob_clamping_min), logodds(cfg.prob_clamping_max))
         return 1.0 / (1.0 + np.exp(-L))
 
-    def _under_keyframes(self) -> np.ndarray:
-        """Mask (array cells) within footprint_radius of a placed keyframe's position."""
+    def _under_keyframes(self, map_to_grid: np.ndarray) -> np.ndarray:
+        """Mask (array cells) within footprint_radius of a placed keyframe's position
+        (`map_to_grid`: the grid's frame)."""
         cfg, r = self.config, self.resolution
         under = np.zeros(self.hits.shape, np.uint8)
         if cfg.footprint_radius <= 0 or not len(self._pids):
             return under.astype(bool)
-        xy = self._pposes[:, :3, 3] @ self.map_to_grid[:2, :3].T + self.map_to_grid[:2, 3]
+        xy = self._pposes[:, :3, 3] @ map_to_grid[:2, :3].T + map_to_grid[:2, 3]
         col = np.floor(xy[:, 0] / r).astype(np.int64) - self.ox
         row = np.floor(xy[:, 1] / r).astype(np.int64) - self.oy
         ok = (row >= 0) & (row < under.shape[0]) & (col >= 0) & (col < under.shape[1])
@@ -308,12 +315,12 @@ class GlobalGrid:
         return self._image
 
     def _make_image(self) -> GridImage:
-        under = self._under_keyframes() if self.map_to_grid is not None else None
-        known = (self.hits > 0) | (self.misses > 0)
-        if under is not None:
-            known |= under
-        if self.map_to_grid is None or not known.any():
-            M = np.eye(4) if self.map_to_grid is None else self.map_to_grid
+        M = self.map_to_grid
+        if M is None:  # no keyframe yet
+            return GridImage(np.full((0, 0), G_UNKNOWN, np.int8), self.resolution, (0.0, 0.0), np.eye(4), 0)
+        under = self._under_keyframes(M)
+        known = (self.hits > 0) | (self.misses > 0) | under
+        if not known.any():
             return GridImage(np.full((0, 0), G_UNKNOWN, np.int8), self.resolution, (0.0, 0.0), M, 0)
         rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
         sy, sx = slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
@@ -324,8 +331,7 @@ class GlobalGrid:
         states[~known[sy, sx]] = G_UNKNOWN
         states[under[sy, sx]] = G_FREE  # the camera was there (GridGlobal/FootprintRadius)
         r = self.resolution
-        return GridImage(states, r, ((self.ox + cols[0]) * r, (self.oy + rows[0]) * r), self.map_to_grid.copy(),
-                         self.keyframes)
+        return GridImage(states, r, ((self.ox + cols[0]) * r, (self.oy + rows[0]) * r), M.copy(), self.keyframes)
 
     def counts(self) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
         """(hits, misses, (ox, oy)) cropped to the known cells, for comparisons."""

@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from mnemoslam.client.kernel.frames import PinholeCamera
 from mnemoslam.storage import GridStore
 
 from ..memory.keyframes import decode_images
 
 
-def keyframe_points(color: np.ndarray | None, depth: np.ndarray, camera, decimation: int = 4,
+def keyframe_points(color: np.ndarray | None, depth: np.ndarray, camera: PinholeCamera, decimation: int = 4,
                     max_depth: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points (N, 3) float32 and their colours (N, 3) uint8 RGB (grey when no colour)."""
     d = max(1, int(decimation))
@@ -56,17 +57,18 @@ def map_cloud(store: GridStore, node_ids, poses, voxel: float = 0.02, decimation
               max_depth: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
     """The cloud of these keyframes at these poses (map frame), voxel-filtered. Keyframes are
     filtered one by one as they come (bounded memory), then once more together."""
-    cams: dict[int, object] = {}
+    cams: dict[int, PinholeCamera] = {}
     sessions = {n.id: n.session_id for n in store.get_nodes([int(i) for i in node_ids])}
     parts_p, parts_c = [], []
     for n, pose in zip(node_ids, poses):
         color_b, depth_b = store.load_images(int(n))
         if depth_b is None:
             continue
-        sid = sessions.get(int(n))
+        sid = sessions[int(n)]  # (a node with stored images has a row)
         if sid not in cams:
             cams[sid] = store.calibration(sid).camera
         color, depth = decode_images(color_b, depth_b)
+        assert depth is not None  # (decoded from depth_b, or it raised)
         P, C = keyframe_points(color, depth, cams[sid], decimation, max_depth)
         P = P @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
         P, C = voxel_filter(P, C, voxel)

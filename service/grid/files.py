@@ -80,7 +80,11 @@ def read_grid(yaml_path: str | Path) -> GridImage:
     import yaml
 
     y = yaml.safe_load(Path(yaml_path).read_text())
-    img = cv2.imread(str(Path(yaml_path).with_name(y["image"])), cv2.IMREAD_UNCHANGED)[::-1]
+    pgm = Path(yaml_path).with_name(y["image"])
+    img = cv2.imread(str(pgm), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise OSError(f"cannot read the grid image {pgm}")
+    img = img[::-1]
     states = np.full(img.shape, G_UNKNOWN, np.int8)
     states[img == PGM_FREE] = G_FREE
     states[img == PGM_OCCUPIED] = G_OCCUPIED

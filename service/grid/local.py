@@ -177,8 +177,7 @@ def fit_floor(points: np.ndarray, up_prior: np.ndarray, config: GridConfig,
     if level > -0.2:  # a "floor" at or above the camera: not one
         return None
     normal, d = up, -level
-    sel = None
-    for _ in range(2):
+    for _ in range(2):  # (twice: `sel` is the band about the refined plane after it)
         sel = np.abs(points @ normal + d) < band
         if np.count_nonzero(sel) < config.floor_min_points:
             return None
@@ -202,9 +201,9 @@ class LocalGridMaker:
 
     def __init__(self, camera: PinholeCamera, config: GridConfig):
         self.camera, self.config = camera, config
-        self._rays_key = None
-        self._rays = None
-        self._segment = None
+        self._rays_key: tuple[tuple[int, int], int] | None = None
+        self._rays: tuple[np.ndarray, np.ndarray] | None = None
+        self._segment: int | None = None
         self._up_sum = np.zeros(3)  # Σ fitted up (world) × points
         self._floor_w: float | None = None  # the lowest fitted floor: up_w · x = floor_w
         self.last_ms = 0.0
@@ -222,7 +221,7 @@ class LocalGridMaker:
     def _rays_for(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         d = max(1, int(self.config.depth_decimation))
         key = (shape, d)
-        if self._rays_key != key:
+        if self._rays is None or self._rays_key != key:
             cam = self.camera
             h, w = shape
             v, u = np.mgrid[0:h:d, 0:w:d].astype(np.float32)
@@ -288,7 +287,9 @@ class LocalGridMaker:
         if fit is not None and R is not None and self._floor_w is not None:
             # a plane well above the session's floor is a table or a bed, not the floor (one
             # well below it is: the floor is the lowest plane)
-            if float(self.session_up @ c) - fit.prior_height > self._floor_w + FLOOR_TOLERANCE:
+            su = self.session_up
+            assert su is not None  # (a session floor is fitted along the session's up)
+            if float(su @ c) - fit.prior_height > self._floor_w + FLOOR_TOLERANCE:
                 fit = None
         up, height, floor_points = prior, None, 0
         if fit is not None:
@@ -300,11 +301,13 @@ class LocalGridMaker:
             if R is not None:  # the session's estimate, in its odometry frame
                 self._up_sum += (R @ fit.up) * fit.points
                 su = self.session_up
+                assert su is not None  # (just added: a unit up with weight fit.points > 0)
                 f = float(su @ c) - height
                 self._floor_w = f if self._floor_w is None else min(self._floor_w, f)
         if height is None:
-            if R is not None and self._floor_w is not None and self.session_up is not None:
-                height = float(self.session_up @ c) - self._floor_w
+            su = self.session_up
+            if R is not None and self._floor_w is not None and su is not None:
+                height = float(su @ c) - self._floor_w
             else:
                 height = cfg.camera_height
         T = local_frame(up, height)

@@ -65,7 +65,9 @@ class MapGrids:
             if new:
                 session = dict(zip(ids.tolist(), nodes["session_id"].tolist()))
                 map_id = {s.id: s.map_id for s in self.store.sessions()}
-                self._map_of_root.update({r: map_id.get(session.get(r)) for r in new})
+                for r in new:  # (a root without a node row here, e.g. a merged keyframe: no map)
+                    sid = session.get(r)
+                    self._map_of_root[r] = None if sid is None else map_id.get(sid)
             maps = np.array([-1 if self._map_of_root[r] is None else self._map_of_root[r] for r in roots.tolist()],
                             np.int64)
             self._roots = (ids, roots, maps)
@@ -191,7 +193,7 @@ class GridHolder:
     def __init__(self, config: GridConfig):
         self.config = config
         self._lock = threading.Lock()
-        self._store = None
+        self._store: GridStore | None = None
         self._grids: MapGrids | None = None
 
     def get(self, store: GridStore) -> MapGrids:
