@@ -163,6 +163,7 @@ class MemoryConfig:
     local_radius: float = 1.0  # m; WM nodes the graph places this near the new keyframe are not transferred either (RGBD/LocalImmunizationRatio-like)
     max_retrieved: int = 2  # LTM nodes brought back per update, around the best loop hypothesis (even below loop.threshold) and the new keyframe (Rtabmap/MaxRetrieved)
     retrieval_depth: int = 3  # ... within this many graph links of them
+    retrieval_immunity: int = 10  # map updates a retrieved node stays in WM before it can be transferred (unless nothing else can go), and a transferred node stays in LTM before it can be retrieved again: no churn
     rehearsal: bool = True  # merge a keyframe into the working-memory node the map already has where it was taken (weight up) instead of adding one (RTAB-Map's rehearsal, on there too): the map grows with the place, not with time
     rehearsal_similarity: float = 0.15  # ... when they share this ratio of visual words (matched words / the larger node's words; RTAB-Map's Mem/RehearsalSimilarity is 0.6, for the same place seen again without moving: views 5-20 cm apart share 0.1-0.4 of their words on 7-Scenes) ...
     rehearsal_max_distance: float = 0.1  # m; ... and registration puts the two cameras this close (RGBD/LinearUpdate) ...

@@ -12,12 +12,15 @@ Transfer (WM → LTM, RTAB-Map's `Memory::forget`): when WM holds more than `max
 nodes, or the last map update took longer than `time_threshold_ms`, the lowest-weight
 nodes go first, the oldest (entered WM first) among equal weights; never the nodes that
 entered WM since the last loop closure (up to `recent_wm_ratio` of WM), nodes linked to STM
-or to the loop-closure node, nor nodes near the current pose.
+or to the loop-closure node, nor nodes near the current pose; a node retrieved in the last
+`retrieval_immunity` updates goes only when nothing else can (no churn: a node brought back
+is not sent out again before it could be used).
 
 Retrieval (LTM → WM): LTM nodes within `retrieval_depth` graph links of the best loop
 hypothesis (even one below the acceptance threshold), nearest first (`select_retrievals`),
 then those the map places near the new keyframe (memory asks the database's spatial
-index), at most `max_retrieved` per update.
+index), at most `max_retrieved` per update; not a node transferred in the last
+`retrieval_immunity` updates (it went out for lack of use).
 """
 from __future__ import annotations
 
@@ -55,19 +58,24 @@ class MemorySizes:
 
 class WorkingMemory:
     def __init__(self, stm_size: int = 10, max_wm_nodes: int = 0, time_threshold_ms: float = 0.0,
-                 recent_wm_ratio: float = 0.2, max_retrieved: int = 2, retrieval_depth: int = 2):
+                 recent_wm_ratio: float = 0.2, max_retrieved: int = 2, retrieval_depth: int = 2,
+                 retrieval_immunity: int = 0):
         self.stm_size = max(0, int(stm_size))
         self.max_wm_nodes = max(0, int(max_wm_nodes))  # 0 = unlimited
         self.time_threshold_ms = float(time_threshold_ms)  # 0 = unlimited
         self.recent_wm_ratio = float(recent_wm_ratio)
         self.max_retrieved = max(0, int(max_retrieved))
         self.retrieval_depth = max(0, int(retrieval_depth))
+        self.retrieval_immunity = max(0, int(retrieval_immunity))  # map updates; 0 = none
         self.stm: deque[int] = deque()
         self._wm: dict[int, int] = {}  # node -> order of entry into WM (insertion-ordered: oldest first)
         self.ltm: set[int] = set()
         self.weights: dict[int, int] = {}  # node -> weight (rehearsal raises it); all memories
         self._entries = 0
         self._last_loop_entry = 0  # WM entry counter at the last loop closure
+        self._clock = 0  # map updates so far (`tick`)
+        self._retrieved_at: dict[int, int] = {}  # node -> update it was last retrieved at
+        self._transferred_at: dict[int, int] = {}  # node -> update it was last transferred at
 
     # -- sizes and membership -------------------------------------------------------------
     @property
@@ -104,16 +112,31 @@ class WorkingMemory:
         self._entries += 1
         self._wm[node] = self._entries
 
+    def tick(self) -> None:
+        """A map update begins (the clock of retrieval immunity)."""
+        self._clock += 1
+
+    def immune(self, node: int) -> bool:
+        """Retrieved in the last `retrieval_immunity` updates."""
+        at = self._retrieved_at.get(node)
+        return at is not None and self._clock - at < self.retrieval_immunity
+
+    def cooling(self, node: int) -> bool:
+        """Transferred in the last `retrieval_immunity` updates: not retrieved again yet."""
+        at = self._transferred_at.get(node)
+        return at is not None and self._clock - at < self.retrieval_immunity
+
     def loop_closed(self) -> None:
         """A loop closure was accepted: the nodes that enter WM from now on are 'recent'."""
         self._last_loop_entry = self._entries
 
     def rehearsed(self, survivor: int, merged_weight: int = 0) -> int:
-        """A new keyframe (of weight `merged_weight`) was merged into `survivor`, an STM or WM
-        node: the survivor's weight grows by it + 1 (RTAB-Map's); the keyframe never enters
-        memory. Returns the new weight."""
-        if survivor not in self._wm and survivor not in self.stm:
-            raise ValueError(f"node {survivor} is not in STM or WM")
+        """A new keyframe (of weight `merged_weight`) was merged into `survivor`, a node of
+        any memory (one in LTM stays there: the keyframe was merged with its stored words):
+        the survivor's weight grows by it + 1 (RTAB-Map's); the keyframe never enters memory.
+        Returns the new weight."""
+        if survivor not in self:
+            raise ValueError(f"node {survivor} is not in memory")
         self.weights[survivor] = self.weights.get(survivor, 0) + int(merged_weight) + 1
         return self.weights[survivor]
 
@@ -128,7 +151,8 @@ class WorkingMemory:
         lowest weight first, then oldest. `protected` nodes (linked to STM, the loop-closure
         node) never go; `preferred` ones (near the current pose) and those that entered WM
         since the last loop closure (up to recent_wm_ratio of WM) go only when nothing else
-        can, so that WM never holds more than max_wm_nodes."""
+        can, and after them the nodes retrieved in the last retrieval_immunity updates, so
+        that WM never holds more than max_wm_nodes."""
         if not self.over_limit(update_ms):
             return []
         n = len(self._wm)
@@ -146,17 +170,22 @@ class WorkingMemory:
         weight = np.fromiter((self.weights.get(m, 0) for m in ids.tolist()), np.int64)
         entry = np.fromiter((self._wm[m] for m in ids.tolist()), np.int64)
         kept = np.fromiter((m in soft for m in ids.tolist()), bool, len(ids))
-        order = np.lexsort((ids, entry, weight, kept))  # the others first; then weight, age, id
+        immune = np.fromiter((self.immune(m) for m in ids.tolist()), bool, len(ids))
+        order = np.lexsort((ids, entry, weight, kept, immune))  # the others first; then weight, age, id
         return ids[order[:need]].tolist()
 
     def transferred(self, nodes: Iterable[int]) -> None:
         for n in nodes:
             if self._wm.pop(n, None) is not None:
                 self.ltm.add(n)
+                self._retrieved_at.pop(n, None)
+                if self.retrieval_immunity:
+                    self._transferred_at[n] = self._clock
 
     def select_retrievals(self, seeds: Iterable[int], neighbours: Mapping[int, Iterable[int]]) -> list[int]:
         """LTM nodes within retrieval_depth links of the `seeds` (best hypothesis first, then
-        the current node), breadth first (nearest in the graph first), at most max_retrieved."""
+        the current node), breadth first (nearest in the graph first), at most max_retrieved;
+        not those transferred in the last retrieval_immunity updates."""
         if not self.ltm or self.max_retrieved <= 0:
             return []
         out: list[int] = []
@@ -165,7 +194,7 @@ class WorkingMemory:
                 continue
             for level in graph_levels(neighbours, seed, self.retrieval_depth):
                 for m in sorted(level):
-                    if m in self.ltm and m not in out:
+                    if m in self.ltm and m not in out and not self.cooling(m):
                         out.append(m)
                         if len(out) >= self.max_retrieved:
                             return out
@@ -176,6 +205,9 @@ class WorkingMemory:
             if n in self.ltm:
                 self.ltm.discard(n)
                 self._enter_wm(n)
+                self._transferred_at.pop(n, None)
+                if self.retrieval_immunity:
+                    self._retrieved_at[n] = self._clock
 
     def restore(self, stm: Iterable[int], wm: Iterable[int], ltm: Iterable[int],
                 weights: Mapping[int, int] | None = None) -> None:
