@@ -37,6 +37,38 @@ def test_transfer_lowest_weight_then_oldest_and_never_protected_or_recent():
     assert m3.select_transfers(50.0) == [] and m3.select_transfers(150.0) == [1]
 
 
+def test_working_memory_adapts_to_the_time_budget():
+    """memory.time_threshold_ms (Rtabmap/TimeThr): updates over budget lower WM's limit in
+    proportion (at most a tenth at once) and WM follows it; updates well within raise it back
+    one node per update, up to max_wm_nodes."""
+    m = WorkingMemory(stm_size=1, max_wm_nodes=60, time_threshold_ms=100.0, recent_wm_ratio=0.0)
+    for n in range(1, 52):
+        m.add(n)
+    assert len(m.wm) == 50 and m.limit == 60
+    m.adapt(200.0)  # twice the budget: half of WM would fit, a tenth goes now
+    assert m.limit == 45
+    m.transferred(m.select_transfers(200.0))
+    assert len(m.wm) == 45
+    for _ in range(5):
+        m.adapt(200.0)
+        m.transferred(m.select_transfers(200.0))
+    assert m.limit == 25 and len(m.wm) == 25  # where the updates fit
+    m.adapt(90.0)  # within budget, not well within: the limit holds
+    assert m.limit == 25
+    for k in range(3):  # new nodes keep coming: WM stays at its limit
+        m.add(100 + k)
+        m.adapt(50.0)
+        m.transferred(m.select_transfers(50.0))
+    assert m.limit == 28 and len(m.wm) == 28
+    for _ in range(40):
+        m.adapt(50.0)
+    assert m.limit == 60 and m.time_limit is None  # back to max_wm_nodes
+    # without a budget nothing adapts
+    m2 = WorkingMemory(stm_size=1, max_wm_nodes=60)
+    m2.adapt(1e6)
+    assert m2.limit == 60
+
+
 def test_retrieval_breadth_first_around_the_seeds_bounded():
     m = WorkingMemory(stm_size=1, max_retrieved=2, retrieval_depth=2)
     for n in range(1, 9):

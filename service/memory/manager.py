@@ -194,7 +194,8 @@ class Memory:
         sizes = self._tiers.sizes()
         return {"stamp": stamp, "stm": sizes.stm, "wm": sizes.wm, "ltm": sizes.ltm,
                 "transferred": transferred, "retrieved": retrieved, "merged": [] if survivor is None else [survivor],
-                "words": len(self._vocabulary), "dormant_words": self._vocabulary.dormant}
+                "words": len(self._vocabulary), "dormant_words": self._vocabulary.dormant,
+                "wm_limit": self._tiers.limit}
 
     # -- rehearsal's merges ----------------------------------------------------------------------
     def through_merges(self, u):
@@ -305,10 +306,12 @@ class Memory:
         return retrieved, placed
 
     def transfer(self, node: int, update_ms: float, pose: NodePoses) -> list[int]:
-        """After the update of keyframe `node` that took `update_ms`: WM → LTM when WM is over
-        its limits (`WorkingMemory.select_transfers`). Returns the nodes transferred (the
-        mapper's loop detector forgets them)."""
+        """After the update of keyframe `node` that took `update_ms`: WM's limit follows the
+        time budget (`WorkingMemory.adapt`), then WM → LTM when WM is over its limits
+        (`WorkingMemory.select_transfers`). Returns the nodes transferred (the mapper's loop
+        detector forgets them)."""
         tiers = self._tiers
+        tiers.adapt(update_ms)
         if self.store is None or not tiers.over_limit(update_ms):
             return []
         transferred = tiers.select_transfers(update_ms, *self._protected(node, pose))

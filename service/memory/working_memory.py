@@ -9,7 +9,9 @@ the mapper's loop detector and pose graph are told by the mapper) and tells it w
 Moving a node between WM and LTM changes no data.
 
 Transfer (WM → LTM, RTAB-Map's `Memory::forget`): when WM holds more than `max_wm_nodes`
-nodes, or the last map update took longer than `time_threshold_ms`, the lowest-weight
+nodes, or more than the time budget allows (`adapt`: a map update that took longer than
+`time_threshold_ms`, RTAB-Map's Rtabmap/TimeThr, lowers WM's limit in proportion, by at most
+a tenth per update; updates well within it raise it back by one node each), the lowest-weight
 nodes go first, the oldest (entered WM first) among equal weights; never the nodes that
 entered WM since the last loop closure (up to `recent_wm_ratio` of WM), nodes linked to STM
 or to the loop-closure node, nor nodes near the current pose; a node retrieved in the last
@@ -74,6 +76,7 @@ class WorkingMemory:
         self._entries = 0
         self._last_loop_entry = 0  # WM entry counter at the last loop closure
         self._clock = 0  # map updates so far (`tick`)
+        self.time_limit: int | None = None  # WM's limit from the time budget (`adapt`); None = none
         self._retrieved_at: dict[int, int] = {}  # node -> update it was last retrieved at
         self._transferred_at: dict[int, int] = {}  # node -> update it was last transferred at
 
@@ -140,14 +143,40 @@ class WorkingMemory:
         self.weights[survivor] = self.weights.get(survivor, 0) + int(merged_weight) + 1
         return self.weights[survivor]
 
+    def adapt(self, update_ms: float) -> None:
+        """The time budget (`time_threshold_ms`, 0 = none), once per map update that took
+        `update_ms`: over budget, WM's limit drops to its size × budget / update_ms (at least
+        one node, at most a tenth of WM at once: one slow update, e.g. a loop closure's
+        optimisation, does not empty it); under 0.8 × budget it grows back by one node per
+        update, and goes when it reaches max_wm_nodes. RTAB-Map transfers until the update
+        fits (Rtabmap/TimeThr); the limit keeps WM where the updates fit."""
+        budget = self.time_threshold_ms
+        if budget <= 0:
+            return
+        n = len(self._wm)
+        if update_ms > budget and n > 0:
+            cap = min(n - 1, max(int(0.9 * n), int(n * budget / update_ms)))
+            self.time_limit = max(cap, 0) if self.time_limit is None else min(self.time_limit, max(cap, 0))
+        elif update_ms < 0.8 * budget and self.time_limit is not None:
+            self.time_limit += 1
+            if 0 < self.max_wm_nodes <= self.time_limit:
+                self.time_limit = None
+
+    @property
+    def limit(self) -> int | None:
+        """WM's limit now: max_wm_nodes, or lower while the time budget needs (None: none)."""
+        limits = [x for x in (self.max_wm_nodes or None, self.time_limit) if x is not None]
+        return min(limits) if limits else None
+
     def over_limit(self, update_ms: float) -> bool:
-        return (self.max_wm_nodes > 0 and len(self._wm) > self.max_wm_nodes) or \
+        limit = self.limit
+        return (limit is not None and len(self._wm) > limit) or \
             (self.time_threshold_ms > 0 and update_ms > self.time_threshold_ms)
 
     def select_transfers(self, update_ms: float, protected: Iterable[int] = (),
                          preferred: Iterable[int] = ()) -> list[int]:
         """The WM nodes to move to LTM after an update that took `update_ms`: enough to get
-        back under max_wm_nodes, at least one node when only the time threshold was exceeded;
+        back under the limit (`limit`), at least one node when the time threshold was exceeded;
         lowest weight first, then oldest. `protected` nodes (linked to STM, the loop-closure
         node) never go; `preferred` ones (near the current pose) and those that entered WM
         since the last loop closure (up to recent_wm_ratio of WM) go only when nothing else
@@ -156,7 +185,7 @@ class WorkingMemory:
         if not self.over_limit(update_ms):
             return []
         n = len(self._wm)
-        need = max(n - self.max_wm_nodes, 0) if self.max_wm_nodes > 0 else 0
+        need = max(n - self.limit, 0) if self.limit is not None else 0
         if self.time_threshold_ms > 0 and update_ms > self.time_threshold_ms:
             need = max(need, 1)
         if need <= 0:
