@@ -449,10 +449,10 @@ class Mapper:
         bounded a revisited place is mostly in LTM: it would become a node again)."""
         mc = self.memory_config
         where = self.graph.pose(u.odom_from) @ u.transform
-        wm = [n for n in self.memory.tiers.wm if n in self.vocabulary]
-        wm += self.memory.ltm_near(where, 4 * mc.rehearsal_max_distance)
+        nodes = [n for n in self.memory.tiers.wm if n in self.vocabulary]
+        nodes += self.memory.ltm_near(where, 4 * mc.rehearsal_max_distance)
         # in the keyframe's own map: another map's coordinates coincide with its own by chance
-        ram = self.memory.same_map(u.odom_from, wm)
+        ram = self.memory.same_map(u.odom_from, nodes)
         if not ram:
             return None
         poses = np.stack([self.graph.pose(n) for n in ram])
