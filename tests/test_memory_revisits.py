@@ -5,11 +5,11 @@ import csv
 
 import pytest
 
-from client.datasets.passes import Passes
-from service.config import load_config
-from service.evaluation import evaluate
-from service.runner import run_dataset
-from storage import MapStore
+from mnemoslam.client.datasets.passes import Passes
+from mnemoslam.service.config import load_config
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.storage import MapStore
 
 from conftest import synthetic
 

@@ -12,22 +12,22 @@ import cv2
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.frames import PinholeCamera
-from client.synthetic.scene import get_scene
-from service.builder import build_pipeline, build_semantics
-from service.config import SemanticsConfig, load_config
-from service.evaluation import associate_stamps, umeyama
-from service.runner import run_dataset
-from service.semantics.classes import ADE20K32
-from service.semantics.objects import ObjectFusion, bayes_update
-from service.semantics.segmentation import (
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.synthetic.scene import get_scene
+from mnemoslam.service.builder import build_pipeline, build_semantics
+from mnemoslam.service.config import SemanticsConfig, load_config
+from mnemoslam.service.evaluation import associate_stamps, umeyama
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.service.semantics.classes import ADE20K32
+from mnemoslam.service.semantics.objects import ObjectFusion, bayes_update
+from mnemoslam.service.semantics.segmentation import (
     CameraLabels,
     OnnxSegmenter,
     make_segmenter,
     semantics_status,
 )
-from storage import MapStore
+from mnemoslam.storage import MapStore
 
 from conftest import RenderedOnce, require, require_model
 
@@ -247,8 +247,8 @@ def _stored_keyframes(store, ds, frames) -> list[int]:
     """Keyframes of `ds` stored as the keyframe writer stores them (JPEG colour, PNG-16 depth
     in mm) at their ground-truth poses, linked in a chain, with no features: what the back-fill
     reads."""
-    from client.geometry import invert
-    from storage import KeyframeRecord
+    from mnemoslam.client.kernel.geometry import invert
+    from mnemoslam.storage import KeyframeRecord
 
     sid = store.begin_session("r1", ds.calibration)
     ids, previous = [], None
@@ -279,7 +279,7 @@ def test_keyframes_the_worker_could_not_take_are_backfilled(segmenter, data_dir,
     full; they wait in the store and the worker back-fills them (newest first) from their
     stored images, so the whole map ends up segmented and the objects are those of the
     images. Without the back-fill the same run leaves most keyframes unsegmented."""
-    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
 
     ds = open_dataset(require(data_dir / "7scenes_redkitchen"))
     frames = list(range(0, 400, 40))  # the 10 keyframes of the test above
@@ -308,7 +308,7 @@ def test_deferred_camera_labels_wait_for_the_backfill(tmp_path):
     """The camera's labels are not stored: a keyframe with labels that finds the queue full
     keeps them (PNG) until the back-fill fuses it with its stored depth, so a camera's labels
     cover the whole map with no model at all; with the back-fill off they are dropped."""
-    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
 
     ds = open_dataset("synthetic:loop", rate=10)
     frames = list(range(0, 240, 12))
@@ -334,7 +334,7 @@ def test_deferred_camera_labels_wait_for_the_backfill(tmp_path):
 def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
     import threading
 
-    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
 
     release = threading.Event()
 
@@ -361,11 +361,11 @@ def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
 def test_service_fuses_streamed_labels_into_stored_objects(tmp_path, monkeypatch):
     """Through the service: frames streamed with labels (`stream ... --labels`) become objects
     in the map database, fused on the semantic worker's thread; the status says on."""
-    from client.planner import PlannerClient
-    from client.streamer import stream_dataset
-    from client.transport import ZenohSettings
-    from service.api import TOKEN_ENV, ApiThread, create_app
-    from service.server import SlamService
+    from mnemoslam.client.planner import PlannerClient
+    from mnemoslam.client.streamer import stream_dataset
+    from mnemoslam.client.transport import ZenohSettings
+    from mnemoslam.service.api import TOKEN_ENV, ApiThread, create_app
+    from mnemoslam.service.server import SlamService
     from tests.test_api_objects import _status as _api_status
     from tests.test_streamer import endpoint, free_port
 
