@@ -158,11 +158,12 @@ class LoopConfig:
 class MemoryConfig:
     stm_size: int = 10  # short-term memory: the last keyframes, not loop candidates (Mem/STMSize) ...
     max_wm_nodes: int = 0  # working memory (loop candidates in RAM) above this many nodes: the excess goes to long-term memory, the database only (Rtabmap/MemoryThr); 0 = unlimited
-    time_threshold_ms: float = 0.0  # ... also when the last map update took longer than this (Rtabmap/TimeThr); 0 = no limit
+    time_threshold_ms: float = 0.0  # the map update's time budget (Rtabmap/TimeThr): an update over it lowers WM's limit in proportion (at most a tenth at once), updates under 0.8x it raise the limit back by one node each, up to max_wm_nodes; 0 = no budget
     recent_wm_ratio: float = 0.2  # nodes that entered WM since the last loop closure stay, up to this share of WM (Mem/RecentWmRatio)
     local_radius: float = 1.0  # m; WM nodes the graph places this near the new keyframe are not transferred either (RGBD/LocalImmunizationRatio-like)
     max_retrieved: int = 2  # LTM nodes brought back per update, around the best loop hypothesis (even below loop.threshold) and the new keyframe (Rtabmap/MaxRetrieved)
     retrieval_depth: int = 3  # ... within this many graph links of them
+    retrieval_immunity: int = 10  # map updates a retrieved node stays in WM before it can be transferred (unless nothing else can go), and a transferred node stays in LTM before it can be retrieved again: no churn
     rehearsal: bool = True  # merge a keyframe into the working-memory node the map already has where it was taken (weight up) instead of adding one (RTAB-Map's rehearsal, on there too): the map grows with the place, not with time
     rehearsal_similarity: float = 0.15  # ... when they share this ratio of visual words (matched words / the larger node's words; RTAB-Map's Mem/RehearsalSimilarity is 0.6, for the same place seen again without moving: views 5-20 cm apart share 0.1-0.4 of their words on 7-Scenes) ...
     rehearsal_max_distance: float = 0.1  # m; ... and registration puts the two cameras this close (RGBD/LinearUpdate) ...

@@ -37,6 +37,38 @@ def test_transfer_lowest_weight_then_oldest_and_never_protected_or_recent():
     assert m3.select_transfers(50.0) == [] and m3.select_transfers(150.0) == [1]
 
 
+def test_working_memory_adapts_to_the_time_budget():
+    """memory.time_threshold_ms (Rtabmap/TimeThr): updates over budget lower WM's limit in
+    proportion (at most a tenth at once) and WM follows it; updates well within raise it back
+    one node per update, up to max_wm_nodes."""
+    m = WorkingMemory(stm_size=1, max_wm_nodes=60, time_threshold_ms=100.0, recent_wm_ratio=0.0)
+    for n in range(1, 52):
+        m.add(n)
+    assert len(m.wm) == 50 and m.limit == 60
+    m.adapt(200.0)  # twice the budget: half of WM would fit, a tenth goes now
+    assert m.limit == 45
+    m.transferred(m.select_transfers(200.0))
+    assert len(m.wm) == 45
+    for _ in range(5):
+        m.adapt(200.0)
+        m.transferred(m.select_transfers(200.0))
+    assert m.limit == 25 and len(m.wm) == 25  # where the updates fit
+    m.adapt(90.0)  # within budget, not well within: the limit holds
+    assert m.limit == 25
+    for k in range(3):  # new nodes keep coming: WM stays at its limit
+        m.add(100 + k)
+        m.adapt(50.0)
+        m.transferred(m.select_transfers(50.0))
+    assert m.limit == 28 and len(m.wm) == 28
+    for _ in range(40):
+        m.adapt(50.0)
+    assert m.limit == 60 and m.time_limit is None  # back to max_wm_nodes
+    # without a budget nothing adapts
+    m2 = WorkingMemory(stm_size=1, max_wm_nodes=60)
+    m2.adapt(1e6)
+    assert m2.limit == 60
+
+
 def test_retrieval_breadth_first_around_the_seeds_bounded():
     m = WorkingMemory(stm_size=1, max_retrieved=2, retrieval_depth=2)
     for n in range(1, 9):
@@ -48,6 +80,52 @@ def test_retrieval_breadth_first_around_the_seeds_bounded():
     m.retrieved([5, 4])
     assert m.wm[-2:] == [5, 4] and m.ltm == {1, 2, 3}
     assert WorkingMemory(max_retrieved=0).select_retrievals([1], chain) == []
+
+
+def test_a_retrieved_node_is_not_transferred_again_before_it_could_be_used():
+    """Churn (issue 23): WM full of nodes near the pose (transferred last), two old nodes
+    retrieved around a loop hypothesis far away: they must not be the ones sent back to LTM
+    by the same update, nor by the next retrieval_immunity - 1; after that they can go."""
+    m = WorkingMemory(stm_size=1, max_wm_nodes=4, recent_wm_ratio=0.0, retrieval_immunity=3)
+    for n in range(1, 8):
+        m.add(n)
+    m.tick()
+    m.transferred(m.select_transfers(0.0))
+    assert m.wm == [3, 4, 5, 6] and m.ltm == {1, 2}
+    near = {3, 4, 5, 6, 7, 8, 9}
+    for update in range(3):
+        m.tick()
+        if update == 0:
+            m.retrieved([1, 2])
+        m.add(8 + update)  # one more node enters WM each update
+        out = m.select_transfers(0.0, preferred=near)
+        assert not {1, 2} & set(out), (update, out)  # the others go, near ones or not
+        m.transferred(out)
+        assert len(m.wm) == 4
+    m.tick()
+    m.add(11)
+    assert m.select_transfers(0.0, preferred=near) == [1]  # immunity over: not near, it goes first
+
+
+def test_a_transferred_node_is_not_retrieved_back_at_once():
+    m = WorkingMemory(stm_size=1, max_wm_nodes=3, max_retrieved=2, retrieval_depth=2, retrieval_immunity=2)
+    for n in range(1, 6):
+        m.add(n)
+    m.tick()
+    m.transferred([1])
+    chain = {n: [n - 1, n + 1] for n in range(1, 9)}
+    m.transferred([2])  # earlier: clock 1 as well
+    assert m.select_retrievals([3], chain) == []  # both just went
+    m.tick()
+    assert m.select_retrievals([3], chain) == []
+    m.tick()
+    assert m.select_retrievals([3], chain) == [2, 1]
+    # no immunity configured: as before, back at once
+    m0 = WorkingMemory(stm_size=1, max_wm_nodes=3, max_retrieved=2, retrieval_depth=2)
+    for n in range(1, 6):
+        m0.add(n)
+    m0.transferred([1, 2])
+    assert m0.select_retrievals([3], chain) == [2, 1]
 
 
 def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(tmp_path):

@@ -261,7 +261,7 @@ class Mapper:
         t1 = time.perf_counter()
         best = r.survivor if r.survivor is not None else self._add_keyframe(u, stats, r.verified)
         t2 = time.perf_counter()
-        transferred, retrieved = self._manage_memory(u.node_id, best, (t2 - t0) * 1e3)
+        transferred, retrieved = self._manage_memory(u.node_id, best, (t2 - t0) * 1e3, r.survivor is not None)
         stats.timings_ms["rehearsal"] = (t1 - t0) * 1e3 - stats.local_ba.get("ms", 0.0)
         stats.timings_ms["local_ba"] = stats.local_ba.get("ms", 0.0)
         stats.timings_ms["memory"] = (time.perf_counter() - t2) * 1e3
@@ -270,13 +270,15 @@ class Mapper:
         with self._lock:
             self._correction = self.pose(u.node_id) @ invert(u.odom_pose)
 
-    def _manage_memory(self, node: int, best: int | None, update_ms: float) -> tuple[list[int], list[int]]:
+    def _manage_memory(self, node: int, best: int | None, update_ms: float,
+                       merged: bool = False) -> tuple[list[int], list[int]]:
         """After the update of keyframe `node` that took `update_ms` (RTAB-Map's memory
         management): retrieval (LTM → WM) around the best loop hypothesis and the keyframe,
         then transfer (WM → LTM) when WM is over its limits, which the loop detector forgets
         (its belief is this mapper's alone: no lock; the shared vocabulary's words memory
-        unloaded under its lock). Returns (transferred, retrieved) node ids."""
-        retrieved = self.retrieve(self.memory.to_retrieve(node, best, self.pose))
+        unloaded under its lock); nothing is retrieved after a keyframe `merged` by rehearsal
+        (it found its place). Returns (transferred, retrieved) node ids."""
+        retrieved = self.retrieve(self.memory.to_retrieve(node, best, self.pose, merged))
         transferred = self.memory.transfer(node, update_ms, self.pose)
         if transferred:
             self.detector.forget(transferred)
@@ -378,13 +380,18 @@ class Mapper:
             return Rehearsal()
         mc = self.memory_config
         t0 = time.perf_counter()
-        similarity = self._similarity(u.features.descriptors, c)
+        place = self.memory.place(c)
+        if place is None:
+            return Rehearsal()
+        similarity = self._similarity(u.features.descriptors, place.words)
         t1 = time.perf_counter()
         r = stats.rehearsal = {"node": c, "similarity": round(similarity, 3), "search_ms": (t1 - t0) * 1e3}
+        if not self.memory.tiers.in_ram(c):
+            r["ltm"] = True  # a place in LTM, read from the database (not retrieved)
         if similarity < mc.rehearsal_similarity:
             r["decision"] = "rejected: similarity"
             return Rehearsal()
-        decision, v = self._register(u, c)
+        decision, v = self._register(u, c, place=place)
         r["inliers"] = 0 if v is None else v.inliers
         r["verify_ms"] = (time.perf_counter() - t1) * 1e3
         if decision != "ok":
@@ -414,17 +421,21 @@ class Mapper:
         return Rehearsal(c)
 
     def _rehearsal_candidate(self, u: KeyframeUpdate) -> int | None:
-        """The WM node closest to where odometry puts the keyframe, by distance over
+        """The WM or LTM node closest to where odometry puts the keyframe, by distance over
         rehearsal_max_distance plus rotation over rehearsal_max_rotation, if that is < 4
         (e.g. both within twice their limit). Not STM: the newest keyframes are the path just
         walked, one keyframe spacing apart (merging a keyframe into the one before replaces
-        odometry by a registration: 7-Scenes 4.15 -> 5.43 cm); a revisit finds older ones."""
+        odometry by a registration: 7-Scenes 4.15 -> 5.43 cm); a revisit finds older ones.
+        LTM's nodes there come from the database's spatial index (with working memory
+        bounded a revisited place is mostly in LTM: it would become a node again)."""
         mc = self.memory_config
+        where = self.graph.pose(u.odom_from) @ u.transform
+        nodes = [n for n in self.memory.tiers.wm if n in self.vocabulary]
+        nodes += self.memory.ltm_near(where, 4 * mc.rehearsal_max_distance)
         # in the keyframe's own map: another map's coordinates coincide with its own by chance
-        ram = self.memory.same_map(u.odom_from, [n for n in self.memory.tiers.wm if n in self.vocabulary])
+        ram = self.memory.same_map(u.odom_from, nodes)
         if not ram:
             return None
-        where = self.graph.pose(u.odom_from) @ u.transform
         poses = np.stack([self.graph.pose(n) for n in ram])
         dist = np.linalg.norm(poses[:, :3, 3] - where[:3, 3], axis=1)
         turn = rotation_angle(np.swapaxes(poses[:, :3, :3], 1, 2) @ where[:3, :3])
@@ -432,13 +443,12 @@ class Mapper:
         k = int(np.argmin(score))
         return ram[k] if score[k] < 4.0 else None
 
-    def _similarity(self, descriptors: np.ndarray, node: int) -> float:
+    def _similarity(self, descriptors: np.ndarray, theirs: np.ndarray) -> float:
         """Shared words / the larger node's words (RTAB-Map's Signature::compareTo): the
-        keyframe's descriptors matched against the node's words only (nearest word within the
-        vocabulary's distance and ratio, one descriptor per word), not searched in the whole
-        vocabulary: a few hundred by a few hundred Hamming distances instead of a search."""
-        with self.vocabulary.lock:
-            theirs = self.vocabulary.descriptors(self.vocabulary.node_words(node)[0])
+        keyframe's descriptors matched against the node's words only (`theirs`, their
+        descriptors: nearest word within the vocabulary's distance and ratio, one descriptor
+        per word), not searched in the whole vocabulary: a few hundred by a few hundred
+        Hamming distances instead of a search."""
         shared, _ = match_descriptors(descriptors, theirs, self.vocabulary.nndr, self.vocabulary.max_distance)
         return len(shared) / max(len(descriptors), len(theirs), 1)
 
@@ -500,16 +510,21 @@ class Mapper:
             stats.path.append({"node": candidate, "decision": decision,
                                "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined)})
 
-    def _register(self, u: KeyframeUpdate, candidate: int,
-                  prior: np.ndarray | None = None) -> tuple[str, Verification | None]:
+    def _register(self, u: KeyframeUpdate, candidate: int, prior: np.ndarray | None = None,
+                  place=None) -> tuple[str, Verification | None]:
         """Verify a candidate (PnP, then dense refinement). With a `prior` (T_candidate_new
-        from the graph) a candidate PnP refuses is also registered densely from it. Returns
-        ("ok" or "rejected: why", the verification)."""
+        from the graph) a candidate PnP refuses is also registered densely from it. `place`:
+        the candidate's data (`Memory.place`) when it is not in RAM. Returns ("ok" or
+        "rejected: why", the verification)."""
         c = self.config
-        cand = self.memory.features[candidate]
+        cand = self.memory.features[candidate] if place is None else place.features
         v = verify(self.camera, u.features.keypoints, u.features.descriptors, cand.descriptors, cand.points,
                    min_inliers=c.min_inliers)
         views = self.memory.views
+        if place is not None:
+            views = {u.node_id: views[u.node_id]} if u.node_id in views and place.view is not None else {}
+            if views:
+                views[candidate] = place.view
         dense = u.node_id in views and candidate in views
         if not v.accepted and prior is not None and dense:
             v = register_dense(views[u.node_id], views[candidate], prior,

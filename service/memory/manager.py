@@ -13,6 +13,7 @@ for the mapper to put in its graph, and it returns the nodes it transferred for 
 detector to forget."""
 from __future__ import annotations
 
+import collections
 import dataclasses
 from types import MappingProxyType
 from typing import Callable, Mapping
@@ -31,6 +32,19 @@ from .keyframes import decode_images
 from .views import DenseView, StoredViews
 from .vocabulary import Vocabulary
 from .working_memory import WorkingMemory
+
+PLACES_KEPT = 8  # LTM nodes whose data rehearsal read are kept for the next keyframes
+
+
+@dataclasses.dataclass
+class Place:
+    """A node as rehearsal compares a keyframe with it: features, its words' descriptors,
+    dense view (None: none)."""
+
+    features: FrameFeatures
+    words: np.ndarray
+    view: DenseView | None
+
 
 NodePoses = Callable[[int], np.ndarray]  # a keyframe's map pose (4×4), as the mapper's graph places it
 Link = tuple[int, int, np.ndarray, np.ndarray]  # (from, to, T_from_to, information)
@@ -80,7 +94,8 @@ class Memory:
         self._vocabulary = (Vocabulary.for_store(store, words=config.max_wm_nodes <= 0, nndr=loop.nndr_ratio)
                             if store is not None else Vocabulary(nndr=loop.nndr_ratio))
         self._tiers = WorkingMemory(config.stm_size, config.max_wm_nodes, config.time_threshold_ms,
-                                    config.recent_wm_ratio, config.max_retrieved, config.retrieval_depth)
+                                    config.recent_wm_ratio, config.max_retrieved, config.retrieval_depth,
+                                    config.retrieval_immunity)
         self._features: dict[int, FrameFeatures] = {}  # the features of the keyframes in STM and WM
         # reduced depth + grey of RGB-D keyframes in RAM, for dense link refinement (a retrieved
         # or stored keyframe's are decoded from its stored images when first needed)
@@ -94,6 +109,10 @@ class Memory:
         self._stamps: dict[int, float] = {}
         self._segment: dict[int, int] = {}  # node -> first node of its odometry segment
         self._loop_nodes: set[int] = set()  # the older end of the last accepted loop closure (kept in WM)
+        # LTM nodes rehearsal read from the database (features, word descriptors, dense view),
+        # the last few: consecutive keyframes of a revisit meet the same places
+        self._places: collections.OrderedDict[int, Place] = collections.OrderedDict()
+        self.places_read = 0  # LTM nodes read for rehearsal (not retrieved: they stay in LTM)
 
     # -- what the map update reads -----------------------------------------------------------
     @property
@@ -188,7 +207,8 @@ class Memory:
         sizes = self._tiers.sizes()
         return {"stamp": stamp, "stm": sizes.stm, "wm": sizes.wm, "ltm": sizes.ltm,
                 "transferred": transferred, "retrieved": retrieved, "merged": [] if survivor is None else [survivor],
-                "words": len(self._vocabulary), "dormant_words": self._vocabulary.dormant}
+                "words": len(self._vocabulary), "dormant_words": self._vocabulary.dormant,
+                "wm_limit": self._tiers.limit}
 
     # -- rehearsal's merges ----------------------------------------------------------------------
     def through_merges(self, u):
@@ -215,16 +235,72 @@ class Memory:
             self.store.merge_node(node, survivor, transform, information)
         return entering
 
+    # -- rehearsal against long-term memory --------------------------------------------------
+    def ltm_near(self, where: np.ndarray, radius: float) -> list[int]:
+        """LTM nodes of this map update (its graph's) the database places within `radius` of
+        the camera at `where` (4×4): one R*Tree query of the stored poses. Rehearsal's
+        candidates beside WM's: a revisit whose place went to LTM merges into it there."""
+        if self.store is None or not self._tiers.ltm:
+            return []
+        c = where[:3, 3]
+        box = (tuple(c - radius), tuple(c + radius))
+        return [n.id for n in self.store.nodes(bbox=box, limit=None, merged=False)
+                if n.id in self._tiers.ltm and n.id in self._stamps]
+
+    def place(self, node: int) -> "Place | None":
+        """What rehearsal compares a keyframe with, of a node in any memory: its features,
+        its words' descriptors and its dense view (None without one). A node in RAM gives
+        its own; an LTM node's are read from the database (kept for the next few keyframes)
+        and it stays in LTM. None when the node has no stored features."""
+        if self._tiers.in_ram(node):
+            with self._vocabulary.lock:
+                words = self._vocabulary.descriptors(self._vocabulary.node_words(node)[0])
+            return Place(self._features[node], words, self._views[node] if node in self._views else None)
+        p = self._places.get(node)
+        if p is not None:
+            self._places.move_to_end(node)
+            return p
+        try:
+            keypoints, descriptors, points, word_ids = self.store.load_features(node)
+        except UnknownIdError:
+            return None
+        features = FrameFeatures(keypoints, descriptors, points, np.zeros(len(keypoints), np.int8))
+        if word_ids is None:
+            words = descriptors
+        else:
+            w = np.unique(word_ids[word_ids >= 0])
+            with self._vocabulary.lock:
+                missing = self._vocabulary.missing_words(w)
+                held = w[~np.isin(w, missing)]
+                words = self._vocabulary.descriptors(held)
+            if len(missing):
+                words = np.concatenate([words, self.store.load_words(missing)[1]])
+        view = None
+        if self.loop_config.refine_dense:
+            try:
+                image, depth = decode_images(*self.store.load_images(node))
+                if image is not None and depth is not None:
+                    view = DenseView(depth, image, self.camera)
+            except Exception:  # a bad image costs this merge's dense refinement only
+                view = None
+        p = self._places[node] = Place(features, words, view)
+        self.places_read += 1
+        while len(self._places) > PLACES_KEPT:
+            self._places.popitem(last=False)
+        return p
+
     # -- transfer and retrieval --------------------------------------------------------------
-    def to_retrieve(self, node: int, best: int | None, pose: NodePoses) -> list[int]:
+    def to_retrieve(self, node: int, best: int | None, pose: NodePoses, merged: bool = False) -> list[int]:
         """After the update of keyframe `node`: the LTM nodes to bring back to WM, those
         around the best loop hypothesis, then those the map places near the keyframe (at most
-        `memory.max_retrieved`)."""
+        `memory.max_retrieved`). None after a keyframe `merged` into a node: it found its
+        place (rehearsal compares with LTM's places where they are, without retrieving them)."""
         tiers = self._tiers
-        if self.store is None or not tiers.ltm or tiers.max_retrieved <= 0:
+        tiers.tick()
+        if self.store is None or not tiers.ltm or tiers.max_retrieved <= 0 or merged:
             return []
         retrieved = tiers.select_retrievals([best], self._neighbours)
-        retrieved += [n for n in self._ltm_near(node, pose) if n not in retrieved]
+        retrieved += [n for n in self._ltm_near(node, pose) if n not in retrieved and not tiers.cooling(n)]
         return retrieved[:tiers.max_retrieved]
 
     def retrieve(self, nodes: list[int]) -> tuple[list[int], dict[int, np.ndarray]]:
@@ -234,6 +310,7 @@ class Memory:
         their stored poses, in that order (the mapper places them, see `_place_previous`)."""
         retrieved, placed = [], {}
         for n in nodes:
+            self._places.pop(n, None)  # in RAM from now on
             if self._retrieve(n):
                 retrieved.append(n)
                 if n not in self._stamps:  # a node of the previous map, not in this map update yet
@@ -242,10 +319,12 @@ class Memory:
         return retrieved, placed
 
     def transfer(self, node: int, update_ms: float, pose: NodePoses) -> list[int]:
-        """After the update of keyframe `node` that took `update_ms`: WM → LTM when WM is over
-        its limits (`WorkingMemory.select_transfers`). Returns the nodes transferred (the
-        mapper's loop detector forgets them)."""
+        """After the update of keyframe `node` that took `update_ms`: WM's limit follows the
+        time budget (`WorkingMemory.adapt`), then WM → LTM when WM is over its limits
+        (`WorkingMemory.select_transfers`). Returns the nodes transferred (the mapper's loop
+        detector forgets them)."""
         tiers = self._tiers
+        tiers.adapt(update_ms)
         if self.store is None or not tiers.over_limit(update_ms):
             return []
         transferred = tiers.select_transfers(update_ms, *self._protected(node, pose))
