@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 import time
 
 import cv2
@@ -329,6 +330,163 @@ def test_deferred_camera_labels_wait_for_the_backfill(tmp_path):
             assert "door" in labels, labels
         else:
             assert coverage["segmented"] == stats["processed"] <= len(ids) / 2, (coverage, stats)
+
+
+def test_the_service_worker_loads_the_model_before_any_keyframe(tmp_path):
+    """source auto's model is loaded when the worker starts (`semantics.preload`), so a
+    robot's first keyframe costs tracking no load (~0.1-0.7 s, partly holding the GIL);
+    without preload it waits for the first keyframe that needs it."""
+    from service.semantics.segmentation import LazyModel, model_path
+    from service.semantics.worker import SemanticWorker
+
+    require_model()
+    for preload in (True, False):
+        config = SemanticsConfig(preload=preload)
+        model = LazyModel(model_path(config.model), config)
+        with MapStore(tmp_path / f"map-{preload}.db") as store:
+            worker = SemanticWorker(store, model, config, background=True)
+            deadline = time.monotonic() + (30 if preload else 1.0)
+            while not model.loaded and time.monotonic() < deadline:
+                time.sleep(0.05)
+            worker.close()
+        assert model.loaded == preload and worker.processed == 0
+
+
+class _Tracking:
+    """A robot's pipeline for `RobotSession`: each frame takes `seconds` of (simulated)
+    tracking, and every 3rd one hands its keyframe to the semantic worker as `Pipeline`
+    does; it notes what the worker had done (processed, model runs) when each frame ended."""
+
+    session_id = 1
+    map_progress = (0, 0)
+
+    def __init__(self, worker, keyframes, seconds: float):
+        self.worker, self.keyframes, self.seconds = worker, keyframes, seconds
+        self.done: list[tuple[int, int]] = []  # (keyframes the worker processed, model runs) after each frame
+
+    def process(self, frame):
+        from service.pipeline import FrameResult
+
+        time.sleep(self.seconds)
+        if frame.index % 3 == 0 and self.keyframes:
+            self.worker.submit(self.keyframes.pop(0))
+        self.done.append((self.worker.processed, getattr(self.worker.segmenter, "runs", 0)))
+        return FrameResult(frame.index, frame.stamp, "ok", np.eye(4))
+
+    def close(self, reason):
+        pass
+
+
+@pytest.mark.parametrize("source", ["model", "camera"])
+def test_the_worker_waits_while_tracking_is_behind(source, tmp_path):
+    """Issue 24, tracking first: in the service the semantic worker shares the process (its GIL)
+    and the cores with tracking, so it starts no step, neither a model run nor a fusion, while
+    a robot's frame queue holds frames (`semantics.yield_queue`) or its tracking has no margin
+    (`min_slack`). A burst of 24 frames queued at once (each taking 25 ms to track, a keyframe
+    every 3rd) leaves the worker waiting until tracking has caught up; the 8 keyframes are
+    then all segmented (queued ones, then the back-fill). A worker that did not wait would
+    segment during the burst."""
+    from client.frames import Frame
+    from client.protocol import Limits
+    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from service.session import RobotSession
+
+    class Model:  # a fast stand-in for the model (the worker's scheduling is under test)
+        classes, name, runs = ADE20K32, "counting", 0
+
+        def segment(self, rgb, depth=None):
+            Model.runs += 1
+            return np.zeros(rgb.shape[:2], np.uint8)
+
+    ds = open_dataset("synthetic:loop", rate=10)
+    frames = list(range(0, 96, 12))  # 8 keyframes
+    config = load_config(None, {"semantics": {"source": source, "queue_size": 2, "idle_after": 0.3,
+                                              "max_duty": 1.0}})
+    sem = config.semantics
+    with MapStore(tmp_path / "map.db") as store:
+        ids = _stored_keyframes(store, ds, frames)
+        segmenter = CameraLabels(sem) if source == "camera" else Model()
+        queued, session = threading.Event(), None  # (tracking is busy until the burst below is queued)
+        worker = SemanticWorker(store, segmenter, sem, background=True, tracking_busy=lambda: not queued.is_set()
+                                or session.needs_cpu(sem.yield_queue, sem.min_slack))  # as SlamService's probe
+        keyframes = []
+        for n, i in zip(ids, frames):
+            f = ds.frame(i)
+            keyframes.append(SemanticKeyframe(n, ds.ground_truth.poses[i], f.image, f.depth,
+                                              f.extras["labels"] if source == "camera" else None,
+                                              ds.calibration.camera))
+        pipe = _Tracking(worker, keyframes, seconds=0.025)
+        session = RobotSession("r1", config, ds.calibration, Limits(), lambda c: pipe, lambda *a: None)
+        try:
+            blank = Frame(0, 0.0, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32))
+            for k in range(24):  # the burst: queued at once, as frames that come while tracking is slow
+                assert session.submit(k, dataclasses.replace(blank, index=k, stamp=k / 30)) is None
+            queued.set()
+            deadline = time.monotonic() + 60
+            while store.segmentation_coverage()["segmented"] < len(ids) and time.monotonic() < deadline:
+                time.sleep(0.05)
+        finally:
+            session.stop()
+            worker.close()
+        stats, coverage = worker.stats(), store.segmentation_coverage()
+    assert len(pipe.done) == 24 and session.stats.dropped_queue == 0
+    # every frame of the burst was tracked before the worker did anything: no fusion, no model run
+    assert pipe.done == [(0, 0)] * 24, pipe.done
+    assert coverage["segmented"] == len(ids), (coverage, stats)
+    assert stats["processed"] == len(ids) and stats["waits"] >= 1 and stats["errors"] == 0, stats
+    if source == "model":
+        assert Model.runs == len(ids)
+
+
+def test_a_session_needs_the_cores_while_frames_wait_or_it_has_no_margin():
+    """The probe behind the worker's waits: `RobotSession.needs_cpu` is true while more than
+    `yield_queue` frames wait, or while tracking took more than 1 - `min_slack` of the last
+    second; false once it caught up and rested, and once stopping."""
+    from client.frames import Frame
+    from client.protocol import Limits
+    from service.pipeline import FrameResult
+    from service.session import RobotSession
+
+    release = threading.Event()
+
+    class Slow:
+        session_id, map_progress = 1, (0, 0)
+
+        def process(self, frame):
+            release.wait(10)
+            return FrameResult(frame.index, frame.stamp, "ok", np.eye(4))
+
+        def close(self, reason):
+            pass
+
+    cal = open_dataset("synthetic:loop", max_frames=1).calibration
+    session = RobotSession("r1", load_config(), cal, Limits(), lambda c: Slow(), lambda *a: None)
+    try:
+        blank = Frame(0, 0.0, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32))
+        for k in range(3):
+            session.submit(k, dataclasses.replace(blank, index=k, stamp=float(k)))
+        time.sleep(0.3)  # frame 0 in the pipeline, 1 and 2 waiting
+        assert session.queue_depth == 2
+        assert session.needs_cpu(1, 0.0)  # the queue
+        assert not session.needs_cpu(2, 0.0)
+        time.sleep(0.8)
+        assert session.busy_share() > 0.9 and session.needs_cpu(5, 0.2)  # no margin: one frame for 1.1 s
+        release.set()
+        deadline = time.monotonic() + 10
+        while session.stats.processed < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(1.1)  # a second of rest
+        assert session.busy_share() < 0.1 and not session.needs_cpu(1, 0.2)
+        release.clear()
+        session.submit(3, dataclasses.replace(blank, index=3, stamp=3.0))
+        session.submit(4, dataclasses.replace(blank, index=4, stamp=4.0))
+        session.submit(5, dataclasses.replace(blank, index=5, stamp=5.0))
+        time.sleep(0.2)
+        assert session.needs_cpu(1, 0.2)
+    finally:
+        release.set()
+        session.stop()
+    assert not session.needs_cpu(0, 0.9)  # stopped: it needs nothing
 
 
 def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
