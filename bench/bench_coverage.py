@@ -9,7 +9,10 @@ no frame dropped).
 DATASET defaults to $MNEMOSLAM_DATA/rgbd_dataset_freiburg1_desk. Prints the frames
 received / processed / dropped, then the coverage (keyframes segmented / keyframes of the map)
 at the stream's end and every 5 s after it, the seconds until 95 % and 100 %, the worker's
-counts (processed live, deferred to the back-fill, back-filled) and the load average.
+counts (processed live, deferred to the back-fill, back-filled, waits for tracking) and the
+load average. While the stream runs it polls the robot's status: the deepest its frame queue
+got, and a line per poll that found new drops (queue depth, frames processed, keyframes, what
+the semantic worker had done), to tell when frames were dropped.
 """
 from __future__ import annotations
 
@@ -119,7 +122,8 @@ def main() -> int:
             print(f"coverage: 95 % after {first.get(0.95, float('nan')):.1f} s, 100 % after "
                   f"{first.get(1.0, float('nan')):.1f} s of the stream's end (watched {args.after:g} s)")
             print(f"worker: processed {w.get('processed')} (back-filled {w.get('backfilled')}), deferred "
-                  f"{w.get('deferred')}, dropped {w.get('dropped')}, errors {w.get('errors')}, "
+                  f"{w.get('deferred')}, dropped {w.get('dropped')}, errors {w.get('errors')}, waited for tracking "
+                  f"{w.get('waits')} times ({w.get('wait_s')} s), "
                   f"{w.get('ms_per_keyframe') or 0:.0f} ms per keyframe, objects {w.get('objects')}; "
                   f"load average {os.getloadavg()[0]:.1f}")
         finally:
