@@ -74,8 +74,8 @@ def run_paced(frames, ds, config, rate: float) -> tuple[dict, dict | None]:
         worker, off = build_semantics(store, config, background=True)
         if worker is not None:  # the service's probe
             s = config.semantics
-            worker.tracking_busy = lambda: any(r.needs_cpu(int(s.yield_queue), float(s.min_slack))
-                                               for r in holder.values())
+            worker.tracking_busy = lambda margin=True: any(
+                r.needs_cpu(int(s.yield_queue), float(s.min_slack) if margin else 0.0) for r in holder.values())
         times: list[float] = []
         done = threading.Event()
 

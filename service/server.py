@@ -403,11 +403,13 @@ class SlamService:
             return self.store.delete_objects([int(object_id)])
         return worker.delete(object_id)
 
-    def tracking_busy(self) -> bool:
+    def tracking_busy(self, margin: bool = True) -> bool:
         """Whether some robot's tracking needs the cores now (`RobotSession.needs_cpu` with
-        `semantics.yield_queue` and `semantics.min_slack`): the semantic worker's probe."""
+        `semantics.yield_queue`, and with `margin` `semantics.min_slack`): the semantic
+        worker's probe."""
         s = self.config.semantics
-        return any(r.needs_cpu(int(s.yield_queue), float(s.min_slack)) for r in list(self.sessions.values()))
+        slack = float(s.min_slack) if margin else 0.0
+        return any(r.needs_cpu(int(s.yield_queue), slack) for r in list(self.sessions.values()))
 
     def semantics_status(self) -> dict:
         """{"enabled", "source", "model", "reason" (why off, or None), "model_reason",

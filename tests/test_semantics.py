@@ -360,15 +360,15 @@ class _Tracking:
     session_id = 1
     map_progress = (0, 0)
 
-    def __init__(self, worker, keyframes, seconds: float):
-        self.worker, self.keyframes, self.seconds = worker, keyframes, seconds
+    def __init__(self, worker, keyframes, seconds: float, every: int = 3):
+        self.worker, self.keyframes, self.seconds, self.every = worker, keyframes, seconds, every
         self.done: list[tuple[int, int]] = []  # (keyframes the worker processed, model runs) after each frame
 
     def process(self, frame):
         from service.pipeline import FrameResult
 
         time.sleep(self.seconds)
-        if frame.index % 3 == 0 and self.keyframes:
+        if frame.index % self.every == 0 and self.keyframes:
             self.worker.submit(self.keyframes.pop(0))
         self.done.append((self.worker.processed, getattr(self.worker.segmenter, "runs", 0)))
         return FrameResult(frame.index, frame.stamp, "ok", np.eye(4))
@@ -377,65 +377,109 @@ class _Tracking:
         pass
 
 
-@pytest.mark.parametrize("source", ["model", "camera"])
-def test_the_worker_waits_while_tracking_is_behind(source, tmp_path):
-    """Issue 24, tracking first: in the service the semantic worker shares the process (its GIL)
-    and the cores with tracking, so it starts no step, neither a model run nor a fusion, while
-    a robot's frame queue holds frames (`semantics.yield_queue`) or its tracking has no margin
-    (`min_slack`). A burst of 24 frames queued at once (each taking 25 ms to track, a keyframe
-    every 3rd) leaves the worker waiting until tracking has caught up; the 8 keyframes are
-    then all segmented (queued ones, then the back-fill). A worker that did not wait would
-    segment during the burst."""
+class _Model:
+    """A fast stand-in for the model (the worker's scheduling is under test): class 0 everywhere."""
+
+    classes, name = ADE20K32, "counting"
+
+    def __init__(self):
+        self.runs = 0
+
+    def segment(self, rgb, depth=None):
+        self.runs += 1
+        return np.zeros(rgb.shape[:2], np.uint8)
+
+
+def _track(tmp_path, source: str, semantics: dict, feed, keyframes: int = 8, seconds: float = 0.025,
+           every: int = 3):
+    """A robot's session (`RobotSession`, as in the service) whose pipeline (`_Tracking`) takes
+    `seconds` a frame and hands every `every`-th frame's keyframe (of `keyframes` stored ones of the
+    synthetic loop, with the camera's labels or for the model) to a background semantic worker
+    with the service's probe; `feed(session, blank_frame)` submits the frames. Waits until
+    every keyframe is segmented (live or back-filled). Returns (the pipeline, the session,
+    the worker's counts, the coverage, the model's runs)."""
     from client.frames import Frame
     from client.protocol import Limits
     from service.semantics.worker import SemanticKeyframe, SemanticWorker
     from service.session import RobotSession
 
-    class Model:  # a fast stand-in for the model (the worker's scheduling is under test)
-        classes, name, runs = ADE20K32, "counting", 0
-
-        def segment(self, rgb, depth=None):
-            Model.runs += 1
-            return np.zeros(rgb.shape[:2], np.uint8)
-
     ds = open_dataset("synthetic:loop", rate=10)
-    frames = list(range(0, 96, 12))  # 8 keyframes
-    config = load_config(None, {"semantics": {"source": source, "queue_size": 2, "idle_after": 0.3,
-                                              "max_duty": 1.0}})
+    frames = list(range(0, 12 * keyframes, 12))
+    config = load_config(None, {"semantics": {"source": source, "queue_size": 2, "idle_after": 0.3, "max_duty": 1.0,
+                                              **semantics}})
     sem = config.semantics
     with MapStore(tmp_path / "map.db") as store:
         ids = _stored_keyframes(store, ds, frames)
-        segmenter = CameraLabels(sem) if source == "camera" else Model()
-        queued, session = threading.Event(), None  # (tracking is busy until the burst below is queued)
-        worker = SemanticWorker(store, segmenter, sem, background=True, tracking_busy=lambda: not queued.is_set()
-                                or session.needs_cpu(sem.yield_queue, sem.min_slack))  # as SlamService's probe
-        keyframes = []
+        segmenter = CameraLabels(sem) if source == "camera" else _Model()
+        fed, session = threading.Event(), None  # (tracking counts as busy until `feed` starts)
+
+        def probe(margin=True):  # SlamService.tracking_busy's, for this one robot
+            return not fed.is_set() or session.needs_cpu(sem.yield_queue, sem.min_slack if margin else 0.0)
+
+        worker = SemanticWorker(store, segmenter, sem, background=True, tracking_busy=probe)
+        kfs = []
         for n, i in zip(ids, frames):
             f = ds.frame(i)
-            keyframes.append(SemanticKeyframe(n, ds.ground_truth.poses[i], f.image, f.depth,
-                                              f.extras["labels"] if source == "camera" else None,
-                                              ds.calibration.camera))
-        pipe = _Tracking(worker, keyframes, seconds=0.025)
+            kfs.append(SemanticKeyframe(n, ds.ground_truth.poses[i], f.image, f.depth,
+                                        f.extras["labels"] if source == "camera" else None, ds.calibration.camera))
+        pipe = _Tracking(worker, kfs, seconds, every)
         session = RobotSession("r1", config, ds.calibration, Limits(), lambda c: pipe, lambda *a: None)
         try:
-            blank = Frame(0, 0.0, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32))
-            for k in range(24):  # the burst: queued at once, as frames that come while tracking is slow
-                assert session.submit(k, dataclasses.replace(blank, index=k, stamp=k / 30)) is None
-            queued.set()
+            fed.set()
+            feed(session, Frame(0, 0.0, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32)))
             deadline = time.monotonic() + 60
-            while store.segmentation_coverage()["segmented"] < len(ids) and time.monotonic() < deadline:
+            while (store.segmentation_coverage()["segmented"] < len(ids)
+                   or session.stats.processed < session.stats.received) and time.monotonic() < deadline:
                 time.sleep(0.05)
         finally:
             session.stop()
             worker.close()
-        stats, coverage = worker.stats(), store.segmentation_coverage()
+        return pipe, session, worker.stats(), store.segmentation_coverage(), getattr(segmenter, "runs", None)
+
+
+@pytest.mark.parametrize("source", ["model", "camera"])
+def test_the_worker_waits_while_tracking_is_behind(source, tmp_path):
+    """Issue 24, tracking first: in the service the semantic worker shares the process (its GIL)
+    and the cores with tracking, so it starts no step, neither a model run nor a fusion, while
+    a robot's frame queue holds more than `semantics.yield_queue` frames or its tracking has no
+    margin (`min_slack`). A burst of 24 frames queued at once (each taking 25 ms to track, a
+    keyframe every 3rd) leaves the worker waiting until tracking has caught up; the 8
+    keyframes are then all segmented (queued ones, then the back-fill). A worker that did not
+    wait would segment during the burst."""
+    def burst(session, blank):  # queued at once, as frames that come while tracking is slow
+        for k in range(24):
+            assert session.submit(k, dataclasses.replace(blank, index=k, stamp=k / 30)) is None
+
+    pipe, session, stats, coverage, runs = _track(tmp_path, source, {}, burst)
     assert len(pipe.done) == 24 and session.stats.dropped_queue == 0
     # every frame of the burst was tracked before the worker did anything: no fusion, no model run
     assert pipe.done == [(0, 0)] * 24, pipe.done
-    assert coverage["segmented"] == len(ids), (coverage, stats)
-    assert stats["processed"] == len(ids) and stats["waits"] >= 1 and stats["errors"] == 0, stats
-    if source == "model":
-        assert Model.runs == len(ids)
+    assert coverage["segmented"] == 8, (coverage, stats)
+    assert stats["processed"] == 8 and stats["waits"] >= 1 and stats["errors"] == 0, stats
+    assert runs in (None, 8)
+
+
+@pytest.mark.parametrize("max_wait", [0.3, 0.0])
+def test_a_saturated_robot_still_gets_live_keyframes_after_max_wait(max_wait, tmp_path):
+    """A camera whose frames take tracking 80 % of the time between them leaves it too little
+    margin (here `min_slack` 0.3, 70 %) but its queue short: a keyframe that waited
+    `semantics.max_wait` seconds is segmented anyway while the frames still come (and none is
+    dropped); with `max_wait: 0` it waits for the end of the stream."""
+    def paced(session, blank):  # 4 s: a frame every 50 ms, each taking 40 ms to track
+        t0 = time.monotonic()
+        for k in range(80):
+            time.sleep(max(0.0, t0 + 0.05 * k - time.monotonic()))
+            assert session.submit(k, dataclasses.replace(blank, index=k, stamp=k / 20)) is None
+
+    semantics = {"max_wait": max_wait, "min_slack": 0.3, "idle_after": 1.0}  # (no back-fill while the frames come)
+    pipe, session, stats, coverage, runs = _track(tmp_path, "model", semantics, paced, seconds=0.04, every=10)
+    assert len(pipe.done) == 80 and session.stats.dropped_queue == 0
+    live = pipe.done[-1][0]  # keyframes processed while the frames came
+    if max_wait:
+        assert live >= 1 and stats["waits"] >= 1, (pipe.done, stats)
+    else:
+        assert live == 0, (pipe.done, stats)
+    assert coverage["segmented"] == 8 and runs == 8, (coverage, stats)
 
 
 def test_a_session_needs_the_cores_while_frames_wait_or_it_has_no_margin():
@@ -556,6 +600,8 @@ def test_service_fuses_streamed_labels_into_stored_objects(tmp_path, monkeypatch
         while time.monotonic() < end and (done(worker.stats()) < svc.robots()[0]["keyframes"]
                                           or not svc.store.count_objects()):
             time.sleep(0.1)
+        # tracking first: the frames came back to back (tracking always busy), so the worker waited
+        assert worker.tracking_busy == svc.tracking_busy and worker.stats()["waits"] >= 1, worker.stats()
         chair = next(o for o in svc.store.objects() if o.label == "chair")
         held = worker.stats()["objects"]
         with ApiThread(create_app(svc)) as url:

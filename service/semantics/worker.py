@@ -22,11 +22,14 @@ segmented / keyframes) is `MapStore.segmentation_coverage`.
 Tracking first: in the service the worker shares the process (and its GIL) and the cores
 with every robot's tracking, which must keep its camera's rate (a robot's frame queue holds
 1 s of frames; beyond it frames are dropped). The service gives the worker a probe,
-`tracking_busy()`: true while a robot's frame queue holds more than `semantics.yield_queue`
-frames or its tracking used more than 1 - `semantics.min_slack` of the last second. The
-worker starts a step (a model run; a fusion, which is Python and holds the GIL; a back-fill)
-only while the probe is false, else waits (counted: `waits`, `wait_s`); keyframes handed over
-meanwhile find the queue full and wait in the store for the back-fill. `source: auto`'s model
+`tracking_busy(margin)`: true while a robot's frame queue holds more than
+`semantics.yield_queue` frames or (with `margin`) its tracking used more than 1 -
+`semantics.min_slack` of the last second. The worker starts a step (a model run; a fusion,
+which is Python and holds the GIL; a back-fill) only while the probe is false, else waits
+(counted: `waits`, `wait_s`); keyframes handed over meanwhile find the queue full and wait in
+the store for the back-fill. A keyframe that waited `semantics.max_wait` seconds for the
+margin goes on without it (the queue still decides), so a robot whose tracking is always
+busy still gets a live keyframe segmented every few seconds. `source: auto`'s model
 is loaded when the worker starts (`semantics.preload`), not on the first keyframe.
 
 Without `background` (offline runs) `submit` does the work at once, so runs are
@@ -110,8 +113,9 @@ class SemanticWorker:
         self.seconds = 0.0
         self.waits = 0  # steps (model run, fusion) that waited for tracking (`tracking_busy`)
         self.wait_s = 0.0  # ... and the seconds they waited
-        # the service's probe: True while a robot's tracking needs the cores (its frame queue
-        # or its frame-time margin, see the module's doc); None: never wait (offline runs)
+        # the service's probe: tracking_busy(margin) is True while a robot's tracking needs the
+        # cores (its frame queue, and with `margin` its frame-time margin, see the module's
+        # doc); None: never wait (offline runs)
         self.tracking_busy = tracking_busy
         self._closing = threading.Event()  # close(): the queued keyframes are done without waiting
         self._queue: queue.Queue | None = None
@@ -194,27 +198,36 @@ class SemanticWorker:
         setattr(self, what, getattr(self, what) + n)
         self._per_robot[kf.robot][what] += n
 
-    def _busy(self) -> bool:
-        """The probe: does a robot's tracking need the cores now? (False without a probe, and
-        once closing; a probe that fails counts as not busy.)"""
+    def _busy(self, margin: bool = True) -> bool:
+        """The probe: does a robot's tracking need the cores now (its queue, and with `margin`
+        its frame-time margin)? (False without a probe, and once closing; a probe that fails
+        counts as not busy.)"""
         probe = self.tracking_busy
         if probe is None or self._closing.is_set():
             return False
         try:
-            return bool(probe())
+            return bool(probe(margin))
         except Exception as e:  # (a session ending under it)
             log.debug("semantics: tracking probe: %s", e)
             return False
 
-    def _yield_to_tracking(self, kf: SemanticKeyframe) -> None:
-        """Wait while tracking needs the cores (`tracking_busy`) before a step of `kf`."""
-        if not self._busy():
-            return
+    def _yield_to_tracking(self, kf: SemanticKeyframe, waited: float = 0.0) -> float:
+        """Wait while tracking needs the cores (`tracking_busy`) before a step of `kf`, which
+        already waited `waited` seconds; past `semantics.max_wait` the margin no longer
+        counts, only the queues. Returns the seconds `kf` has waited."""
+        bound = float(self.config.max_wait)
+        margin = not (bound > 0 and waited >= bound)
+        if not self._busy(margin):
+            return waited
         t = time.perf_counter()
-        while self._busy():
+        while self._busy(margin):
             time.sleep(WAIT_POLL)
+            if margin and bound > 0 and waited + time.perf_counter() - t >= bound:
+                margin = False
+        dt = time.perf_counter() - t
         self._count(kf, "waits")
-        self._count(kf, "wait_s", time.perf_counter() - t)
+        self._count(kf, "wait_s", dt)
+        return waited + dt
 
     # -- the worker's thread ----------------------------------------------------------------
     def _loop(self) -> None:
@@ -295,8 +308,9 @@ class SemanticWorker:
         t = time.perf_counter()
         source = "camera" if kf.labels is not None and self.config.source != "model" else "model"
         try:
+            waited = 0.0
             if kf.depth is not None and (kf.labels is None or self.config.source == "model"):
-                self._yield_to_tracking(kf)  # the model run
+                waited = self._yield_to_tracking(kf)  # the model run
             labels = self._labels(kf) if kf.depth is not None else None  # (no depth: no model run for nothing)
             if labels is None or kf.depth is None:
                 self._count(kf, "skipped")
@@ -305,7 +319,7 @@ class SemanticWorker:
                 if kf.depth is None or kf.image is None or not isinstance(self.segmenter, CameraLabels):
                     self.store.mark_segmented([kf.node_id], source, "skipped")
                 return
-            self._yield_to_tracking(kf)  # the fusion (Python: it holds the GIL tracking needs)
+            self._yield_to_tracking(kf, waited)  # the fusion (Python: it holds the GIL tracking needs)
             with self._lock:
                 joins = self.connectivity.joins
                 self.connectivity.refresh(self.store)  # the links stored since the last keyframe
