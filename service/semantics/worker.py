@@ -88,7 +88,7 @@ class SemanticWorker:
     """Segments (model source) and fuses keyframes into objects, and stores them."""
 
     def __init__(self, store, segmenter: Segmenter, config: SemanticsConfig, *, background: bool = True,
-                 tracking_busy: Callable[[], bool] | None = None):
+                 tracking_busy: Callable[[bool], bool] | None = None):
         self.store = store
         self.segmenter = segmenter
         self.config = config
