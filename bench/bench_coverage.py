@@ -99,8 +99,10 @@ def main() -> int:
             watch.join()
             print(f"streamed in {end - t0:.1f} s; the robot's frame queue at most {watch.max_depth} deep "
                   f"(polled every {watch.period:g} s)", flush=True)
-            for line in watch.drops:
+            for line in watch.drops[:8]:
                 print("  drop " + line, flush=True)
+            if len(watch.drops) > 8:
+                print(f"  ... and {len(watch.drops) - 8} more polls that found drops", flush=True)
             first = {}
             while True:
                 seg, kf, status = coverage(svc.api)
