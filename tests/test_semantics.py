@@ -491,12 +491,13 @@ def test_a_session_needs_the_cores_while_frames_wait_or_it_has_no_margin():
     from service.pipeline import FrameResult
     from service.session import RobotSession
 
-    release = threading.Event()
+    release, started = threading.Event(), threading.Event()
 
     class Slow:
         session_id, map_progress = 1, (0, 0)
 
         def process(self, frame):
+            started.set()
             release.wait(10)
             return FrameResult(frame.index, frame.stamp, "ok", np.eye(4))
 
@@ -509,11 +510,11 @@ def test_a_session_needs_the_cores_while_frames_wait_or_it_has_no_margin():
         blank = Frame(0, 0.0, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32))
         for k in range(3):
             session.submit(k, dataclasses.replace(blank, index=k, stamp=float(k)))
-        time.sleep(0.3)  # frame 0 in the pipeline, 1 and 2 waiting
+        assert started.wait(10)  # frame 0 in the pipeline, 1 and 2 waiting
         assert session.queue_depth == 2
         assert session.needs_cpu(1, 0.0)  # the queue
         assert not session.needs_cpu(2, 0.0)
-        time.sleep(0.8)
+        time.sleep(1.1)
         assert session.busy_share() > 0.9 and session.needs_cpu(5, 0.2)  # no margin: one frame for 1.1 s
         release.set()
         deadline = time.monotonic() + 10
