@@ -27,11 +27,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client.datasets import open_dataset  # noqa: E402
-from client.streamer import stream_dataset  # noqa: E402
-from client.transport import ZenohSettings  # noqa: E402
-from service.config import merge_overrides, parse_sets  # noqa: E402
-from service.demo import ServiceProcess  # noqa: E402
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.client.streamer import stream_dataset  # noqa: E402
+from mnemoslam.client.transport import ZenohSettings  # noqa: E402
+from mnemoslam.service.config import merge_overrides, parse_sets  # noqa: E402
+from mnemoslam.service.demo import ServiceProcess  # noqa: E402
 
 
 def coverage(api) -> tuple[int, int, dict]:

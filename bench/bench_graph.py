@@ -44,7 +44,7 @@ def main() -> int:
 
     import gtsam
 
-    from service.mapping.graph import PoseGraph
+    from mnemoslam.service.mapping.graph import PoseGraph
 
     rng = np.random.default_rng(args.seed)
     side = args.lap // 4

@@ -3,7 +3,7 @@
     .venv/bin/python bench/bench_ingest.py [--frames 300] [--paced 150] [--rate 30] [--same-process] [--clean]
 
 A receiver (the service side: a peer listening on a free 127.0.0.1 port, subscribed to
-`<prefix>/*/camera/frame`, decoding every message with `client.protocol.decode_frame`) runs
+`<prefix>/*/camera/frame`, decoding every message with `mnemoslam.client.kernel.protocol.decode_frame`) runs
 in a second process (default; zenoh uses shared memory between processes on one host) or,
 with --same-process, in this process on a second session. The sender is a `CameraStreamer`
 (CongestionControl.BLOCK) connecting to it, fed with pre-rendered 640x480 synthetic RGB-D
@@ -43,8 +43,8 @@ def _free_port() -> int:
 
 def receiver(port: int, prefix: str, conn) -> None:
     """Subscribe to all frames, decode each, report latencies per armed batch over `conn`."""
-    from client.protocol import KeySpace, ProtocolError, decode_frame
-    from client.transport import ZenohSettings, open_session
+    from mnemoslam.client.kernel.protocol import KeySpace, ProtocolError, decode_frame
+    from mnemoslam.client.transport import ZenohSettings, open_session
 
     session = open_session(ZenohSettings.service([f"tcp/127.0.0.1:{port}"]))
     lock = threading.Lock()
@@ -88,7 +88,7 @@ def receiver(port: int, prefix: str, conn) -> None:
 
 
 def _send_batch(cam, frames, n, conn, rate=None):
-    from client.frames import Frame
+    from mnemoslam.client.kernel.frames import Frame
 
     conn.send(n)
     assert conn.recv() == "armed"
@@ -121,10 +121,10 @@ def main() -> int:
 
     import importlib.metadata
 
-    from client.protocol import KeySpace
-    from client.streamer import CameraStreamer
-    from client.synthetic import SyntheticDataset
-    from client.transport import ZenohSettings, open_session
+    from mnemoslam.client.kernel.protocol import KeySpace
+    from mnemoslam.client.streamer import CameraStreamer
+    from mnemoslam.client.synthetic import SyntheticDataset
+    from mnemoslam.client.transport import ZenohSettings, open_session
 
     ds = SyntheticDataset("loop", noise=not args.clean)
     step = max(1, len(ds) // args.distinct)

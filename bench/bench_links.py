@@ -37,11 +37,11 @@ sys.path.insert(0, str(ROOT))
 
 from run_sequences import opened, print_table  # noqa: E402  (bench/, the script's folder)
 
-from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
-from service.evaluation import LINK_KINDS, evaluate, evaluate_links  # noqa: E402
-from service.mapping import mapper as mapper_module  # noqa: E402
-from service.runner import run_dataset  # noqa: E402
-from storage import MapStore  # noqa: E402
+from mnemoslam.service.config import load_config, merge_overrides, parse_sets  # noqa: E402
+from mnemoslam.service.evaluation import LINK_KINDS, evaluate, evaluate_links  # noqa: E402
+from mnemoslam.service.mapping import mapper as mapper_module  # noqa: E402
+from mnemoslam.service.runner import run_dataset  # noqa: E402
+from mnemoslam.storage import MapStore  # noqa: E402
 
 PARTS = ("transform", "information", "drop")
 VARIANTS = ("odometry", "off", "default") + PARTS

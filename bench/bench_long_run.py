@@ -44,14 +44,14 @@ from tqdm import tqdm
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client.datasets.passes import Passes  # noqa: E402
-from client.frames import DatasetError  # noqa: E402
-from client.geometry import invert  # noqa: E402
-from client.synthetic import SyntheticDataset  # noqa: E402
-from service.builder import build_pipeline  # noqa: E402
-from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
-from service.runner import UPDATE_COLUMNS, UPDATE_STEPS, _frames, update_row  # noqa: E402
-from storage import MapStore  # noqa: E402
+from mnemoslam.client.datasets.passes import Passes  # noqa: E402
+from mnemoslam.client.kernel.frames import DatasetError  # noqa: E402
+from mnemoslam.client.kernel.geometry import invert  # noqa: E402
+from mnemoslam.client.synthetic import SyntheticDataset  # noqa: E402
+from mnemoslam.service.builder import build_pipeline  # noqa: E402
+from mnemoslam.service.config import load_config, merge_overrides, parse_sets  # noqa: E402
+from mnemoslam.service.runner import UPDATE_COLUMNS, UPDATE_STEPS, _frames, update_row  # noqa: E402
+from mnemoslam.storage import MapStore  # noqa: E402
 
 ON_DEFAULTS = ("memory.rehearsal=true", "memory.max_wm_nodes=100")
 OFF_DEFAULTS = ("memory.rehearsal=false", "memory.max_wm_nodes=0", "memory.time_threshold_ms=0")

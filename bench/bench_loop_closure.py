@@ -19,10 +19,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from client.datasets import open_dataset  # noqa: E402
-from service.config import load_config  # noqa: E402
-from service.evaluation import evaluate, evaluate_map_loops  # noqa: E402
-from service.runner import run_dataset  # noqa: E402
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.service.config import load_config  # noqa: E402
+from mnemoslam.service.evaluation import evaluate, evaluate_map_loops  # noqa: E402
+from mnemoslam.service.runner import run_dataset  # noqa: E402
 
 
 def loop_report(ds, db: Path, min_age: float) -> dict:

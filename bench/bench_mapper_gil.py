@@ -66,17 +66,17 @@ sys.path.insert(0, str(ROOT))
 
 import gtsam  # noqa: E402
 
-from client.synthetic import SyntheticDataset  # noqa: E402
-from service.config import Config, load_config  # noqa: E402
-from service.mapping.graph import PoseGraph  # noqa: E402
-from service.mapping.mapper import Mapper  # noqa: E402
-from service.mapping.process import MappingProcess  # noqa: E402
-from service.mapping.verification import verify  # noqa: E402
-from service.memory.keyframes import KeyframeWriter  # noqa: E402
-from service.memory.vocabulary import Vocabulary  # noqa: E402
-from service.pipeline import Pipeline  # noqa: E402
-from service.tracking.matching import match_descriptors as _match  # noqa: E402
-from storage import LinkType, MapStore  # noqa: E402
+from mnemoslam.client.synthetic import SyntheticDataset  # noqa: E402
+from mnemoslam.service.config import Config, load_config  # noqa: E402
+from mnemoslam.service.mapping.graph import PoseGraph  # noqa: E402
+from mnemoslam.service.mapping.mapper import Mapper  # noqa: E402
+from mnemoslam.service.mapping.process import MappingProcess  # noqa: E402
+from mnemoslam.service.mapping.verification import verify  # noqa: E402
+from mnemoslam.service.memory.keyframes import KeyframeWriter  # noqa: E402
+from mnemoslam.service.memory.vocabulary import Vocabulary  # noqa: E402
+from mnemoslam.service.pipeline import Pipeline  # noqa: E402
+from mnemoslam.service.tracking.matching import match_descriptors as _match  # noqa: E402
+from mnemoslam.storage import LinkType, MapStore  # noqa: E402
 
 PREFILL_NODE = 10_000_000  # ids of the pre-filled vocabulary nodes / graph nodes: never the store's
 PREFILL_GRAPH = 20_000_000
@@ -114,7 +114,7 @@ def render(trajectory: str, rate: float, frames: int, duration: float | None):
 
 
 def load_7scenes(data: Path, frames: int):
-    from client.datasets import open_dataset
+    from mnemoslam.client.datasets import open_dataset
 
     ds = open_dataset(data / "7scenes_redkitchen", max_frames=frames)
     out = [ds.frame(i) for i in tqdm(range(len(ds)), desc="decode 7-scenes", unit="frame", leave=False)]

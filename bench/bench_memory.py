@@ -28,12 +28,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client.datasets import open_dataset  # noqa: E402
-from client.datasets.passes import Passes  # noqa: E402
-from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
-from service.evaluation import evaluate  # noqa: E402
-from service.runner import run_dataset  # noqa: E402
-from storage import LinkType, MapStore  # noqa: E402
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.client.datasets.passes import Passes  # noqa: E402
+from mnemoslam.service.config import load_config, merge_overrides, parse_sets  # noqa: E402
+from mnemoslam.service.evaluation import evaluate  # noqa: E402
+from mnemoslam.service.runner import run_dataset  # noqa: E402
+from mnemoslam.storage import LinkType, MapStore  # noqa: E402
 
 
 def run(dataset, passes: int, max_wm: int, out: Path, overrides: dict) -> dict:

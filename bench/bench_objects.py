@@ -52,9 +52,9 @@ def pct(a, q) -> float:
 
 
 def build_map(path: Path, n_nodes: int, n_objects: int, one_label: bool, seed: int = 0) -> None:
-    from client.frames import Calibration, PinholeCamera
-    from storage import KeyframeRecord, LinkType, MapStore
-    from storage.records import ObjectRecord
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+    from mnemoslam.storage import KeyframeRecord, LinkType, MapStore
+    from mnemoslam.storage.records import ObjectRecord
 
     rng = np.random.default_rng(seed)
     cal = Calibration(PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480))
@@ -95,8 +95,8 @@ def build_map(path: Path, n_nodes: int, n_objects: int, one_label: bool, seed: i
 
 
 def query_layer(path: Path, clients: int, per_client: int, labels: list[str]) -> None:
-    from service.semantics.queries import ObjectIndex
-    from storage import MapStore
+    from mnemoslam.service.semantics.queries import ObjectIndex
+    from mnemoslam.storage import MapStore
 
     with MapStore(path, create=False) as store:
         t = time.perf_counter()
@@ -158,9 +158,9 @@ def serve(db: str, port: int) -> None:
     """The bench server (child process): the REST app over the map under uvicorn."""
     import uvicorn
 
-    from service.api import create_app
-    from service.config import load_config, to_dict
-    from storage import MapStore
+    from mnemoslam.service.api import create_app
+    from mnemoslam.service.config import load_config, to_dict
+    from mnemoslam.storage import MapStore
 
     store = MapStore(db, create=False)
     config = load_config(None, {"storage": {"path": db}})

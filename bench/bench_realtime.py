@@ -26,13 +26,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client.datasets import open_dataset  # noqa: E402
-from client.streamer import stream_dataset  # noqa: E402
-from client.transport import ZenohSettings  # noqa: E402
-from service.config import load_config, parse_sets  # noqa: E402
-from service.demo import ServiceProcess, keyframe_trajectory  # noqa: E402
-from service.evaluation import evaluate  # noqa: E402
-from service.runner import run_dataset  # noqa: E402
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.client.streamer import stream_dataset  # noqa: E402
+from mnemoslam.client.transport import ZenohSettings  # noqa: E402
+from mnemoslam.service.config import load_config, parse_sets  # noqa: E402
+from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory  # noqa: E402
+from mnemoslam.service.evaluation import evaluate  # noqa: E402
+from mnemoslam.service.runner import run_dataset  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 

@@ -34,8 +34,8 @@ def main() -> int:
         if hasattr(os, "sched_setaffinity"):
             os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
 
-    from client.frames import PinholeCamera
-    from client.synthetic import SyntheticDataset, SyntheticScene, trajectory
+    from mnemoslam.client.kernel.frames import PinholeCamera
+    from mnemoslam.client.synthetic import SyntheticDataset, SyntheticScene, trajectory
 
     t0 = time.perf_counter()
     scene = SyntheticScene(0)

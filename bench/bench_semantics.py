@@ -37,14 +37,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client.datasets import open_dataset  # noqa: E402
-from client.protocol import Limits  # noqa: E402
-from service.builder import build_pipeline, build_semantics  # noqa: E402
-from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
-from service.mapping.process import MappingProcess  # noqa: E402
-from service.semantics.segmentation import semantics_status  # noqa: E402
-from service.session import RobotSession  # noqa: E402
-from storage import MapStore  # noqa: E402
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.client.kernel.protocol import Limits  # noqa: E402
+from mnemoslam.service.builder import build_pipeline, build_semantics  # noqa: E402
+from mnemoslam.service.config import load_config, merge_overrides, parse_sets  # noqa: E402
+from mnemoslam.service.mapping.process import MappingProcess  # noqa: E402
+from mnemoslam.service.semantics.segmentation import semantics_status  # noqa: E402
+from mnemoslam.service.session import RobotSession  # noqa: E402
+from mnemoslam.storage import MapStore  # noqa: E402
 
 
 def run(frames, ds, config) -> tuple[float, dict | None]:

@@ -22,11 +22,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client import protocol  # noqa: E402
-from client.datasets import open_dataset  # noqa: E402
-from client.streamer import CameraStreamer  # noqa: E402
-from client.transport import ZenohSettings, open_session  # noqa: E402
-from service.demo import ServiceProcess  # noqa: E402
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.client.kernel import protocol  # noqa: E402
+from mnemoslam.client.streamer import CameraStreamer  # noqa: E402
+from mnemoslam.client.transport import ZenohSettings, open_session  # noqa: E402
+from mnemoslam.service.demo import ServiceProcess  # noqa: E402
 
 
 def run(frames, dataset, color: str, depth: str, rate: float) -> dict:

@@ -33,11 +33,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client.frames import Calibration, PinholeCamera  # noqa: E402
-from service.builder import build_pipeline  # noqa: E402
-from service.config import load_config  # noqa: E402
-from service.memory.vocabulary import Vocabulary  # noqa: E402
-from storage import LinkType, MapStore  # noqa: E402
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera  # noqa: E402
+from mnemoslam.service.builder import build_pipeline  # noqa: E402
+from mnemoslam.service.config import load_config  # noqa: E402
+from mnemoslam.service.memory.vocabulary import Vocabulary  # noqa: E402
+from mnemoslam.storage import LinkType, MapStore  # noqa: E402
 
 CAL = Calibration(PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480), None, 1000.0)
 FEATURES = 500

@@ -35,8 +35,8 @@ def main() -> int:
     ap.add_argument("--db", help="database file (default: a temporary one, deleted afterwards)")
     args = ap.parse_args()
 
-    from client.frames import Calibration, PinholeCamera
-    from storage import KeyframeRecord, MapStore
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+    from mnemoslam.storage import KeyframeRecord, MapStore
 
     tmp = None
     if args.db:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from service.memory.vocabulary import Vocabulary  # noqa: E402
+from mnemoslam.service.memory.vocabulary import Vocabulary  # noqa: E402
 
 
 def _noisy(rng, desc, p):

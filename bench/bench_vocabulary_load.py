@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from client.frames import Calibration, PinholeCamera  # noqa: E402
-from service.memory.vocabulary import Vocabulary  # noqa: E402
-from storage import KeyframeRecord, MapStore  # noqa: E402
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera  # noqa: E402
+from mnemoslam.service.memory.vocabulary import Vocabulary  # noqa: E402
+from mnemoslam.storage import KeyframeRecord, MapStore  # noqa: E402
 
 CAL = Calibration(PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480), None, 1000.0)
 

@@ -28,12 +28,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client.datasets import open_dataset  # noqa: E402
-from client.geometry import rotation_angle  # noqa: E402
-from service.evaluation import associate_stamps, invert  # noqa: E402
-from service.memory.views import DenseView  # noqa: E402
-from service.tracking import icp  # noqa: E402
-from storage import MapStore, link_name  # noqa: E402
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.client.kernel.geometry import rotation_angle  # noqa: E402
+from mnemoslam.service.evaluation import associate_stamps, invert  # noqa: E402
+from mnemoslam.service.memory.views import DenseView  # noqa: E402
+from mnemoslam.service.tracking import icp  # noqa: E402
+from mnemoslam.storage import MapStore, link_name  # noqa: E402
 
 
 def explained(frame_a, frame_b, K: np.ndarray, T_ab_list, orb, px: float) -> tuple[int, list[int]]:

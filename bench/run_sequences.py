@@ -27,11 +27,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from client.datasets import open_dataset  # noqa: E402
-from service.config import load_config, merge_overrides, parse_sets  # noqa: E402
-from service.evaluation import evaluate  # noqa: E402
-from service.pipeline import Pipeline  # noqa: E402
-from service.runner import run_dataset  # noqa: E402
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.service.config import load_config, merge_overrides, parse_sets  # noqa: E402
+from mnemoslam.service.evaluation import evaluate  # noqa: E402
+from mnemoslam.service.pipeline import Pipeline  # noqa: E402
+from mnemoslam.service.runner import run_dataset  # noqa: E402
 
 
 def sequences(data: Path, synthetic_frames: int):

@@ -29,7 +29,7 @@ from typing import Iterator
 import numpy as np
 
 from .datasets.base import Dataset
-from .frames import Calibration, DatasetError, Frame, PinholeCamera
+from .kernel.frames import Calibration, DatasetError, Frame, PinholeCamera
 
 DEFAULT_FOCAL_FACTOR = 0.9
 

@@ -7,7 +7,7 @@ messages used here are the same in every ROS 2 distribution). Payloads are what 
 zenoh-bridge-ros2dds / rmw_zenoh carry: a 4-byte encapsulation header (CDR little- or
 big-endian) and the message.
 
-Decoding follows the conventions of `client.frames` and `client.protocol`:
+Decoding follows the conventions of `mnemoslam.client.kernel.frames` and `mnemoslam.client.kernel.protocol`:
 
 - colour comes out H×W×3 uint8 **BGR** or H×W uint8 grey. `Image` encodings: ``bgr8``,
   ``rgb8``, ``bgra8``, ``rgba8``, ``mono8`` (and ``8UC1`` / ``8UC3`` as mono8 / bgr8).
@@ -25,7 +25,7 @@ Decoding follows the conventions of `client.frames` and `client.protocol`:
 - PNG / JPEG dimensions and bit depth are read from their headers and checked before
   decoding, as the native protocol does.
 
-Every malformed input raises `client.protocol.ProtocolError` with a stable reason:
+Every malformed input raises `mnemoslam.client.kernel.protocol.ProtocolError` with a stable reason:
 ``bad_cdr`` (not a CDR message of the expected type), ``too_large``, ``bad_encoding``
 (an encoding / format this module does not convert), ``bad_size`` (data shorter than
 step × height, step shorter than a row, sizes out of the limits), ``size_mismatch`` (not the
@@ -42,8 +42,16 @@ from typing import Any
 
 import numpy as np
 
-from .frames import Calibration, PinholeCamera
-from .protocol import PNG_SIGNATURE, ProtocolError, dequantize_depth, imdecode, jpeg_header, png_header, quantize_depth
+from .kernel.frames import Calibration, PinholeCamera
+from .kernel.protocol import (
+    PNG_SIGNATURE,
+    ProtocolError,
+    dequantize_depth,
+    imdecode,
+    jpeg_header,
+    png_header,
+    quantize_depth,
+)
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"

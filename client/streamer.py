@@ -1,8 +1,8 @@
 """The camera client: stream a dataset, a video file or a camera to the service over Zenoh.
 
-    from client.streamer import CameraStreamer, stream_dataset
-    from client.transport import ZenohSettings, open_session
-    from client.protocol import KeySpace
+    from mnemoslam.client.streamer import CameraStreamer, stream_dataset
+    from mnemoslam.client.transport import ZenohSettings, open_session
+    from mnemoslam.client.kernel.protocol import KeySpace
 
     stats = stream_dataset(open_dataset("synthetic:loop"), "robot1", ZenohSettings.client(), rate=15)
     print(stats.line())
@@ -12,7 +12,7 @@
         for seq, frame in enumerate(dataset):
             cam.send(frame, seq)
 
-What goes on the wire is `client.protocol` (frame messages on `<prefix>/<robot>/camera/frame`,
+What goes on the wire is `mnemoslam.client.kernel.protocol` (frame messages on `<prefix>/<robot>/camera/frame`,
 the camera info on `<prefix>/<robot>/camera/info`).
 
 Delivery: the frame publisher uses CongestionControl.BLOCK and reliable transport, so the
@@ -47,8 +47,8 @@ import threading
 import time
 from dataclasses import dataclass
 
-from .frames import Calibration, DatasetError, Frame
-from .protocol import (
+from .kernel.frames import Calibration, DatasetError, Frame
+from .kernel.protocol import (
     DEFAULT_CLASSES,
     DEFAULT_PREFIX,
     KINDS,

@@ -7,7 +7,7 @@ and two test runs on one machine never discover each other by accident. For robo
 network, listen on ``tcp/0.0.0.0:7447`` in the service and connect the cameras to
 ``tcp/<service host>:7447``.
 
-    from client.transport import ZenohSettings, open_session
+    from mnemoslam.client.transport import ZenohSettings, open_session
     session = open_session(ZenohSettings.client())             # connect to the local service
     session = open_session(ZenohSettings.service())            # listen on tcp/127.0.0.1:7447
     session = open_session(ZenohSettings(listen=["tcp/127.0.0.1:0"]))   # any free port

@@ -8,8 +8,8 @@ import dataclasses
 import logging
 from typing import Callable
 
-from client.frames import Calibration
-from storage import MapStore
+from mnemoslam.client.kernel.frames import Calibration
+from mnemoslam.storage import MapStore
 
 from .config import Config, SemanticsConfig
 from .mapping.mapper import Mapper

@@ -16,8 +16,8 @@ def _overrides(args, options: dict | None = None) -> dict:
 
 
 def _cmd_run(args) -> int:
-    from client.cliargs import want_progress
-    from client.datasets import open_dataset
+    from mnemoslam.client.cliargs import want_progress
+    from mnemoslam.client.datasets import open_dataset
 
     from .config import load_config
     from .runner import run_dataset
@@ -28,7 +28,7 @@ def _cmd_run(args) -> int:
         options["topics"] = args.topics
     dataset = open_dataset(args.dataset, args.format, **options)
     if args.passes > 1:
-        from client.datasets.passes import Passes
+        from mnemoslam.client.datasets.passes import Passes
 
         dataset = Passes(dataset, args.passes)
     out = run_dataset(dataset, config, args.out, progress=want_progress(args.quiet))
@@ -63,7 +63,7 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from client.cliargs import want_progress
+    from mnemoslam.client.cliargs import want_progress
 
     from .demo import run_demo
 
@@ -162,7 +162,7 @@ def _cmd_serve(args) -> int:
 
 
 def _cmd_db(args) -> int:
-    from storage.cli import db_export, db_info
+    from mnemoslam.storage.cli import db_export, db_info
 
     if args.db_command == "info":
         print(db_info(args.db))
@@ -188,8 +188,8 @@ def _add_set(parser, whose: str = "") -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from client.cliargs import TOPICS_HELP, positive_int
-    from client.datasets import FORMATS
+    from mnemoslam.client.cliargs import TOPICS_HELP, positive_int
+    from mnemoslam.client.datasets import FORMATS
 
     p = argparse.ArgumentParser(prog="mnemoslam", description="Long-term, memory-managed visual SLAM.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -237,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_set(sv)
     sv.set_defaults(func=_cmd_serve)
 
-    from client.streamer import add_stream_arguments
+    from mnemoslam.client.streamer import add_stream_arguments
 
     add_stream_arguments(sub.add_parser(
         "stream", help="stream a dataset, the synthetic scene or a camera to the service over Zenoh"))
@@ -266,8 +266,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from client.frames import DatasetError
-    from storage import StoreError
+    from mnemoslam.client.kernel.frames import DatasetError
+    from mnemoslam.storage import StoreError
 
     from .config import ConfigError
 

@@ -19,11 +19,11 @@ from typing import Callable
 import numpy as np
 import yaml
 
-from client.datasets import open_dataset
-from client.planner import ApiError, PlannerClient
-from client.streamer import stream_dataset
-from client.trajectory import Trajectory
-from client.transport import ZenohSettings
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.trajectory import Trajectory
+from mnemoslam.client.planner import ApiError, PlannerClient
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings
 
 from .config import load_config, merge_overrides
 from .evaluation import evaluate
@@ -56,7 +56,7 @@ class ServiceProcess:
         root = Path(__file__).resolve().parents[1]
         env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
         self._log = open(self.log_path, "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--config", str(self.config_path)],
+        self.proc = subprocess.Popen([sys.executable, "-m", "mnemoslam.service.cli", "serve", "--config", str(self.config_path)],
                                      stdout=self._log, stderr=subprocess.STDOUT, env=env, cwd=root)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -190,7 +190,7 @@ def _nearest_door(api: PlannerClient, dataset, robot: str, timeout: float = 30.0
 def _has_noise(trajectory: str) -> bool:
     """Whether the synthetic path comes with a noise model of its own (an unknown name: no;
     open_dataset then says it is unknown)."""
-    from client.synthetic import TRAJECTORIES
+    from mnemoslam.client.synthetic import TRAJECTORIES
 
     spec = TRAJECTORIES.get(trajectory)
     return spec is not None and spec.noise not in (None, False, "none")

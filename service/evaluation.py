@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from client.geometry import invert
-from client.trajectory import Trajectory, read_kitti_poses, read_tum
-from storage import LINK_NAMES, link_name
+from mnemoslam.client.kernel.geometry import invert
+from mnemoslam.client.kernel.trajectory import Trajectory, read_kitti_poses, read_tum
+from mnemoslam.storage import LINK_NAMES, link_name
 
 ALIGN_MODES = ("se3", "sim3", "none")
 
@@ -316,7 +316,7 @@ def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.
     `types` (LinkType values; default: every loop link, appearance and proximity by space, and
     rehearsal's `merged` links: a keyframe merged into the node of a place seen before closed
     that revisit as a loop link would, with the merge link's relative pose)."""
-    from storage import LinkType, MapStore
+    from mnemoslam.storage import LinkType, MapStore
 
     types = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.MERGED) if types is None else types
     with MapStore(db_path, create=False) as store:
@@ -431,7 +431,7 @@ def evaluate_map_links(gt: Trajectory, db_path: str | Path, max_dt: float = 0.02
                        bounds: tuple[float, float] = (5.0, 3.0)) -> LinkReport:
     """`evaluate_links` over every link of a map database (every session, merged keyframes
     included)."""
-    from storage import MapStore
+    from mnemoslam.storage import MapStore
 
     with MapStore(db_path, create=False) as store:
         nodes = store.nodes(limit=None)

@@ -46,7 +46,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from prometheus_client.registry import Collector
 from prometheus_client.utils import floatToGoString
 
-from storage import LinkType, StoreError
+from mnemoslam.storage import LinkType, StoreError
 
 log = logging.getLogger("mnemoslam.metrics")
 

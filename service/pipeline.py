@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from client.frames import Calibration, Frame
+from mnemoslam.client.kernel.frames import Calibration, Frame
 
 from .config import Config
 from .mapping.mapper import KeyframeUpdate

@@ -29,8 +29,8 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-from storage import MapStore, SessionRecord
-from storage.store import MAP_UPDATE_LINKS
+from mnemoslam.storage import MapStore, SessionRecord
+from mnemoslam.storage.store import MAP_UPDATE_LINKS
 
 from .config import Config
 from .mapping.mapper import KeyframeUpdate, Mapper

@@ -57,10 +57,10 @@ import threading
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
-from client import ros_cdr
-from client.frames import Frame
-from client.protocol import ROBOT_PATTERN, ProtocolError
-from client.transport import undeclare_all
+from mnemoslam.client import ros_cdr
+from mnemoslam.client.kernel.frames import Frame
+from mnemoslam.client.kernel.protocol import ROBOT_PATTERN, ProtocolError
+from mnemoslam.client.transport import undeclare_all
 
 from .config import ConfigError, RosConfig
 

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from client.datasets import Dataset
-from client.frames import DatasetError
-from client.geometry import invert
-from client.trajectory import Trajectory, write_tum
-from storage import MapStore
+from mnemoslam.client.datasets import Dataset
+from mnemoslam.client.kernel.frames import DatasetError
+from mnemoslam.client.kernel.geometry import invert
+from mnemoslam.client.kernel.trajectory import Trajectory, write_tum
+from mnemoslam.storage import MapStore
 
 from .builder import build_pipeline
 from .config import Config

@@ -17,10 +17,10 @@ import threading
 import time
 from collections import Counter, deque
 
-from client import protocol
-from client.frames import Calibration, Frame
-from client.transport import ZenohSettings, open_session, undeclare_all
-from storage import MapStore, StoreError
+from mnemoslam.client.kernel import protocol
+from mnemoslam.client.kernel.frames import Calibration, Frame
+from mnemoslam.client.transport import ZenohSettings, open_session, undeclare_all
+from mnemoslam.storage import MapStore, StoreError
 
 from . import malloc
 from .builder import build_pipeline, build_semantics

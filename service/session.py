@@ -22,8 +22,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
-from client.frames import Calibration, Frame
-from client.protocol import Limits
+from mnemoslam.client.kernel.frames import Calibration, Frame
+from mnemoslam.client.kernel.protocol import Limits
 
 from .config import Config
 from .pipeline import FrameResult, Pipeline

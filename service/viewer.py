@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 from fastapi.concurrency import run_in_threadpool
 
-from storage import LinkType, StoreError
+from mnemoslam.storage import LinkType, StoreError
 
 from .semantics.queries import QueryError, Unavailable
 

@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from client.frames import Calibration
+from mnemoslam.client.kernel.frames import Calibration
 
 from .connection import Connection
 from .records import (
@@ -45,7 +45,7 @@ class Nodes(Connection):
         if not isinstance(robot, str) or not robot.strip():
             raise ValueError(f"robot must be a non-empty string, got {robot!r}")
         if not isinstance(calibration, Calibration):
-            raise ValueError(f"calibration must be a client.frames.Calibration, got {type(calibration).__name__}")
+            raise ValueError(f"calibration must be a mnemoslam.client.kernel.frames.Calibration, got {type(calibration).__name__}")
         if config is not None and not (isinstance(config, Mapping) or dataclasses.is_dataclass(config)):
             raise ValueError(f"config must be a dict, got {type(config).__name__}")
         calib = _to_json(_calibration_to_dict(calibration), "calibration")

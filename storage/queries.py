@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from client.trajectory import Trajectory, format_tum
+from mnemoslam.client.kernel.trajectory import Trajectory, format_tum
 
 from .connection import Connection
 from .records import (

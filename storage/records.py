@@ -42,7 +42,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from client.frames import Calibration, PinholeCamera
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
 
 
 class StoreError(Exception):

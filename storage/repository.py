@@ -11,8 +11,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from client.frames import Calibration
-from client.trajectory import Trajectory
+from mnemoslam.client.kernel.frames import Calibration
+from mnemoslam.client.kernel.trajectory import Trajectory
 
 from .records import KeyframeRecord, LinkRecord, NodeRecord, ObjectRecord, SessionRecord
 

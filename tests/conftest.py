@@ -27,7 +27,7 @@ def slam_config(overrides: dict | None = None):
     """The default configuration (plus `overrides`) with semantics off: the real-data SLAM
     tests check tracking and the map, and with the model found the default (`semantics.source:
     auto`) would segment each of their keyframes (~0.3 s) for nothing they assert."""
-    from service.config import load_config, merge_overrides
+    from mnemoslam.service.config import load_config, merge_overrides
 
     return load_config(overrides=merge_overrides({"semantics": {"enabled": False}}, overrides or {}))
 
@@ -42,8 +42,8 @@ def require(path: Path) -> Path:
 def require_model() -> Path:
     """The default segmentation model (`semantics.model` under MNEMOSLAM_MODELS, default
     ../shared/models) and onnxruntime: skipped when missing, failed in CI."""
-    from service.config import SemanticsConfig
-    from service.semantics.segmentation import model_path, model_reason
+    from mnemoslam.service.config import SemanticsConfig
+    from mnemoslam.service.semantics.segmentation import model_path, model_reason
 
     why = model_reason(SemanticsConfig())
     if why is not None:
@@ -76,7 +76,7 @@ def require_chromium() -> Path:
 # ------------------------------------------------------------------------------------------
 # Synthetic frames rendered once per test session
 
-from client.synthetic import SyntheticDataset  # noqa: E402 (after the sys.path insert)
+from mnemoslam.client.synthetic import SyntheticDataset  # noqa: E402 (after the sys.path insert)
 
 _RENDERED: dict = {}
 
@@ -124,8 +124,8 @@ def loop_run(tmp_path_factory):
     default configuration (loop closure on): `(dataset, RunOutput, config, out_dir)`.
     tests/test_loop_closure.py (loop closure) and tests/test_synthetic_run.py (tracking,
     outputs) check the same run instead of each playing the loop again. Read-only."""
-    from service.config import load_config
-    from service.runner import run_dataset
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.runner import run_dataset
 
     out_dir = tmp_path_factory.mktemp("loop_run")
     ds = synthetic("loop", **LOOP_NOISY)  # the frames tests/test_semantics.py's run plays too
@@ -139,8 +139,8 @@ def figure8_run(tmp_path_factory):
     closure on, the map update inline in this process): `(dataset, RunOutput, config, out_dir)`.
     tests/test_loop_closure.py checks its loops, tests/test_mapping_process.py compares the
     mapping process with it. Read-only."""
-    from service.config import load_config
-    from service.runner import run_dataset
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.runner import run_dataset
 
     out_dir = tmp_path_factory.mktemp("figure8_run")
     ds = synthetic("figure8", **FIGURE8)

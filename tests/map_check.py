@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage import LinkType, MapStore
+from mnemoslam.storage import LinkType, MapStore
 
 
 @dataclass

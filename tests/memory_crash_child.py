@@ -58,7 +58,7 @@ def save_frames(path, frames, calibration) -> None:
 
 
 def load_frames(path):
-    from client.frames import Calibration, Frame, PinholeCamera
+    from mnemoslam.client.kernel.frames import Calibration, Frame, PinholeCamera
 
     data = np.load(path)
     fx, fy, cx, cy, w, h, depth_scale = data["camera"].tolist()
@@ -71,7 +71,7 @@ def load_frames(path):
 
 def instrument(hold: tuple[str, int, str] | None) -> None:
     """Announce every memory move of every mapper in this process; hold the chosen one."""
-    from service.memory.manager import Memory
+    from mnemoslam.service.memory.manager import Memory
 
     counts = {"transfer": 0, "retrieve": 0}
     originals = {"transfer": Memory._transfer, "retrieve": Memory._retrieve}
@@ -111,9 +111,9 @@ def main(argv: list[str]) -> int:
         hold = (argv[4], int(argv[5]), argv[6])
         assert hold[0] in ("transfer", "retrieve") and hold[2] in ("before", "after"), hold
 
-    from service.builder import build_pipeline
-    from service.config import load_config
-    from storage import MapStore
+    from mnemoslam.service.builder import build_pipeline
+    from mnemoslam.service.config import load_config
+    from mnemoslam.storage import MapStore
 
     instrument(hold)
     config = load_config(None, overrides)

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from client import protocol
-from client.datasets import open_dataset
-from client.streamer import stream_dataset
-from client.transport import ZenohSettings, open_session
-from service.demo import ServiceProcess, keyframe_trajectory
-from service.evaluation import evaluate
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel import protocol
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings, open_session
+from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
+from mnemoslam.service.evaluation import evaluate
 
 KEYS = protocol.KeySpace()
 

@@ -10,11 +10,11 @@ from hypothesis import HealthCheck, Phase, given, settings
 from schemathesis import GenerationMode
 from schemathesis.checks import not_a_server_error, response_schema_conformance
 
-from client.datasets import open_dataset
-from client.planner import ApiError
-from client.streamer import stream_dataset
-from client.transport import ZenohSettings
-from service.demo import ServiceProcess
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.planner import ApiError
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings
+from mnemoslam.service.demo import ServiceProcess
 
 FRAMES = 30
 # per operation, generation mode and id choice (plus every boundary case): ~1,000 requests, ~30 s on a quiet 2-core

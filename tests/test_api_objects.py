@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import requests
 
-from client.frames import Calibration, PinholeCamera
-from client.planner import ApiError, PlannerClient
-from service.api import TOKEN_ENV, ApiThread, create_app
-from service.config import Config, load_config, to_dict
-from storage import MapStore
-from storage.records import KeyframeRecord, LinkType, ObjectRecord
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+from mnemoslam.client.planner import ApiError, PlannerClient
+from mnemoslam.service.api import TOKEN_ENV, ApiThread, create_app
+from mnemoslam.service.config import Config, load_config, to_dict
+from mnemoslam.storage import MapStore
+from mnemoslam.storage.records import KeyframeRecord, LinkType, ObjectRecord
 
 TOKEN = "s3cret-token"
 # objects: (label, world position); anchors are the nearest keyframe (keyframes at x = 0..9, y = z = 0)

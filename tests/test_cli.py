@@ -16,7 +16,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from service.cli import main
+from mnemoslam.service.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,14 +36,14 @@ def free_port() -> int:
 
 @pytest.fixture
 def fake_run(monkeypatch):
-    """service.runner.run_dataset replaced by a recorder (no pipeline runs)."""
+    """mnemoslam.service.runner.run_dataset replaced by a recorder (no pipeline runs)."""
     calls = []
 
     def run_dataset(dataset, config, out_dir=None, progress=True):
         calls.append(SimpleNamespace(config=config, progress=progress))
         return SimpleNamespace(summary=SimpleNamespace(line=lambda: "fake run", tracked=1), trajectory=[])
 
-    monkeypatch.setattr("service.runner.run_dataset", run_dataset)
+    monkeypatch.setattr("mnemoslam.service.runner.run_dataset", run_dataset)
     return calls
 
 
@@ -55,7 +55,7 @@ def fake_demo(monkeypatch):
         calls.append(SimpleNamespace(progress=progress, overrides=overrides))
         return 0
 
-    monkeypatch.setattr("service.demo.run_demo", run_demo)
+    monkeypatch.setattr("mnemoslam.service.demo.run_demo", run_demo)
     return calls
 
 
@@ -156,7 +156,7 @@ def test_demo_bad_set_fails_before_anything_starts(tmp_path, capsys, item, messa
 def test_service_process_takes_nested_and_top_level_keys(tmp_path):
     import yaml
 
-    from service.demo import ServiceProcess
+    from mnemoslam.service.demo import ServiceProcess
 
     svc = ServiceProcess(tmp_path / "m.db", {"service": {"queue_size": 3}, "loop": {"enabled": False}, "seed": 2})
     cfg = yaml.safe_load(svc.config_path.read_text())
@@ -165,7 +165,7 @@ def test_service_process_takes_nested_and_top_level_keys(tmp_path):
 
 
 def test_demo_log_scan_reports_errors(tmp_path):
-    from service.demo import log_errors, log_report
+    from mnemoslam.service.demo import log_errors, log_report
 
     log = tmp_path / "service.log"
     log.write_text("mnemoslam serve: REST http://127.0.0.1:1; ...\n"
@@ -201,7 +201,7 @@ def test_serve_db_in_a_missing_folder_is_an_error(tmp_path, capsys):
 
 def _serve(tmp_path, *args) -> tuple[subprocess.Popen, str]:
     """`mnemoslam serve` in a child process and the first line it prints."""
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", *args], cwd=ROOT, text=True,
+    proc = subprocess.Popen([sys.executable, "-m", "mnemoslam.service.cli", "serve", *args], cwd=ROOT, text=True,
                             stdout=subprocess.PIPE, stderr=open(tmp_path / "stderr", "w"),
                             env=dict(os.environ, PYTHONPATH=str(ROOT)))
     sel = selectors.DefaultSelector()
@@ -268,8 +268,8 @@ def test_rest_sockets_are_tcp_so_responses_are_not_held_back():
 
     from fastapi import FastAPI
 
-    from service.api import ApiThread
-    from service.cli import _listen_socket
+    from mnemoslam.service.api import ApiThread
+    from mnemoslam.service.cli import _listen_socket
 
     sock = _listen_socket("127.0.0.1", 0)
     api = ApiThread(FastAPI())
@@ -283,7 +283,7 @@ def test_rest_sockets_are_tcp_so_responses_are_not_held_back():
 def test_demo_noise_is_the_paths_own_model_where_it_has_one():
     """`mnemoslam demo --trajectory fastrot` streams fastrot as the bench runs it (Kinect
     disparity noise and motion blur), the other paths with the axial model."""
-    from service.demo import _has_noise
+    from mnemoslam.service.demo import _has_noise
 
     assert _has_noise("fastrot") and not _has_noise("loop") and not _has_noise("figure8")
     assert not _has_noise("no-such-path")
@@ -293,7 +293,7 @@ def test_demo_noise_is_the_paths_own_model_where_it_has_one():
 
 def _cli(*args, cwd, **kw) -> subprocess.Popen:
     """`mnemoslam ...` (this checkout's) as a user runs it, in the folder `cwd`."""
-    return subprocess.Popen([sys.executable, "-m", "service.cli", *args], cwd=cwd, text=True,
+    return subprocess.Popen([sys.executable, "-m", "mnemoslam.service.cli", *args], cwd=cwd, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             env=dict(os.environ, PYTHONPATH=str(ROOT)), **kw)
 
@@ -338,7 +338,7 @@ def test_stream_to_an_address_where_nothing_listens_fails_fast(tmp_path):
 def test_stream_wait_waits_for_a_service_started_later(tmp_path):
     """`stream --wait`: a camera started before the service says that it waits, then streams
     once the service is up."""
-    from service.demo import ServiceProcess
+    from mnemoslam.service.demo import ServiceProcess
 
     svc = ServiceProcess(tmp_path / "map.db", {"service": {"idle_timeout": 3600.0}})
     proc = _cli("stream", "synthetic:loop", "--robot", "early", "--max-frames", "10", "--connect", svc.endpoint,

@@ -2,7 +2,7 @@ from pathlib import Path
 
 import pytest
 
-from service.config import Config, ConfigError, default_yaml, load_config
+from mnemoslam.service.config import Config, ConfigError, default_yaml, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -41,7 +41,7 @@ def test_missing_config_file(tmp_path):
 
 
 def test_set_items_are_typed_overrides():
-    from service.config import parse_sets
+    from mnemoslam.service.config import parse_sets
 
     o = parse_sets(["loop.enabled=false", "service.queue_size=30", "storage.path=/tmp/m.db", "seed=3",
                     "zenoh.connect=[tcp/10.0.0.1:7447]", "loop.threshold=0.2", "service.queue_size=31"])
@@ -62,7 +62,7 @@ def test_set_items_are_typed_overrides():
     (["loop.enabled=false", "loop=1"], "other --set items set keys inside it"),
 ])
 def test_bad_set_items(items, match):
-    from service.config import parse_sets
+    from mnemoslam.service.config import parse_sets
 
     with pytest.raises(ConfigError, match=match):
         parse_sets(items)
@@ -75,7 +75,7 @@ def test_bad_set_items(items, match):
     (["seed.x=1"], "'seed': expected int"),
 ])
 def test_set_items_checked_by_the_typed_loader(items, match):
-    from service.config import parse_sets
+    from mnemoslam.service.config import parse_sets
 
     with pytest.raises(ConfigError, match=match):
         load_config(None, parse_sets(items))

@@ -9,12 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.datasets.base import detect_format
-from client.datasets.euroc import read_sensor_yaml
-from client.datasets.kitti import read_calib
-from client.datasets.tum import associate
-from client.frames import DatasetError
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.datasets.base import detect_format
+from mnemoslam.client.datasets.euroc import read_sensor_yaml
+from mnemoslam.client.datasets.kitti import read_calib
+from mnemoslam.client.datasets.tum import associate
+from mnemoslam.client.kernel.frames import DatasetError
 
 from conftest import require
 
@@ -350,7 +350,7 @@ def test_sevenscenes_defaults_and_bad_pose(tmp_path):
 def test_sevenscenes_registers_depth_into_the_colour_camera_by_default(tmp_path):
     """Default: the Kinect v1 colour camera (525 px at 640 wide, scaled to the images), depth
     registered into it, and the ground truth moved to it (2.5 cm along the depth camera's x)."""
-    from client.datasets.registration import DepthRegistration
+    from mnemoslam.client.datasets.registration import DepthRegistration
 
     scene = make_sevenscenes(tmp_path)
     raw, ds = open_dataset(scene, register=False), open_dataset(scene)
@@ -458,7 +458,7 @@ def test_real_kitti_rows_align_and_truncation(data_dir):
 
 
 def test_passes_play_back_and_forth_with_increasing_stamps_and_matching_ground_truth():
-    from client.datasets.passes import Passes
+    from mnemoslam.client.datasets.passes import Passes
 
     ds = open_dataset("synthetic:loop", max_frames=6)
     p = Passes(ds, 3)
@@ -476,8 +476,8 @@ def test_passes_play_back_and_forth_with_increasing_stamps_and_matching_ground_t
 
 
 def test_run_passes_writes_ground_truth_at_the_played_stamps(tmp_path):
-    from client.trajectory import read_tum
-    from service.cli import main
+    from mnemoslam.client.kernel.trajectory import read_tum
+    from mnemoslam.service.cli import main
 
     assert main(["run", "synthetic:loop", "--max-frames", "20", "--passes", "3", "--out", str(tmp_path),
                  "--odometry-only", "-q"]) == 0

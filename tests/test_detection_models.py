@@ -11,9 +11,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from service.config import SemanticsConfig
-from service.semantics.objects import ObjectFusion
-from service.semantics.segmentation import OnnxSegmenter, make_segmenter, paint_boxes
+from mnemoslam.service.config import SemanticsConfig
+from mnemoslam.service.semantics.objects import ObjectFusion
+from mnemoslam.service.semantics.segmentation import OnnxSegmenter, make_segmenter, paint_boxes
 
 onnx = pytest.importorskip("onnx")
 from onnx import TensorProto, helper, numpy_helper  # noqa: E402

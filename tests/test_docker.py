@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from service.cli import build_parser
-from service.config import load_config, merge_overrides, parse_sets
+from mnemoslam.service.cli import build_parser
+from mnemoslam.service.config import load_config, merge_overrides, parse_sets
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKER = ROOT / "docker"

@@ -4,9 +4,9 @@ import json
 import numpy as np
 import pytest
 
-from client.geometry import invert, make_pose, rodrigues
-from client.trajectory import Trajectory, write_tum
-from service.evaluation import associate_stamps, evaluate, evaluate_files, umeyama
+from mnemoslam.client.kernel.geometry import invert, make_pose, rodrigues
+from mnemoslam.client.kernel.trajectory import Trajectory, write_tum
+from mnemoslam.service.evaluation import associate_stamps, evaluate, evaluate_files, umeyama
 
 
 def random_rotation(rng) -> np.ndarray:
@@ -221,8 +221,8 @@ def test_evaluate_files_kitti_ground_truth(tmp_path):
 
 
 def test_loop_links_are_scored_against_ground_truth():
-    from client.geometry import look_at
-    from service.evaluation import evaluate_loops
+    from mnemoslam.client.kernel.geometry import look_at
+    from mnemoslam.service.evaluation import evaluate_loops
     # A camera that goes round a 2 m circle in 40 s (1 Hz keyframes) and comes back.
     t = np.arange(41.0)
     ang = 2 * np.pi * t / 40
@@ -241,7 +241,7 @@ def test_loop_links_are_scored_against_ground_truth():
 
 
 def test_loop_report_without_loops_says_so():
-    from service.evaluation import evaluate_loops
+    from mnemoslam.service.evaluation import evaluate_loops
     # a straight path: no keyframe comes back, and no loop link
     t = np.arange(30.0)
     poses = np.stack([make_pose(np.eye(3), [0.5 * k, 0, 0]) for k in range(30)])
@@ -260,7 +260,7 @@ def test_loop_report_without_loops_says_so():
 
 
 def test_link_report_per_type_with_a_perturbed_link(tmp_path):
-    from service.evaluation import LINK_CSV_COLUMNS, evaluate_links
+    from mnemoslam.service.evaluation import LINK_CSV_COLUMNS, evaluate_links
     gt = smooth_trajectory(20, seed=3)
     P = gt.poses
     rel = lambda a, b: invert(P[a]) @ P[b]  # noqa: E731

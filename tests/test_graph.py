@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from service.mapping.graph import PoseGraph, normalized_errors, se3_log
+from mnemoslam.service.mapping.graph import PoseGraph, normalized_errors, se3_log
 
 SIGMAS = np.array([np.deg2rad(0.5)] * 3 + [0.01] * 3)  # odometry σ: rotation first
 INFO = np.diag(1.0 / SIGMAS**2)

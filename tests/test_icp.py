@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from client.frames import PinholeCamera
-from client.geometry import invert, look_at, make_pose, rotation_angle
-from service.tracking import icp
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.kernel.geometry import invert, look_at, make_pose, rotation_angle
+from mnemoslam.service.tracking import icp
 from tests.conftest import require
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
@@ -181,7 +181,7 @@ def test_empty_depth_is_not_ok():
 
 @pytest.fixture(scope="module")
 def cabinet(data_dir):
-    from client.datasets import open_dataset
+    from mnemoslam.client.datasets import open_dataset
 
     ds = open_dataset(require(data_dir / "rgbd_dataset_freiburg3_cabinet_keyframes"))
     n = 15
@@ -210,8 +210,8 @@ def test_cabinet_frame_to_frame_from_constant_velocity(cabinet):
 
 def test_cabinet_chained_odometry(cabinet):
     """Chained frame to frame, each started from the previous estimated motion."""
-    from client.trajectory import Trajectory
-    from service.evaluation import evaluate
+    from mnemoslam.client.kernel.trajectory import Trajectory
+    from mnemoslam.service.evaluation import evaluate
 
     pyr, gt, stamps = cabinet
     poses, motion = [gt[0]], np.eye(4)

@@ -2,11 +2,11 @@
 the estimate, its covariance and the accuracy check, on exact synthetic geometry."""
 import numpy as np
 
-from client.frames import PinholeCamera
-from client.geometry import invert, make_pose, rodrigues, rotation_angle
-from service.mapping.link_refinement import refine_link
-from service.mapping.verification import dense_information, loop_information
-from service.tracking.features import FrameFeatures
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.kernel.geometry import invert, make_pose, rodrigues, rotation_angle
+from mnemoslam.service.mapping.link_refinement import refine_link
+from mnemoslam.service.mapping.verification import dense_information, loop_information
+from mnemoslam.service.tracking.features import FrameFeatures
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 

@@ -4,11 +4,11 @@ trust biased depth less than reprojection."""
 import numpy as np
 import pytest
 
-from client.frames import PinholeCamera
-from client.geometry import invert
-from service.mapping.local_ba import LocalBundleAdjustment
-from service.tracking.features import FrameFeatures
-from service.tracking.odometry import LocalMap
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.kernel.geometry import invert
+from mnemoslam.service.mapping.local_ba import LocalBundleAdjustment
+from mnemoslam.service.tracking.features import FrameFeatures
+from mnemoslam.service.tracking.odometry import LocalMap
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 
@@ -191,11 +191,11 @@ def test_map_update_runs_local_ba_on_a_synthetic_run(tmp_path):
     """loop.local_ba on: every keyframe after the first windows' is bundle-adjusted with the
     tracker's point tracks, the graph's odometry links are refined and the run stays accurate
     (measured: synthetic loop with noise, 150 frames at 30 Hz, 0.44 cm with it, 0.32 cm without)."""
-    from client.datasets import open_dataset
-    from service.config import load_config
-    from service.evaluation import evaluate
-    from service.runner import run_dataset
-    from storage import MapStore
+    from mnemoslam.client.datasets import open_dataset
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.evaluation import evaluate
+    from mnemoslam.service.runner import run_dataset
+    from mnemoslam.storage import MapStore
 
     ds = open_dataset("synthetic:loop", max_frames=90, noise=True)
     out = run_dataset(ds, load_config(overrides={"loop": {"local_ba": True}}), tmp_path, progress=False)
@@ -211,8 +211,8 @@ def test_map_update_runs_local_ba_on_a_synthetic_run(tmp_path):
 
 
 def test_mapping_process_hands_the_point_ids_over():
-    from service.mapping.mapper import KeyframeUpdate
-    from service.mapping.process import _slim
+    from mnemoslam.service.mapping.mapper import KeyframeUpdate
+    from mnemoslam.service.mapping.process import _slim
 
     f = FrameFeatures(np.zeros((3, 2), np.float32), np.zeros((3, 32), np.uint8), np.ones((3, 3), np.float32),
                       np.zeros(3, np.int8))
@@ -247,11 +247,11 @@ def test_the_database_holds_the_links_local_ba_refined(tmp_path):
     a graph restored from the database's links converges to the poses the run stored. (Before
     the fix the database kept the tracker's links and the restored graph ended 1.0 cm away;
     without local BA it ends 1e-7 m away.)"""
-    from client.datasets import open_dataset
-    from service.config import load_config
-    from service.mapping.graph import PoseGraph
-    from service.runner import run_dataset
-    from storage import LinkType, MapStore
+    from mnemoslam.client.datasets import open_dataset
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.mapping.graph import PoseGraph
+    from mnemoslam.service.runner import run_dataset
+    from mnemoslam.storage import LinkType, MapStore
 
     ds = open_dataset("synthetic:loop", max_frames=90, noise=True)
     run_dataset(ds, load_config(overrides={"loop": {"local_ba": True}}), tmp_path, progress=False)

@@ -8,17 +8,17 @@ own odometry (tracking never reads the map update, so it is the same trajectory 
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.trajectory import Trajectory
-from service.config import load_config
-from service.evaluation import evaluate, evaluate_map_loops
-from storage import LinkType, MapStore
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.trajectory import Trajectory
+from mnemoslam.service.config import load_config
+from mnemoslam.service.evaluation import evaluate, evaluate_map_loops
+from mnemoslam.storage import LinkType, MapStore
 
 from conftest import FIGURE8, synthetic
 
 
 def _run(out_dir, trajectory, enabled=True, dataset=None, rendered_once=False, **loop):
-    from service.runner import run_dataset
+    from mnemoslam.service.runner import run_dataset
 
     options = dataset or dict(rate=10, noise=True)
     ds = synthetic(trajectory, **options) if rendered_once else open_dataset(f"synthetic:{trajectory}", **options)
@@ -61,8 +61,8 @@ def test_link_report_against_ground_truth(mapped, tmp_path):
     put 7 cm off into a copy of the map is reported with that error."""
     import shutil
 
-    from client.geometry import invert, make_pose
-    from service.evaluation import evaluate_map_links
+    from mnemoslam.client.kernel.geometry import invert, make_pose
+    from mnemoslam.service.evaluation import evaluate_map_links
 
     ds, slam, cfg, db = mapped
     kinds = slam.links.by_kind()

@@ -3,8 +3,8 @@ time allows, on the synthetic figure-eight scene."""
 import numpy as np
 import pytest
 
-from service.mapping.loop_detection import LoopDetector, LoopHypothesis
-from service.memory.vocabulary import Vocabulary
+from mnemoslam.service.mapping.loop_detection import LoopDetector, LoopHypothesis
+from mnemoslam.service.memory.vocabulary import Vocabulary
 
 N_DESC = 400
 
@@ -138,9 +138,9 @@ def test_no_candidates():
 
 
 def _run_synthetic(trajectory, rate=1.0):
-    from client.synthetic import SyntheticDataset
-    from service.config import load_config
-    from service.tracking.features import FeatureExtractor
+    from mnemoslam.client.synthetic import SyntheticDataset
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.tracking.features import FeatureExtractor
 
     ds = SyntheticDataset(trajectory, rate=rate, noise=True, width=320, height=240, fx=262.5)
     cfg = load_config()

@@ -10,12 +10,12 @@ import time
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from service.config import load_config
-from service.mapping.process import MappingProcess
-from service.memory.keyframes import KeyframeWriter
-from service.pipeline import Pipeline
-from storage import LinkType, MapStore
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.service.config import load_config
+from mnemoslam.service.mapping.process import MappingProcess
+from mnemoslam.service.memory.keyframes import KeyframeWriter
+from mnemoslam.service.pipeline import Pipeline
+from mnemoslam.storage import LinkType, MapStore
 
 from conftest import FIGURE8, synthetic
 
@@ -128,9 +128,9 @@ def test_child_exits_when_its_parent_is_killed(tmp_path, mid_message):
     script = textwrap.dedent(f"""
         import os, struct, sys, time
         sys.path.insert(0, {os.getcwd()!r})
-        from service.config import load_config
-        from service.mapping.process import MappingProcess
-        from storage import MapStore
+        from mnemoslam.service.config import load_config
+        from mnemoslam.service.mapping.process import MappingProcess
+        from mnemoslam.storage import MapStore
         MapStore({str(tmp_path / 'map.db')!r}).close()
         mp = MappingProcess({str(tmp_path / 'map.db')!r}, load_config().loop)
         mp.wait_ready(120)

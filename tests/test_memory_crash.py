@@ -28,10 +28,10 @@ import threading
 import time
 from pathlib import Path
 
-from client.datasets import open_dataset
-from client.datasets.passes import Passes
-from service.config import load_config
-from service.recovery import recover
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.datasets.passes import Passes
+from mnemoslam.service.config import load_config
+from mnemoslam.service.recovery import recover
 
 from map_check import check_map
 from memory_crash_child import save_frames

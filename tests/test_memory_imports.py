@@ -3,12 +3,10 @@ calls it, never the reverse: no module of `service/memory` imports `service.mapp
 import ast
 from pathlib import Path
 
-import service.memory
-
 MEMORY = Path(service.memory.__file__).parent
 
 
-def mapping_imports(source: str, package: str = "service.memory") -> list[str]:
+def mapping_imports(source: str, package: str = "mnemoslam.service.memory") -> list[str]:
     """The modules of `service.mapping` that `source` (a module of `package`) imports."""
     found = []
     for node in ast.walk(ast.parse(source)):
@@ -20,7 +18,7 @@ def mapping_imports(source: str, package: str = "service.memory") -> list[str]:
             names = [module] + [f"{module}.{a.name}" for a in node.names]
         else:
             continue
-        found += [n for n in names if n == "service.mapping" or n.startswith("service.mapping.")]
+        found += [n for n in names if n == "mnemoslam.service.mapping" or n.startswith("mnemoslam.service.mapping.")]
     return found
 
 

@@ -4,8 +4,8 @@ reports (`PoseGraph.move_tolerance`)."""
 import gtsam
 import numpy as np
 
-from service.mapping.graph import PoseGraph
-from service.mapping.merge_links import MergeLinks
+from mnemoslam.service.mapping.graph import PoseGraph
+from mnemoslam.service.mapping.merge_links import MergeLinks
 
 INFO = np.diag(1.0 / np.array([np.radians(0.5)] * 3 + [0.01] * 3) ** 2)
 

@@ -7,14 +7,14 @@ import pytest
 import requests
 from prometheus_client.parser import text_string_to_metric_families
 
-from client.datasets import open_dataset
-from client.planner import ApiError
-from client.streamer import stream_dataset
-from client.transport import ZenohSettings
-from service.api import TOKEN_ENV, ApiThread, create_app
-from service.config import load_config
-from service.demo import ServiceProcess
-from service.server import SlamService
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.planner import ApiError
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings
+from mnemoslam.service.api import TOKEN_ENV, ApiThread, create_app
+from mnemoslam.service.config import load_config
+from mnemoslam.service.demo import ServiceProcess
+from mnemoslam.service.server import SlamService
 
 FRAMES = 40
 TEXT_0_0_4 = "text/plain; version=0.0.4; charset=utf-8"

@@ -11,10 +11,10 @@ A's stretch, and then lies in A's frame."""
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.geometry import invert, rotation_angle
-from service.builder import build_pipeline
-from storage import LinkType, MapStore
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.geometry import invert, rotation_angle
+from mnemoslam.service.builder import build_pipeline
+from mnemoslam.storage import LinkType, MapStore
 
 from conftest import slam_config
 

@@ -4,12 +4,12 @@ import cv2
 import numpy as np
 import pytest
 
-from client.frames import Calibration, Frame, PinholeCamera
-from client.geometry import invert, make_pose, rotation_angle
-from service.config import load_config
-from service.tracking.features import FeatureExtractor, FrameFeatures
-from service.tracking.keyframes import KeyframePolicy
-from service.tracking.odometry import Odometry, TrackResult
+from mnemoslam.client.kernel.frames import Calibration, Frame, PinholeCamera
+from mnemoslam.client.kernel.geometry import invert, make_pose, rotation_angle
+from mnemoslam.service.config import load_config
+from mnemoslam.service.tracking.features import FeatureExtractor, FrameFeatures
+from mnemoslam.service.tracking.keyframes import KeyframePolicy
+from mnemoslam.service.tracking.odometry import Odometry, TrackResult
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 

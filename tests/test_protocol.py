@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from client.frames import Calibration, Frame, PinholeCamera
-from client.protocol import (
+from mnemoslam.client.kernel.frames import Calibration, Frame, PinholeCamera
+from mnemoslam.client.kernel.protocol import (
     EVENT_KINDS,
     FIXED_HEADER_BYTES,
     PROTOCOL_VERSION,
@@ -31,7 +31,7 @@ from client.protocol import (
     quantize_depth,
 )
 
-# the layout as documented in client/protocol.py, written out independently here
+# the layout as documented in client/kernel/protocol.py, written out independently here
 FIXED = struct.Struct("<4sHHHQdBBBHHBfB")
 LENGTHS = struct.Struct("<II")
 
@@ -569,7 +569,7 @@ def test_keyspace_accepts_zenoh_keyexpr():
 # ------------------------------------------------------------------------------------------
 # label images (version 2) and the class table
 
-from client.protocol import DEFAULT_CLASSES, MAX_CLASSES  # noqa: E402
+from mnemoslam.client.kernel.protocol import DEFAULT_CLASSES, MAX_CLASSES  # noqa: E402
 
 LABEL_FIELDS = struct.Struct("<BBI")  # label_enc, label_bytes, label_len (v2, after the lengths)
 

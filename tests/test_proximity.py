@@ -1,7 +1,7 @@
 """Proximity candidates: near in space and looking the same way, nearest first."""
 import numpy as np
 
-from client.geometry import look_at, nearby
+from mnemoslam.client.kernel.geometry import look_at, nearby
 
 
 def _pose(position, target):

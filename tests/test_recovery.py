@@ -11,20 +11,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client import protocol
-from client.datasets import open_dataset
-from client.streamer import stream_dataset
-from client.trajectory import Trajectory
-from client.transport import ZenohSettings
-from service.config import load_config
-from service.demo import ServiceProcess
-from service.evaluation import evaluate
-from service.mapping.mapper import KeyframeUpdate, Mapper
-from service.memory.keyframes import KeyframeWriter
-from service.pipeline import Pipeline
-from service.recovery import recover
-from service.runner import run_dataset
-from storage import LinkType, MapStore
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel import protocol
+from mnemoslam.client.kernel.trajectory import Trajectory
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings
+from mnemoslam.service.config import load_config
+from mnemoslam.service.demo import ServiceProcess
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.mapping.mapper import KeyframeUpdate, Mapper
+from mnemoslam.service.memory.keyframes import KeyframeWriter
+from mnemoslam.service.pipeline import Pipeline
+from mnemoslam.service.recovery import recover
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.storage import LinkType, MapStore
 
 from conftest import synthetic
 

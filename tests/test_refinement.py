@@ -2,8 +2,8 @@
 import cv2
 import numpy as np
 
-from client.geometry import invert, make_pose
-from service.tracking.refinement import mahalanobis2, refine_pose, sigma_from_hessian
+from mnemoslam.client.kernel.geometry import invert, make_pose
+from mnemoslam.service.tracking.refinement import mahalanobis2, refine_pose, sigma_from_hessian
 
 K = np.array([[700.0, 0, 620], [0, 700.0, 185], [0, 0, 1]])
 

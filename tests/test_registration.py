@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.datasets.registration import DepthRegistration
-from client.frames import PinholeCamera
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.datasets.registration import DepthRegistration
+from mnemoslam.client.kernel.frames import PinholeCamera
 
 from conftest import require
 

@@ -5,12 +5,12 @@ import csv
 import numpy as np
 import pytest
 
-from client.datasets.passes import Passes
-from service.config import load_config
-from service.evaluation import evaluate
-from service.mapping.mapper import Mapper
-from service.runner import run_dataset
-from storage import LinkType, MapStore, UnknownIdError
+from mnemoslam.client.datasets.passes import Passes
+from mnemoslam.service.config import load_config
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.mapping.mapper import Mapper
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.storage import LinkType, MapStore, UnknownIdError
 
 from conftest import synthetic
 

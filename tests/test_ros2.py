@@ -12,14 +12,15 @@ import numpy as np
 import pytest
 import zenoh
 
-from client import protocol, ros_cdr
-from client.datasets import open_dataset
-from client.protocol import ProtocolError
-from client.streamer import stream_dataset
-from client.transport import ZenohSettings, open_session
-from service.config import ConfigError, load_config
-from service.demo import ServiceProcess, keyframe_trajectory
-from service.ros import compressed_key, parse_robots
+from mnemoslam.client import ros_cdr
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel import protocol
+from mnemoslam.client.kernel.protocol import ProtocolError
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings, open_session
+from mnemoslam.service.config import ConfigError, load_config
+from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
+from mnemoslam.service.ros import compressed_key, parse_robots
 
 FRAMES = 40
 RAW = {"robot": "rosraw", "color": "rosraw/camera/color/image_raw",
@@ -111,7 +112,7 @@ def test_malformed_ros_messages_raise_protocol_errors(make, reason):
 
 
 def test_camera_info_and_pose_stamped():
-    from client.frames import Calibration, PinholeCamera
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
 
     cal = Calibration(PinholeCamera(525.0, 526.0, 319.5, 239.25, 640, 480), None, 1000.0)
     msg = ros_cdr.deserialize(ros_cdr.encode_camera_info(cal, 7), ros_cdr.CAMERA_INFO)
@@ -179,7 +180,7 @@ class _Service:
 def _pairing(config):
     """A RosIngest for robot RAW on a recording service stub, and send(kind, t_ms): one raw
     colour ("c") or depth ("d") image stamped t milliseconds through its callback."""
-    from service.ros import RosIngest
+    from mnemoslam.service.ros import RosIngest
 
     svc = _Service(config)
     ros = RosIngest(svc, config.ros)

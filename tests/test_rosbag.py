@@ -9,15 +9,15 @@ import cv2
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.datasets.rosbag import RosbagDataset, decode_compressed_depth, decode_depth, parse_topics
-from client.frames import DatasetError
-from client.geometry import rot_to_quat
-from client.trajectory import read_tum
-from service.cli import main
-from service.demo import ServiceProcess, keyframe_trajectory
-from service.evaluation import evaluate
-from service.runner import run_dataset
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.datasets.rosbag import RosbagDataset, decode_compressed_depth, decode_depth, parse_topics
+from mnemoslam.client.kernel.frames import DatasetError
+from mnemoslam.client.kernel.geometry import rot_to_quat
+from mnemoslam.client.kernel.trajectory import read_tum
+from mnemoslam.service.cli import main
+from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.runner import run_dataset
 
 from conftest import require, slam_config
 
@@ -259,7 +259,7 @@ def test_stream_bag_through_the_service_maps_like_the_folder_run(kitchen, tmp_pa
 # Small bags made here: topic choice, decoders, errors
 
 def _frames(n=4, h=24, w=32, seed=0):
-    from client.frames import Frame
+    from mnemoslam.client.kernel.frames import Frame
 
     rng = np.random.default_rng(seed)
     for i in range(n):
@@ -268,7 +268,7 @@ def _frames(n=4, h=24, w=32, seed=0):
 
 
 def _calibration(h=24, w=32):
-    from client.frames import Calibration, PinholeCamera
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
 
     return Calibration(PinholeCamera(30.0, 31.0, 15.5, 11.5, w, h), None, 1000.0)
 

@@ -9,16 +9,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.frames import PinholeCamera
-from service.config import SemanticsConfig, load_config
-from service.evaluation import associate_stamps, umeyama
-from service.runner import run_dataset
-from service.semantics.classes import ADE20K32
-from service.semantics.objects import ObjectFusion
-from service.semantics.segmentation import CameraLabels
-from service.semantics.worker import SemanticKeyframe, SemanticWorker
-from storage.records import ObjectRecord
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.service.config import SemanticsConfig, load_config
+from mnemoslam.service.evaluation import associate_stamps, umeyama
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.service.semantics.classes import ADE20K32
+from mnemoslam.service.semantics.objects import ObjectFusion
+from mnemoslam.service.semantics.segmentation import CameraLabels
+from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
+from mnemoslam.storage.records import ObjectRecord
 
 # 8 s of the loop at 5 Hz: the person walks behind the dining table's north chairs in every
 # frame, in front of the sideboard, a painting and the office's west wall; door_2, the table,

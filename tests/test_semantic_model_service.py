@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.streamer import stream_dataset
-from client.transport import ZenohSettings
-from service.demo import ServiceProcess
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings
+from mnemoslam.service.demo import ServiceProcess
 
 from conftest import require, require_model
 

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from service.semantics.queries import NotFound, ObjectIndex, QueryError, RobotLocation, robot_location
+from mnemoslam.service.semantics.queries import NotFound, ObjectIndex, QueryError, RobotLocation, robot_location
 
 LABELS = ["door", "chair", "table", "window"]
 
@@ -151,7 +151,7 @@ def test_refreshes_when_the_version_changes():
 def test_real_sqlite_data_version_sees_other_connections(tmp_path):
     import sqlite3
 
-    from service.semantics.queries import data_version_of
+    from mnemoslam.service.semantics.queries import data_version_of
     db = tmp_path / "a map #1?.db"  # characters a file: URI must escape
     w = sqlite3.connect(db)
     w.execute("PRAGMA journal_mode=WAL")

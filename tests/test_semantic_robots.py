@@ -9,11 +9,11 @@ frames put them at the same coordinates."""
 import numpy as np
 import pytest
 
-from service.builder import build_pipeline, build_semantics
-from service.config import load_config
-from service.semantics.queries import NotFound, ObjectIndex, RobotLocation
-from storage import MapStore
-from storage.connectivity import MapConnectivity
+from mnemoslam.service.builder import build_pipeline, build_semantics
+from mnemoslam.service.config import load_config
+from mnemoslam.service.semantics.queries import NotFound, ObjectIndex, RobotLocation
+from mnemoslam.storage import MapStore
+from mnemoslam.storage.connectivity import MapConnectivity
 
 from conftest import LOOP_NOISY, synthetic
 
@@ -123,9 +123,9 @@ def test_a_robot_not_yet_localized_gets_no_object_from_another_frame(tmp_path):
 
 
 def test_connectivity_follows_the_links_as_they_are_stored(tmp_path):
-    from client.frames import Calibration, PinholeCamera
-    from storage import LinkType
-    from storage.records import KeyframeRecord
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+    from mnemoslam.storage import LinkType
+    from mnemoslam.storage.records import KeyframeRecord
 
     cam = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
     with MapStore(tmp_path / "map.db") as store:

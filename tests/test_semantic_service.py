@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.streamer import stream_dataset
-from client.transport import ZenohSettings
-from service.demo import ServiceProcess, true_doors_in_map_frame
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings
+from mnemoslam.service.demo import ServiceProcess, true_doors_in_map_frame
 
 TOKEN = "test-token"
 

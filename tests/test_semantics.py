@@ -13,22 +13,22 @@ import cv2
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.frames import PinholeCamera
-from client.synthetic.scene import get_scene
-from service.builder import build_pipeline, build_semantics
-from service.config import SemanticsConfig, load_config
-from service.evaluation import associate_stamps, umeyama
-from service.runner import run_dataset
-from service.semantics.classes import ADE20K32
-from service.semantics.objects import ObjectFusion, bayes_update
-from service.semantics.segmentation import (
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.synthetic.scene import get_scene
+from mnemoslam.service.builder import build_pipeline, build_semantics
+from mnemoslam.service.config import SemanticsConfig, load_config
+from mnemoslam.service.evaluation import associate_stamps, umeyama
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.service.semantics.classes import ADE20K32
+from mnemoslam.service.semantics.objects import ObjectFusion, bayes_update
+from mnemoslam.service.semantics.segmentation import (
     CameraLabels,
     OnnxSegmenter,
     make_segmenter,
     semantics_status,
 )
-from storage import MapStore
+from mnemoslam.storage import MapStore
 
 from conftest import RenderedOnce, require, require_model
 
@@ -248,8 +248,8 @@ def _stored_keyframes(store, ds, frames) -> list[int]:
     """Keyframes of `ds` stored as the keyframe writer stores them (JPEG colour, PNG-16 depth
     in mm) at their ground-truth poses, linked in a chain, with no features: what the back-fill
     reads."""
-    from client.geometry import invert
-    from storage import KeyframeRecord
+    from mnemoslam.client.kernel.geometry import invert
+    from mnemoslam.storage import KeyframeRecord
 
     sid = store.begin_session("r1", ds.calibration)
     ids, previous = [], None
@@ -280,7 +280,7 @@ def test_keyframes_the_worker_could_not_take_are_backfilled(segmenter, data_dir,
     full; they wait in the store and the worker back-fills them (newest first) from their
     stored images, so the whole map ends up segmented and the objects are those of the
     images. Without the back-fill the same run leaves most keyframes unsegmented."""
-    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
 
     ds = open_dataset(require(data_dir / "7scenes_redkitchen"))
     frames = list(range(0, 400, 40))  # the 10 keyframes of the test above
@@ -309,7 +309,7 @@ def test_deferred_camera_labels_wait_for_the_backfill(tmp_path):
     """The camera's labels are not stored: a keyframe with labels that finds the queue full
     keeps them (PNG) until the back-fill fuses it with its stored depth, so a camera's labels
     cover the whole map with no model at all; with the back-fill off they are dropped."""
-    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
 
     ds = open_dataset("synthetic:loop", rate=10)
     frames = list(range(0, 240, 12))
@@ -336,8 +336,8 @@ def test_the_service_worker_loads_the_model_before_any_keyframe(tmp_path):
     """source auto's model is loaded when the worker starts (`semantics.preload`), so a
     robot's first keyframe costs tracking no load (~0.1-0.7 s, partly holding the GIL);
     without preload it waits for the first keyframe that needs it."""
-    from service.semantics.segmentation import LazyModel, model_path
-    from service.semantics.worker import SemanticWorker
+    from mnemoslam.service.semantics.segmentation import LazyModel, model_path
+    from mnemoslam.service.semantics.worker import SemanticWorker
 
     require_model()
     for preload in (True, False):
@@ -365,7 +365,7 @@ class _Tracking:
         self.done: list[tuple[int, int]] = []  # (keyframes the worker processed, model runs) after each frame
 
     def process(self, frame):
-        from service.pipeline import FrameResult
+        from mnemoslam.service.pipeline import FrameResult
 
         time.sleep(self.seconds)
         if frame.index % self.every == 0 and self.keyframes:
@@ -398,10 +398,10 @@ def _track(tmp_path, source: str, semantics: dict, feed, keyframes: int = 8, sec
     with the service's probe; `feed(session, blank_frame)` submits the frames. Waits until
     every keyframe is segmented (live or back-filled). Returns (the pipeline, the session,
     the worker's counts, the coverage, the model's runs)."""
-    from client.frames import Frame
-    from client.protocol import Limits
-    from service.semantics.worker import SemanticKeyframe, SemanticWorker
-    from service.session import RobotSession
+    from mnemoslam.client.kernel.frames import Frame
+    from mnemoslam.client.kernel.protocol import Limits
+    from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from mnemoslam.service.session import RobotSession
 
     ds = open_dataset("synthetic:loop", rate=10)
     frames = list(range(0, 12 * keyframes, 12))
@@ -486,10 +486,10 @@ def test_a_session_needs_the_cores_while_frames_wait_or_it_has_no_margin():
     """The probe behind the worker's waits: `RobotSession.needs_cpu` is true while more than
     `yield_queue` frames wait, or while tracking took more than 1 - `min_slack` of the last
     second; false once it caught up and rested, and once stopping."""
-    from client.frames import Frame
-    from client.protocol import Limits
-    from service.pipeline import FrameResult
-    from service.session import RobotSession
+    from mnemoslam.client.kernel.frames import Frame
+    from mnemoslam.client.kernel.protocol import Limits
+    from mnemoslam.service.pipeline import FrameResult
+    from mnemoslam.service.session import RobotSession
 
     release, started = threading.Event(), threading.Event()
 
@@ -537,7 +537,7 @@ def test_a_session_needs_the_cores_while_frames_wait_or_it_has_no_margin():
 def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
     import threading
 
-    from service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
 
     release = threading.Event()
 
@@ -564,11 +564,11 @@ def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
 def test_service_fuses_streamed_labels_into_stored_objects(tmp_path, monkeypatch):
     """Through the service: frames streamed with labels (`stream ... --labels`) become objects
     in the map database, fused on the semantic worker's thread; the status says on."""
-    from client.planner import PlannerClient
-    from client.streamer import stream_dataset
-    from client.transport import ZenohSettings
-    from service.api import TOKEN_ENV, ApiThread, create_app
-    from service.server import SlamService
+    from mnemoslam.client.planner import PlannerClient
+    from mnemoslam.client.streamer import stream_dataset
+    from mnemoslam.client.transport import ZenohSettings
+    from mnemoslam.service.api import TOKEN_ENV, ApiThread, create_app
+    from mnemoslam.service.server import SlamService
     from tests.test_api_objects import _status as _api_status
     from tests.test_streamer import endpoint, free_port
 

@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.trajectory import Trajectory
-from service.evaluation import evaluate, evaluate_map_links, evaluate_map_loops
-from service.runner import run_dataset
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.trajectory import Trajectory
+from mnemoslam.service.evaluation import evaluate, evaluate_map_links, evaluate_map_loops
+from mnemoslam.service.runner import run_dataset
 
 from conftest import require, slam_config
 
@@ -99,7 +99,7 @@ def test_tum_cabinet_keyframes_all_tracked(cabinet):
 def test_tum_cabinet_loop_back_to_the_start_is_closed(cabinet, tmp_path):
     """Textureless: bag-of-words finds nothing, proximity detection (dense registration from
     the graph's pose) links the last keyframes to the first ones."""
-    from storage import LinkType, MapStore
+    from mnemoslam.storage import LinkType, MapStore
 
     path, ds, out, out_dir = cabinet  # loop closure on (the default configuration)
     cfg = slam_config()
@@ -145,7 +145,7 @@ def test_same_input_same_trajectory_bit_for_bit(data_dir):
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-m", "mnemoslam.service.cli", *args], capture_output=True, text=True, timeout=300)
 
 
 def test_cli_wrong_path_is_one_line(tmp_path):

@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 import zenoh
 
-from client import protocol
-from client.datasets import open_dataset
-from client.planner import ApiError
-from client.streamer import stream_dataset
-from client.transport import ZenohSettings, open_session
-from service.config import load_config
-from service.demo import ServiceProcess, keyframe_trajectory
-from service.evaluation import evaluate
-from service.runner import run_dataset
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel import protocol
+from mnemoslam.client.planner import ApiError
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings, open_session
+from mnemoslam.service.config import load_config
+from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.runner import run_dataset
 
 from conftest import FIGURE8, slam_config, synthetic
 
@@ -83,7 +83,7 @@ def test_streamed_run_matches_offline_run_and_every_keyframe_is_stored(service):
 
 def test_loop_closed_and_map_corrected_events_are_published(service):
     """A subscriber of mnemoslam/<robot>/events sees the map update's events with the fields
-    documented in client/protocol.py."""
+    documented in client/kernel/protocol.py."""
     events = []
     z = open_session(_settings(service))
     sub = z.declare_subscriber(protocol.KeySpace().events("ev"), lambda s: events.append(
@@ -273,7 +273,7 @@ def test_camera_restart_ends_the_session_and_the_same_sequence_maps_again(servic
     after a camera or clock restart, more than service.restart_gap = 5 s back): the first
     session ends "restarted", a second one maps the second pass; the camera hears of it
     (session_ended, session_started). A small step back stays a refused frame (stamp_order)."""
-    from client.streamer import CameraStreamer
+    from mnemoslam.client.streamer import CameraStreamer
 
     ds = synthetic("loop", rate=5, max_frames=35)  # stamps 0 .. 6.8 s: the second pass starts 6.8 s back
     events = []
@@ -323,7 +323,7 @@ def test_stream_whose_frames_are_all_refused_says_so_and_exits_1(service, capsys
     """A short sequence streamed twice under one robot id: its stamps step back by less than
     service.restart_gap, so the service refuses the second pass (stamp_order); `stream`
     prints the refusals, names the reason and exits 1 instead of 0."""
-    from service.cli import main
+    from mnemoslam.service.cli import main
 
     args = ["stream", "synthetic:loop", "--robot", "twice", "--connect", service.endpoint, "--max-frames", "12", "-q"]
     assert main(args) == 0
@@ -339,7 +339,7 @@ def test_stream_whose_frames_are_all_refused_says_so_and_exits_1(service, capsys
 def test_stream_labels_of_a_dataset_without_labels_leaves_no_robot(service, tmp_path):
     """`stream <real dataset> --labels` fails before its camera is announced: the service
     admits no robot that would wait for frames."""
-    from service.cli import main
+    from mnemoslam.service.cli import main
     from tests.test_datasets import make_tum
 
     tum = make_tum(tmp_path)

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.datasets import open_dataset
-from service.config import load_config
-from service.memory.keyframes import KeyframeWriter
-from service.pipeline import Pipeline
-from storage import MapStore
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.service.config import load_config
+from mnemoslam.service.memory.keyframes import KeyframeWriter
+from mnemoslam.service.pipeline import Pipeline
+from mnemoslam.storage import MapStore
 
 
 class StalledMapper:

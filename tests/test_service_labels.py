@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import zenoh
 
-from client import protocol
-from client.datasets import open_dataset
-from client.frames import Frame
-from client.streamer import CameraStreamer, stream_dataset
-from client.transport import ZenohSettings, open_session
-from service.config import load_config
-from service.server import SlamService
-from service.session import RobotSession
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel import protocol
+from mnemoslam.client.kernel.frames import Frame
+from mnemoslam.client.streamer import CameraStreamer, stream_dataset
+from mnemoslam.client.transport import ZenohSettings, open_session
+from mnemoslam.service.config import load_config
+from mnemoslam.service.server import SlamService
+from mnemoslam.service.session import RobotSession
 from tests.test_streamer import endpoint, free_port
 
 FRAMES = 6

@@ -4,12 +4,12 @@ loadLastNodes), loads only their words, and can close loops to yesterday's map."
 import numpy as np
 import pytest
 
-from service.builder import build_pipeline
-from service.config import load_config
-from service.evaluation import evaluate
-from service.mapping.mapper import Mapper
-from service.memory.vocabulary import Vocabulary
-from storage import LinkType, MapStore
+from mnemoslam.service.builder import build_pipeline
+from mnemoslam.service.config import load_config
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.mapping.mapper import Mapper
+from mnemoslam.service.memory.vocabulary import Vocabulary
+from mnemoslam.storage import LinkType, MapStore
 
 from conftest import synthetic
 

@@ -8,11 +8,11 @@ The odometry now estimates the offset online (service/tracking/stereo_calibratio
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from service.config import load_config
-from service.evaluation import evaluate
-from service.runner import run_dataset
-from service.tracking.features import FeatureExtractor
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.service.config import load_config
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.service.tracking.features import FeatureExtractor
 
 from conftest import require
 
@@ -47,7 +47,7 @@ def test_stereo_depth_uncertainty_grows_with_the_square_of_depth(data_dir):
 def test_disparity_offset_estimated_online(data_dir, name, low, high):
     """The online estimate settles near the offset the ground truth implies (a ~0.3 px,
     b ~1.5 px; measured at the last frame 0.22 and 1.66 px) and the extractor uses it."""
-    from service.pipeline import Pipeline
+    from mnemoslam.service.pipeline import Pipeline
     ds = open_dataset(require(data_dir / "kitti_odometry_snippets" / "sequences" / name), max_frames=30)
     pipe = Pipeline(ds.calibration, load_config())
     for frame in ds:

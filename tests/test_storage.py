@@ -17,11 +17,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.frames import Calibration, PinholeCamera
-from client.trajectory import read_tum
-from storage import KeyframeRecord, LinkType, MapRepository, MapStore, ObjectRecord, StoreError, UnknownIdError
-from storage.cli import db_export, db_info
-from storage.store import _pack, _unpack
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+from mnemoslam.client.kernel.trajectory import read_tum
+from mnemoslam.storage import (
+    KeyframeRecord,
+    LinkType,
+    MapRepository,
+    MapStore,
+    ObjectRecord,
+    StoreError,
+    UnknownIdError,
+)
+from mnemoslam.storage.cli import db_export, db_info
+from mnemoslam.storage.store import _pack, _unpack
 
 ROOT = Path(__file__).resolve().parents[1]
 CAL = Calibration(PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480), None, 5000.0)
@@ -777,8 +785,8 @@ CHILD = r"""
 import sys
 sys.path.insert(0, {root!r})
 import numpy as np
-from client.frames import Calibration, PinholeCamera
-from storage import KeyframeRecord, MapStore
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+from mnemoslam.storage import KeyframeRecord, MapStore
 store = MapStore({path!r})
 sid = store.begin_session("crash", Calibration(PinholeCamera(500, 500, 320, 240, 640, 480)))
 rng = np.random.default_rng(0)

@@ -14,12 +14,19 @@ import cv2
 import numpy as np
 import pytest
 
-from client.capture import CaptureSource, default_calibration
-from client.datasets import open_dataset
-from client.frames import DatasetError, Frame
-from client.protocol import KeySpace, ProtocolError, decode_frame, decode_info, decode_info_message, quantize_depth
-from client.streamer import CameraStreamer, add_stream_arguments, stream_dataset, stream_main
-from client.transport import DEFAULT_ENDPOINT, TransportError, ZenohSettings, open_session
+from mnemoslam.client.capture import CaptureSource, default_calibration
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.frames import DatasetError, Frame
+from mnemoslam.client.kernel.protocol import (
+    KeySpace,
+    ProtocolError,
+    decode_frame,
+    decode_info,
+    decode_info_message,
+    quantize_depth,
+)
+from mnemoslam.client.streamer import CameraStreamer, add_stream_arguments, stream_dataset, stream_main
+from mnemoslam.client.transport import DEFAULT_ENDPOINT, TransportError, ZenohSettings, open_session
 
 
 def free_port() -> int:
@@ -90,7 +97,7 @@ def test_settings_defaults():
     assert conf.get_json("transport/shared_memory/enabled") == "true"  # zenoh's default for cameras
     # the service's session has shared memory off (issue 24: zenoh 1.10 kept every camera
     # session's 16 MB pool mapped in the service after the camera left)
-    from service.config import Config
+    from mnemoslam.service.config import Config
 
     assert Config().zenoh.shared_memory is False
     assert ZenohSettings(shared_memory=False).to_config().get_json("transport/shared_memory/enabled") == "false"
@@ -292,7 +299,7 @@ def test_stream_skips_unreadable_frames_like_run(tmp_path, collector, caplog):
 
     ds = open_dataset(make_tum(tmp_path))
     (ds.path / "depth/1.038.png").write_bytes(b"\x89PNG garbage" + bytes(range(256)))  # frame 1
-    with caplog.at_level(logging.ERROR, logger="client.streamer"):
+    with caplog.at_level(logging.ERROR, logger="mnemoslam.client.streamer"):
         stats = stream_dataset(ds, "bad1", collector.client_settings, prefix=collector.keyspace.prefix,
                                progress=False, wait_for_subscriber=5.0, color="png")
     assert (stats.frames, stats.skipped) == (3, 1)
@@ -326,7 +333,7 @@ def test_stream_main_no_progress_bar_when_stderr_is_not_a_terminal(collector, ca
     out, err = capsys.readouterr()  # captured: not a terminal
     assert "streamed 3 frames" in out
     assert err.startswith("stream: ") and len(err.splitlines()) == 1  # the one header line, no bar
-    from client.cliargs import want_progress
+    from mnemoslam.client.cliargs import want_progress
 
     class Tty:
         def isatty(self):
@@ -359,9 +366,9 @@ def test_process_exits_with_sessions_left_open():
     port = free_port()
     code = f"""
 import sys; sys.path.insert(0, {str(root)!r})
-from client.transport import ZenohSettings, open_session
-from client.streamer import CameraStreamer
-from client.frames import Calibration, PinholeCamera
+from mnemoslam.client.transport import ZenohSettings, open_session
+from mnemoslam.client.streamer import CameraStreamer
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
 a = open_session(ZenohSettings.service(["tcp/127.0.0.1:{port}"]))
 a.declare_subscriber("x/**", lambda s: None)
 b = open_session(ZenohSettings.client(["tcp/127.0.0.1:{port}"]))
@@ -376,7 +383,7 @@ print("done")
 def test_stream_synthetic_labels(collector, tmp_path, capsys):
     """--labels sends the synthetic camera's exact labels (lossless, raw or PNG) and the
     ADE20K-32 class table in the camera info; without it nothing of them travels."""
-    from client.protocol import DEFAULT_CLASSES
+    from mnemoslam.client.kernel.protocol import DEFAULT_CLASSES
 
     dataset = open_dataset("synthetic:loop", max_frames=4)
     args = _parse(["stream", "synthetic:loop", "--robot", "lab-bot", "--connect", endpoint(collector.port),

@@ -5,10 +5,10 @@ import cv2
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.frames import DatasetError, PinholeCamera
-from client.geometry import look_at, rotation_angle
-from client.synthetic import (
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.frames import DatasetError, PinholeCamera
+from mnemoslam.client.kernel.geometry import look_at, rotation_angle
+from mnemoslam.client.synthetic import (
     CLASS_NAMES,
     TRAJECTORIES,
     SyntheticDataset,

@@ -5,14 +5,14 @@ import cv2
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.frames import DatasetError
-from client.geometry import rotation_angle
-from client.synthetic import SyntheticDataset, get_scene, kinect, trajectory
-from client.synthetic.blur import blur_length, motion_blur
-from service.config import load_config
-from service.evaluation import evaluate
-from service.runner import run_dataset
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.frames import DatasetError
+from mnemoslam.client.kernel.geometry import rotation_angle
+from mnemoslam.client.synthetic import SyntheticDataset, get_scene, kinect, trajectory
+from mnemoslam.client.synthetic.blur import blur_length, motion_blur
+from mnemoslam.service.config import load_config
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.runner import run_dataset
 
 SMALL = dict(width=320, height=240, fx=262.5)
 

@@ -4,10 +4,10 @@ unless asked for (`person=True`, `synthetic:loop?person`)."""
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.frames import DatasetError
-from client.synthetic import SyntheticDataset
-from client.synthetic.person import DEPTH, HEIGHT, PERSON, WIDTH, Walk
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.frames import DatasetError
+from mnemoslam.client.synthetic import SyntheticDataset
+from mnemoslam.client.synthetic.person import DEPTH, HEIGHT, PERSON, WIDTH, Walk
 
 SMALL = dict(rate=5, width=320, height=240, fx=262.5, max_frames=11)
 

@@ -1,11 +1,11 @@
 """Full synthetic runs through the offline pipeline: exact ground truth, no real data."""
 import numpy as np
 
-from client.datasets import open_dataset
-from service.config import load_config
-from service.evaluation import evaluate
-from service.runner import run_dataset
-from storage import MapStore
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.service.config import load_config
+from mnemoslam.service.evaluation import evaluate
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.storage import MapStore
 
 
 def _check(ds, out, out_dir, bound):

@@ -1,11 +1,11 @@
 """Geometric verification of loop hypotheses on the synthetic scene's exact poses."""
 import numpy as np
 
-from client.datasets import open_dataset
-from client.geometry import invert, rotation_angle
-from service.config import load_config
-from service.mapping.verification import verify
-from service.tracking.features import FeatureExtractor
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.geometry import invert, rotation_angle
+from mnemoslam.service.config import load_config
+from mnemoslam.service.mapping.verification import verify
+from mnemoslam.service.tracking.features import FeatureExtractor
 
 
 def _features(ds, i):
@@ -33,8 +33,8 @@ def test_different_places_are_rejected():
 
 
 def test_dense_view_gives_the_full_pyramids_coarse_levels():
-    from service.memory.views import DenseView
-    from service.tracking import icp
+    from mnemoslam.service.memory.views import DenseView
+    from mnemoslam.service.tracking import icp
     ds = open_dataset("synthetic:loop", noise=True)
     f = ds.frame(3)
     cam = ds.calibration.camera
@@ -47,8 +47,8 @@ def test_dense_view_gives_the_full_pyramids_coarse_levels():
 
 
 def test_dense_refinement_makes_a_loop_link_an_order_of_magnitude_more_accurate():
-    from service.mapping.verification import refine
-    from service.memory.views import DenseView
+    from mnemoslam.service.mapping.verification import refine
+    from mnemoslam.service.memory.views import DenseView
     ds = open_dataset("synthetic:loop", noise=True)
     cam = ds.calibration.camera
     a = 0
@@ -67,8 +67,8 @@ def test_dense_refinement_makes_a_loop_link_an_order_of_magnitude_more_accurate(
 
 
 def test_refinement_keeps_the_pnp_link_when_the_images_do_not_overlap():
-    from service.mapping.verification import Verification, refine
-    from service.memory.views import DenseView
+    from mnemoslam.service.mapping.verification import Verification, refine
+    from mnemoslam.service.memory.views import DenseView
     ds = open_dataset("synthetic:loop", noise=True)
     cam = ds.calibration.camera
     fa, fb = ds.frame(0), ds.frame(len(ds) // 2)  # opposite sides of the loop

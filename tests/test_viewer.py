@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import requests
 
-from client.datasets import open_dataset
-from client.streamer import stream_dataset
-from client.transport import ZenohSettings
-from service.api import TOKEN_ENV, ApiThread, create_app
-from service.config import load_config
-from service.demo import ServiceProcess, free_port, log_errors
-from service.server import SlamService
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.streamer import stream_dataset
+from mnemoslam.client.transport import ZenohSettings
+from mnemoslam.service.api import TOKEN_ENV, ApiThread, create_app
+from mnemoslam.service.config import load_config
+from mnemoslam.service.demo import ServiceProcess, free_port, log_errors
+from mnemoslam.service.server import SlamService
 
 from conftest import require_chromium
 
@@ -181,7 +181,7 @@ class _Service:
 
 
 def _keyframe(store, sid, x: float) -> int:
-    from storage.records import KeyframeRecord
+    from mnemoslam.storage.records import KeyframeRecord
 
     pose = np.eye(4)
     pose[0, 3] = x
@@ -197,9 +197,9 @@ def test_feed_sends_what_changed(tmp_path):
     memory sizes, the objects), then nothing while nothing changes, new keyframes appended,
     the whole trajectory again with its loop link when one is added (and every `full_every`
     seconds while live), and the session marked ended when its robot goes."""
-    from service.semantics.queries import ObjectIndex
-    from service.viewer import Limits, ViewerFeed
-    from storage.records import LinkType
+    from mnemoslam.service.semantics.queries import ObjectIndex
+    from mnemoslam.service.viewer import Limits, ViewerFeed
+    from mnemoslam.storage.records import LinkType
 
     from test_api_objects import _robot, make_map
 
@@ -340,10 +340,10 @@ def test_feed_tells_which_sessions_share_a_frame(tmp_path):
     """Each session's "frame" is the map id of the oldest session links join it to: a second
     robot's session has its own until a loop link places it in the first one's frame, then
     that frame is sent once (the page lists the session under that map)."""
-    from client.frames import Calibration, PinholeCamera
-    from service.semantics.queries import ObjectIndex
-    from service.viewer import ViewerFeed
-    from storage.records import LinkType
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+    from mnemoslam.service.semantics.queries import ObjectIndex
+    from mnemoslam.service.viewer import ViewerFeed
+    from mnemoslam.storage.records import LinkType
 
     from test_api_objects import make_map
 

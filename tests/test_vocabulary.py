@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from client.datasets import open_dataset
-from client.frames import Calibration, PinholeCamera
-from client.synthetic import SyntheticDataset
-from service.config import load_config
-from service.memory.vocabulary import MissingWordsError, Vocabulary
-from service.runner import run_dataset
-from storage import KeyframeRecord, MapStore, UnknownIdError
+from mnemoslam.client.datasets import open_dataset
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+from mnemoslam.client.synthetic import SyntheticDataset
+from mnemoslam.service.config import load_config
+from mnemoslam.service.memory.vocabulary import MissingWordsError, Vocabulary
+from mnemoslam.service.runner import run_dataset
+from mnemoslam.storage import KeyframeRecord, MapStore, UnknownIdError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -349,9 +349,9 @@ _CHILD = """
 import sys
 sys.path.insert(0, {root!r})
 import numpy as np
-from client.frames import Calibration, PinholeCamera
-from service.memory.vocabulary import MissingWordsError, Vocabulary
-from storage import KeyframeRecord, MapStore
+from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+from mnemoslam.service.memory.vocabulary import MissingWordsError, Vocabulary
+from mnemoslam.storage import KeyframeRecord, MapStore
 rng = np.random.default_rng(0)
 centres = rng.integers(0, 256, (3000, 32), dtype=np.uint8)
 store = MapStore({path!r})
@@ -413,7 +413,7 @@ def _same_tables(a, b):
 
 def _index_snapshot(v, probe):
     """Everything the loop detector reads, and the search's answers."""
-    from service.mapping.loop_detection import LoopDetector
+    from mnemoslam.service.mapping.loop_detection import LoopDetector
     ids = sorted(v.node_ids())
     det = LoopDetector(v)
     q = v.query(probe)
@@ -519,7 +519,7 @@ def test_nodes_added_while_others_are_unloaded(orb_nodes):
     _assert_same(v, reference, orb_nodes[0])
     assert _same_tables(_tables(v), _tables(reference))
     # The likelihood finds the start again from a revisit.
-    from service.mapping.loop_detection import LoopDetector
+    from mnemoslam.service.mapping.loop_detection import LoopDetector
     w = v.query(orb_nodes[38])
     raw = LoopDetector(v).raw_likelihood(w, np.arange(0, 15), None)
     assert raw.argmax() <= 3 and raw.max() > 0

@@ -1,5 +1,5 @@
 """STM/WM/LTM bookkeeping (service/memory/working_memory.py): who moves, in which order."""
-from service.memory.working_memory import WorkingMemory
+from mnemoslam.service.memory.working_memory import WorkingMemory
 
 
 def test_stm_feeds_wm_in_order():
@@ -58,10 +58,10 @@ def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(t
     0.18 cm; all 401 frames: 240, 0.21 cm)."""
     import csv
 
-    from service.config import load_config
-    from service.evaluation import evaluate
-    from service.runner import run_dataset
-    from storage import MapStore
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.evaluation import evaluate
+    from mnemoslam.service.runner import run_dataset
+    from mnemoslam.storage import MapStore
 
     from conftest import FIGURE8, synthetic
 

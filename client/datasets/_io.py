@@ -9,8 +9,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from ..frames import DatasetError, PinholeCamera
-from ..trajectory import Trajectory
+from ..kernel.frames import DatasetError, PinholeCamera
+from ..kernel.trajectory import Trajectory
 
 MAX_DT = 0.02  # seconds: the largest stamp difference accepted when pairing streams
 

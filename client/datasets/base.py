@@ -6,8 +6,8 @@ from typing import Iterator
 
 import numpy as np
 
-from ..frames import Calibration, DatasetError, Frame
-from ..trajectory import Trajectory
+from ..kernel.frames import Calibration, DatasetError, Frame
+from ..kernel.trajectory import Trajectory
 
 
 class Dataset:

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 import yaml
 
-from ..frames import Calibration, DatasetError, Frame
-from ..geometry import invert, quat_to_rot
-from ..trajectory import Trajectory, read_tum
+from ..kernel.frames import Calibration, DatasetError, Frame
+from ..kernel.geometry import invert, quat_to_rot
+from ..kernel.trajectory import Trajectory, read_tum
 from ._io import check_index, frame_count, numbers, pinhole, read_grey, read_rows, sample_poses
 from .base import Dataset
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..frames import Calibration, DatasetError, Frame
-from ..trajectory import read_kitti_poses
+from ..kernel.frames import Calibration, DatasetError, Frame
+from ..kernel.trajectory import read_kitti_poses
 from ._io import check_index, frame_count, image_size, numbers, pinhole, read_grey, read_rows
 from .base import Dataset
 

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..frames import Frame
-from ..trajectory import Trajectory
+from ..kernel.frames import Frame
+from ..kernel.trajectory import Trajectory
 from ._io import sample_poses
 from .base import Dataset
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..frames import PinholeCamera
+from ..kernel.frames import PinholeCamera
 
 
 @dataclass(frozen=True)

@@ -48,9 +48,9 @@ from typing import Iterable
 import cv2
 import numpy as np
 
-from ..frames import Calibration, DatasetError, Frame
-from ..geometry import quat_to_rot
-from ..trajectory import Trajectory
+from ..kernel.frames import Calibration, DatasetError, Frame
+from ..kernel.geometry import quat_to_rot
+from ..kernel.trajectory import Trajectory
 from ._io import MAX_DT, check_index, frame_count, pinhole, sample_poses
 from .base import Dataset
 from .tum import associate

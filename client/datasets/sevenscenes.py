@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..frames import Calibration, DatasetError, Frame
-from ..trajectory import Trajectory
+from ..kernel.frames import Calibration, DatasetError, Frame
+from ..kernel.trajectory import Trajectory
 from ._io import check_index, frame_count, image_size, numbers, pinhole, read_color, read_depth, read_rows
 from .base import Dataset
 from .registration import DepthRegistration

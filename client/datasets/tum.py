@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..frames import Calibration, DatasetError, Frame
-from ..trajectory import read_tum
+from ..kernel.frames import Calibration, DatasetError, Frame
+from ..kernel.trajectory import read_tum
 from ._io import (
     MAX_DT,
     check_index,

@@ -8,7 +8,7 @@ handheld look-around at up to 60°/s per axis) and a `Dataset` player on top, wi
 depth noise (`noise=True`/"axial", or "kinect": `kinect.py`) and motion blur (`exposure`,
 `blur.py`) and, as an option, a person walking through it (`person=True`, `person.py`):
 
-    from client.synthetic import SyntheticDataset, SyntheticScene, get_scene, trajectory
+    from mnemoslam.client.synthetic import SyntheticDataset, SyntheticScene, get_scene, trajectory
     ds = SyntheticDataset("loop", rate=30, noise=True)          # or open_dataset("synthetic:loop")
     f = ds.frame(0); f.image, f.depth, f.extras["labels"], ds.ground_truth.poses[0]
     r = get_scene(0).render(pose_c2w, camera)                    # r.rgb r.depth r.labels r.instances

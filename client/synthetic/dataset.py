@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 
 from ..datasets.base import Dataset
-from ..frames import Calibration, DatasetError, Frame, PinholeCamera
-from ..trajectory import Trajectory
+from ..kernel.frames import Calibration, DatasetError, Frame, PinholeCamera
+from ..kernel.trajectory import Trajectory
 from .blur import motion_blur
 from .kinect import add_kinect_noise
 from .person import Person, Walk

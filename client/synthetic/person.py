@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..frames import PinholeCamera
+from ..kernel.frames import PinholeCamera
 from . import textures as tx
 from .raster import NEAR, Rasterizer, RenderResult, detail_offsets
 from .scene import TEXEL_OBJECT, _Builder, _pack, quad_set

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..frames import DatasetError
-from ..geometry import look_at, make_pose
+from ..kernel.frames import DatasetError
+from ..kernel.geometry import look_at, make_pose
 from .person import Walk
 
 EYE_HEIGHT = 1.5

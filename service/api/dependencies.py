@@ -15,7 +15,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from storage import MapRepository, SessionRecord
+from mnemoslam.storage import MapRepository, SessionRecord
 
 from ..config import Config
 from ..semantics.queries import NotFound, ObjectIndex, QueryError, Unavailable

@@ -8,7 +8,7 @@ from typing import Annotated, Any
 from fastapi import Path, Query
 from pydantic import BaseModel, ConfigDict, Field
 
-from client.protocol import ROBOT_PATTERN
+from mnemoslam.client.kernel.protocol import ROBOT_PATTERN
 
 # -- request parameters ---------------------------------------------------------------------
 # The largest SQLite INTEGER (signed 64-bit): a bigger id or offset cannot be bound to a query.

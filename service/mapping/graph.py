@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from client.geometry import invert
+from mnemoslam.client.kernel.geometry import invert
 
 # default σ of an odometry link when none is given: 0.5° / 1 cm (rotation first)
 DEFAULT_ODOMETRY_SIGMAS = np.array([np.deg2rad(0.5)] * 3 + [0.01] * 3)

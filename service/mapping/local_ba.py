@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from client.frames import PinholeCamera
+from mnemoslam.client.kernel.frames import PinholeCamera
 
 from ..memory.vocabulary import as_u64, hamming_matrix
 from .graph import to_pose3

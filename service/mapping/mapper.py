@@ -25,9 +25,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from client.frames import PinholeCamera
-from client.geometry import invert, nearby, rotation_angle
-from storage import LinkType, MapStore, UnknownIdError
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.kernel.geometry import invert, nearby, rotation_angle
+from mnemoslam.storage import LinkType, MapStore, UnknownIdError
 
 from ..config import LoopConfig, MemoryConfig
 from ..memory.keyframes import decode_images

@@ -9,7 +9,7 @@ import time
 import gtsam
 import numpy as np
 
-from client.geometry import invert, rotation_angle
+from mnemoslam.client.kernel.geometry import invert, rotation_angle
 
 from .graph import LoopOutcome, PoseGraph
 

@@ -40,7 +40,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from client.frames import PinholeCamera
+from mnemoslam.client.kernel.frames import PinholeCamera
 
 from ..config import LoopConfig, MemoryConfig
 from .mapper import KeyframeUpdate
@@ -144,7 +144,7 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
             os.nice(config.process_nice)
         except OSError as e:
             log.warning("mapping process: os.nice(%d) failed: %s", config.process_nice, e)
-    from storage import MapStore
+    from mnemoslam.storage import MapStore
 
     from .mapper import Mapper
 

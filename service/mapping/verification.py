@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from client.frames import PinholeCamera
-from client.geometry import invert, make_pose, rotation_angle
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.kernel.geometry import invert, make_pose, rotation_angle
 
 from ..memory.views import DenseView
 from ..tracking import icp

@@ -7,9 +7,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from client.frames import Calibration, Frame
-from client.geometry import invert
-from storage import KeyframeRecord, MapRepository
+from mnemoslam.client.kernel.frames import Calibration, Frame
+from mnemoslam.client.kernel.geometry import invert
+from mnemoslam.storage import KeyframeRecord, MapRepository
 
 from ..config import Config, to_dict
 from ..tracking.features import FrameFeatures

@@ -19,10 +19,10 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from client.frames import PinholeCamera
-from client.geometry import invert, nearby
-from storage import LinkType, MapStore, UnknownIdError
-from storage.connectivity import MapConnectivity
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.kernel.geometry import invert, nearby
+from mnemoslam.storage import LinkType, MapStore, UnknownIdError
+from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import LoopConfig, MemoryConfig
 from ..tracking.features import FrameFeatures

@@ -9,8 +9,8 @@ import logging
 import cv2
 import numpy as np
 
-from client.frames import PinholeCamera
-from storage import MapStore
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.storage import MapStore
 
 from ..tracking import icp
 from .keyframes import decode_images

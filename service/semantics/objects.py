@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from client.frames import PinholeCamera
-from storage.records import MAX_OBJECT_KEYFRAMES, ObjectRecord
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.storage.records import MAX_OBJECT_KEYFRAMES, ObjectRecord
 
 from ..config import SemanticsConfig
 

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.connectivity import MapConnectivity
+from mnemoslam.storage.connectivity import MapConnectivity
 
 log = logging.getLogger("mnemoslam.semantics.queries")
 

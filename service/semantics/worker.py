@@ -54,8 +54,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from client.frames import PinholeCamera
-from storage.connectivity import MapConnectivity
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import SemanticsConfig
 from ..memory.keyframes import decode_images
@@ -69,7 +69,7 @@ log = logging.getLogger("mnemoslam.semantics")
 class SemanticKeyframe:
     node_id: int
     pose: np.ndarray  # 4×4 camera-to-map
-    image: np.ndarray | None  # H×W×3 BGR or H×W grey (client.frames' convention)
+    image: np.ndarray | None  # H×W×3 BGR or H×W grey (mnemoslam.client.kernel.frames' convention)
     depth: np.ndarray | None  # H×W float32 metres
     labels: np.ndarray | None  # H×W class ids from the camera, or None
     camera: PinholeCamera

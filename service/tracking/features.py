@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from client.frames import Calibration, Frame
+from mnemoslam.client.kernel.frames import Calibration, Frame
 
 from ..config import FeatureConfig, StereoConfig
 

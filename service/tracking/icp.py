@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from client.frames import PinholeCamera
-from client.geometry import invert, make_pose
+from mnemoslam.client.kernel.frames import PinholeCamera
+from mnemoslam.client.kernel.geometry import invert, make_pose
 
 
 @dataclass

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from client.geometry import invert, rotation_angle
+from mnemoslam.client.kernel.geometry import invert, rotation_angle
 
 from ..config import KeyframeConfig
 from .odometry import TrackResult

@@ -19,7 +19,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from client.geometry import make_pose
+from mnemoslam.client.kernel.geometry import make_pose
 
 HUBER_CHI = float(np.sqrt(5.991))  # Huber threshold on the Mahalanobis distance (χ², 2 dof, 95 %)
 

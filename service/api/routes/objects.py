@@ -9,7 +9,7 @@ from typing import Annotated
 from fastapi import HTTPException, Query
 from fastapi.concurrency import run_in_threadpool
 
-from client.protocol import ROBOT_PATTERN
+from mnemoslam.client.kernel.protocol import ROBOT_PATTERN
 
 from ...semantics.queries import NotFound, ObjectView, QueryError, robot_location
 from ..dependencies import ObjectContext, ObjectsDep, read_router, write_router

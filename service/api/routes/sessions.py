@@ -9,9 +9,9 @@ from typing import Annotated, Any
 from fastapi import Body, HTTPException, Query
 from fastapi.responses import PlainTextResponse
 
-from client.protocol import ROBOT_PATTERN
-from client.trajectory import format_tum
-from storage import StoreError, UnknownIdError, link_name
+from mnemoslam.client.kernel.protocol import ROBOT_PATTERN
+from mnemoslam.client.kernel.trajectory import format_tum
+from mnemoslam.storage import StoreError, UnknownIdError, link_name
 
 from ..dependencies import SessionDep, StoreDep, read_router, write_router
 from ..models import (
