@@ -75,6 +75,8 @@ class SlamService:
         if self.config.loop.enabled and self.config.loop.process:
             self.mapping = MappingProcess(self.config.storage.path, self.config.loop, self.config.memory)
         self.semantics = build_semantics(self.store, self.config, background=True)
+        if self.semantics[0] is not None:  # tracking first: the worker waits while a robot's tracking is busy
+            self.semantics[0].tracking_busy = self.tracking_busy
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
                                                 z.multicast_scouting, z.gossip_scouting, z.shared_memory))
         self._subscribers = [
@@ -400,6 +402,14 @@ class SlamService:
         if worker is None:
             return self.store.delete_objects([int(object_id)])
         return worker.delete(object_id)
+
+    def tracking_busy(self, margin: bool = True) -> bool:
+        """Whether some robot's tracking needs the cores now (`RobotSession.needs_cpu` with
+        `semantics.yield_queue`, and with `margin` `semantics.min_slack`): the semantic
+        worker's probe."""
+        s = self.config.semantics
+        slack = float(s.min_slack) if margin else 0.0
+        return any(r.needs_cpu(int(s.yield_queue), slack) for r in list(self.sessions.values()))
 
     def semantics_status(self) -> dict:
         """{"enabled", "source", "model", "reason" (why off, or None), "model_reason",

@@ -83,6 +83,11 @@ class RobotSession:
         self._cond = threading.Condition()
         self._stopping = False
         self._rate_window: deque[float] = deque(maxlen=60)
+        # when the worker thread processed its last frames (monotonic start, end) and the frame it
+        # is on: its frame-time margin (`needs_cpu`, the semantic worker's probe)
+        self._spans: deque[tuple[float, float]] = deque(maxlen=120)
+        self._frame_started: float | None = None
+        self._first_started: float | None = None  # its first frame's start (a young session's window is shorter)
         self._thread = threading.Thread(target=self._run, name=f"slam-{robot}", daemon=True)
         self._thread.start()
 
@@ -102,6 +107,32 @@ class RobotSession:
     @property
     def queue_depth(self) -> int:
         return len(self._queue)
+
+    def busy_share(self, now: float | None = None, window: float = 1.0) -> float:
+        """The share of the last `window` seconds (or of the time since its first frame, when
+        shorter) the worker thread spent processing frames (1 - its frame-time margin: 0.9 = a
+        frame takes 90 % of the time between frames)."""
+        now = time.monotonic() if now is None else now
+        first = self._first_started
+        if first is None:
+            return 0.0
+        start = max(now - window, first)
+        if now <= start:
+            return 1.0
+        spans = list(self._spans)
+        busy = sum(e - max(s, start) for s, e in spans if e > start)
+        current = self._frame_started
+        if current is not None:
+            busy += now - max(current, start)
+        return min(1.0, busy / (now - start))
+
+    def needs_cpu(self, queued: int, slack: float) -> bool:
+        """Whether this robot's tracking needs the cores now (the semantic worker then waits):
+        more than `queued` frames wait in its queue, or it had less than `slack` of the last
+        second to spare (`busy_share`). False once stopping."""
+        if self._stopping:
+            return False
+        return len(self._queue) > queued or (slack > 0 and self.busy_share() > 1.0 - slack)
 
     def idle(self, now: float) -> float:
         """Seconds since the last frame arrived (or the session was made)."""
@@ -217,7 +248,14 @@ class RobotSession:
         if self.pipeline is None:
             self.pipeline = self._make_pipeline(self.calibration)
         t = time.perf_counter()
-        result = self.pipeline.process(frame)
+        self._frame_started = started = time.monotonic()
+        if self._first_started is None:
+            self._first_started = started
+        try:
+            result = self.pipeline.process(frame)
+        finally:
+            self._frame_started = None
+            self._spans.append((started, time.monotonic()))
         ms = (time.perf_counter() - t) * 1e3
         s = self.stats
         s.processed += 1

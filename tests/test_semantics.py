@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 import time
 
 import cv2
@@ -331,6 +332,208 @@ def test_deferred_camera_labels_wait_for_the_backfill(tmp_path):
             assert coverage["segmented"] == stats["processed"] <= len(ids) / 2, (coverage, stats)
 
 
+def test_the_service_worker_loads_the_model_before_any_keyframe(tmp_path):
+    """source auto's model is loaded when the worker starts (`semantics.preload`), so a
+    robot's first keyframe costs tracking no load (~0.1-0.7 s, partly holding the GIL);
+    without preload it waits for the first keyframe that needs it."""
+    from mnemoslam.service.semantics.segmentation import LazyModel, model_path
+    from mnemoslam.service.semantics.worker import SemanticWorker
+
+    require_model()
+    for preload in (True, False):
+        config = SemanticsConfig(preload=preload)
+        model = LazyModel(model_path(config.model), config)
+        with MapStore(tmp_path / f"map-{preload}.db") as store:
+            worker = SemanticWorker(store, model, config, background=True)
+            deadline = time.monotonic() + (30 if preload else 1.0)
+            while not model.loaded and time.monotonic() < deadline:
+                time.sleep(0.05)
+            worker.close()
+        assert model.loaded == preload and worker.processed == 0
+
+
+class _Tracking:
+    """A robot's pipeline for `RobotSession`: each frame takes `seconds` of (simulated)
+    tracking, and every 3rd one hands its keyframe to the semantic worker as `Pipeline`
+    does; it notes what the worker had done (processed, model runs) when each frame ended."""
+
+    session_id = 1
+    map_progress = (0, 0)
+
+    def __init__(self, worker, keyframes, seconds: float, every: int = 3):
+        self.worker, self.keyframes, self.seconds, self.every = worker, keyframes, seconds, every
+        self.done: list[tuple[int, int]] = []  # (keyframes the worker processed, model runs) after each frame
+
+    def process(self, frame):
+        from mnemoslam.service.pipeline import FrameResult
+
+        time.sleep(self.seconds)
+        if frame.index % self.every == 0 and self.keyframes:
+            self.worker.submit(self.keyframes.pop(0))
+        self.done.append((self.worker.processed, getattr(self.worker.segmenter, "runs", 0)))
+        return FrameResult(frame.index, frame.stamp, "ok", np.eye(4))
+
+    def close(self, reason):
+        pass
+
+
+class _Model:
+    """A fast stand-in for the model (the worker's scheduling is under test): class 0 everywhere."""
+
+    classes, name = ADE20K32, "counting"
+
+    def __init__(self):
+        self.runs = 0
+
+    def segment(self, rgb, depth=None):
+        self.runs += 1
+        return np.zeros(rgb.shape[:2], np.uint8)
+
+
+def _track(tmp_path, source: str, semantics: dict, feed, keyframes: int = 8, seconds: float = 0.025,
+           every: int = 3):
+    """A robot's session (`RobotSession`, as in the service) whose pipeline (`_Tracking`) takes
+    `seconds` a frame and hands every `every`-th frame's keyframe (of `keyframes` stored ones of the
+    synthetic loop, with the camera's labels or for the model) to a background semantic worker
+    with the service's probe; `feed(session, blank_frame)` submits the frames. Waits until
+    every keyframe is segmented (live or back-filled). Returns (the pipeline, the session,
+    the worker's counts, the coverage, the model's runs)."""
+    from mnemoslam.client.kernel.frames import Frame
+    from mnemoslam.client.kernel.protocol import Limits
+    from mnemoslam.service.semantics.worker import SemanticKeyframe, SemanticWorker
+    from mnemoslam.service.session import RobotSession
+
+    ds = open_dataset("synthetic:loop", rate=10)
+    frames = list(range(0, 12 * keyframes, 12))
+    config = load_config(None, {"semantics": {"source": source, "queue_size": 2, "idle_after": 0.3, "max_duty": 1.0,
+                                              **semantics}})
+    sem = config.semantics
+    with MapStore(tmp_path / "map.db") as store:
+        ids = _stored_keyframes(store, ds, frames)
+        segmenter = CameraLabels(sem) if source == "camera" else _Model()
+        fed, session = threading.Event(), None  # (tracking counts as busy until `feed` starts)
+
+        def probe(margin=True):  # SlamService.tracking_busy's, for this one robot
+            return not fed.is_set() or session.needs_cpu(sem.yield_queue, sem.min_slack if margin else 0.0)
+
+        worker = SemanticWorker(store, segmenter, sem, background=True, tracking_busy=probe)
+        kfs = []
+        for n, i in zip(ids, frames):
+            f = ds.frame(i)
+            kfs.append(SemanticKeyframe(n, ds.ground_truth.poses[i], f.image, f.depth,
+                                        f.extras["labels"] if source == "camera" else None, ds.calibration.camera))
+        pipe = _Tracking(worker, kfs, seconds, every)
+        session = RobotSession("r1", config, ds.calibration, Limits(), lambda c: pipe, lambda *a: None)
+        try:
+            fed.set()
+            feed(session, Frame(0, 0.0, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32)))
+            deadline = time.monotonic() + 60
+            while (store.segmentation_coverage()["segmented"] < len(ids)
+                   or session.stats.processed < session.stats.received) and time.monotonic() < deadline:
+                time.sleep(0.05)
+        finally:
+            session.stop()
+            worker.close()
+        return pipe, session, worker.stats(), store.segmentation_coverage(), getattr(segmenter, "runs", None)
+
+
+@pytest.mark.parametrize("source", ["model", "camera"])
+def test_the_worker_waits_while_tracking_is_behind(source, tmp_path):
+    """Issue 24, tracking first: in the service the semantic worker shares the process (its GIL)
+    and the cores with tracking, so it starts no step, neither a model run nor a fusion, while
+    a robot's frame queue holds more than `semantics.yield_queue` frames or its tracking has no
+    margin (`min_slack`). A burst of 24 frames queued at once (each taking 25 ms to track, a
+    keyframe every 3rd) leaves the worker waiting until tracking has caught up; the 8
+    keyframes are then all segmented (queued ones, then the back-fill). A worker that did not
+    wait would segment during the burst."""
+    def burst(session, blank):  # queued at once, as frames that come while tracking is slow
+        for k in range(24):
+            assert session.submit(k, dataclasses.replace(blank, index=k, stamp=k / 30)) is None
+
+    pipe, session, stats, coverage, runs = _track(tmp_path, source, {}, burst)
+    assert len(pipe.done) == 24 and session.stats.dropped_queue == 0
+    # every frame of the burst was tracked before the worker did anything: no fusion, no model run
+    assert pipe.done == [(0, 0)] * 24, pipe.done
+    assert coverage["segmented"] == 8, (coverage, stats)
+    assert stats["processed"] == 8 and stats["waits"] >= 1 and stats["errors"] == 0, stats
+    assert runs in (None, 8)
+
+
+@pytest.mark.parametrize("max_wait", [0.3, 0.0])
+def test_a_saturated_robot_still_gets_live_keyframes_after_max_wait(max_wait, tmp_path):
+    """A camera whose frames take tracking 80 % of the time between them leaves it too little
+    margin (here `min_slack` 0.3, 70 %) but its queue short: a keyframe that waited
+    `semantics.max_wait` seconds is segmented anyway while the frames still come (and none is
+    dropped); with `max_wait: 0` it waits for the end of the stream."""
+    def paced(session, blank):  # 4 s: a frame every 50 ms, each taking 40 ms to track
+        t0 = time.monotonic()
+        for k in range(80):
+            time.sleep(max(0.0, t0 + 0.05 * k - time.monotonic()))
+            assert session.submit(k, dataclasses.replace(blank, index=k, stamp=k / 20)) is None
+
+    semantics = {"max_wait": max_wait, "min_slack": 0.3, "idle_after": 1.0}  # (no back-fill while the frames come)
+    pipe, session, stats, coverage, runs = _track(tmp_path, "model", semantics, paced, seconds=0.04, every=10)
+    assert len(pipe.done) == 80 and session.stats.dropped_queue == 0
+    live = pipe.done[-1][0]  # keyframes processed while the frames came
+    if max_wait:
+        assert live >= 1 and stats["waits"] >= 1, (pipe.done, stats)
+    else:
+        assert live == 0, (pipe.done, stats)
+    assert coverage["segmented"] == 8 and runs == 8, (coverage, stats)
+
+
+def test_a_session_needs_the_cores_while_frames_wait_or_it_has_no_margin():
+    """The probe behind the worker's waits: `RobotSession.needs_cpu` is true while more than
+    `yield_queue` frames wait, or while tracking took more than 1 - `min_slack` of the last
+    second; false once it caught up and rested, and once stopping."""
+    from mnemoslam.client.kernel.frames import Frame
+    from mnemoslam.client.kernel.protocol import Limits
+    from mnemoslam.service.pipeline import FrameResult
+    from mnemoslam.service.session import RobotSession
+
+    release, started = threading.Event(), threading.Event()
+
+    class Slow:
+        session_id, map_progress = 1, (0, 0)
+
+        def process(self, frame):
+            started.set()
+            release.wait(10)
+            return FrameResult(frame.index, frame.stamp, "ok", np.eye(4))
+
+        def close(self, reason):
+            pass
+
+    cal = open_dataset("synthetic:loop", max_frames=1).calibration
+    session = RobotSession("r1", load_config(), cal, Limits(), lambda c: Slow(), lambda *a: None)
+    try:
+        blank = Frame(0, 0.0, np.zeros((4, 4, 3), np.uint8), np.ones((4, 4), np.float32))
+        for k in range(3):
+            session.submit(k, dataclasses.replace(blank, index=k, stamp=float(k)))
+        assert started.wait(10)  # frame 0 in the pipeline, 1 and 2 waiting
+        assert session.queue_depth == 2
+        assert session.needs_cpu(1, 0.0)  # the queue
+        assert not session.needs_cpu(2, 0.0)
+        time.sleep(1.1)
+        assert session.busy_share() > 0.9 and session.needs_cpu(5, 0.2)  # no margin: one frame for 1.1 s
+        release.set()
+        deadline = time.monotonic() + 10
+        while session.stats.processed < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(1.1)  # a second of rest
+        assert session.busy_share() < 0.1 and not session.needs_cpu(1, 0.2)
+        release.clear()
+        session.submit(3, dataclasses.replace(blank, index=3, stamp=3.0))
+        session.submit(4, dataclasses.replace(blank, index=4, stamp=4.0))
+        session.submit(5, dataclasses.replace(blank, index=5, stamp=5.0))
+        time.sleep(0.2)
+        assert session.needs_cpu(1, 0.2)
+    finally:
+        release.set()
+        session.stop()
+    assert not session.needs_cpu(0, 0.9)  # stopped: it needs nothing
+
+
 def test_worker_counts_drops_and_errors_and_never_raises(tmp_path):
     import threading
 
@@ -398,6 +601,8 @@ def test_service_fuses_streamed_labels_into_stored_objects(tmp_path, monkeypatch
         while time.monotonic() < end and (done(worker.stats()) < svc.robots()[0]["keyframes"]
                                           or not svc.store.count_objects()):
             time.sleep(0.1)
+        # tracking first: the frames came back to back (tracking always busy), so the worker waited
+        assert worker.tracking_busy == svc.tracking_busy and worker.stats()["waits"] >= 1, worker.stats()
         chair = next(o for o in svc.store.objects() if o.label == "chair")
         held = worker.stats()["objects"]
         with ApiThread(create_app(svc)) as url:

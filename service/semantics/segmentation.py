@@ -9,7 +9,7 @@ boxes over larger ones; pixels outside every box get the out-of-table id `len(cl
 frame (`frame.extras["labels"]`). `make_segmenter` builds the configured one, or returns
 None with the reason semantics are off (e.g. the model file is missing); with `source: auto`
 (the default) the worker takes the camera's labels where a frame carries them and the model
-(`LazyModel`, loaded when first needed) for the rest."""
+(`LazyModel`, loaded when the service starts, or when first needed) for the rest."""
 from __future__ import annotations
 
 import logging
@@ -197,7 +197,8 @@ class CameraLabels:
 
 def make_segmenter(config: SemanticsConfig) -> tuple[Segmenter | None, str | None]:
     """(the configured segmenter, None) or (None, why semantics are off). With `source: auto`
-    the model when it can run (loaded when first needed: a camera sending labels never
+    the model when it can run (a `LazyModel`: the service's worker loads it when it starts,
+    `semantics.preload`; offline runs when first needed, so a camera sending labels never
     loads it), else the camera's labels alone (`model_reason` says why there is no model)."""
     if not config.enabled:
         return None, "semantics.enabled is false"
@@ -232,8 +233,10 @@ def model_reason(config: SemanticsConfig) -> str | None:
 
 
 class LazyModel:
-    """`source: auto`'s model: an `OnnxSegmenter` built on the first keyframe that needs it
-    (one without the camera's labels). A model that cannot load raises then, every time."""
+    """`source: auto`'s model: an `OnnxSegmenter` built by `load()` (the service's semantic
+    worker calls it when it starts, `semantics.preload`) or else on the first keyframe that
+    needs it (one without the camera's labels). A model that cannot load raises then, every
+    time."""
 
     def __init__(self, path: Path, config: SemanticsConfig):
         self.path, self.config = Path(path), config
@@ -242,7 +245,13 @@ class LazyModel:
         self._model: OnnxSegmenter | None = None
         self._error: Exception | None = None
 
-    def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+    @property
+    def loaded(self) -> bool:
+        return self._model is not None
+
+    def load(self) -> OnnxSegmenter:
+        """The model, loaded now if it is not yet (~0.1 s on an idle core, and part of it holds
+        the GIL: better before a robot streams than on its first keyframe)."""
         if self._model is None:
             if self._error is not None:
                 raise self._error
@@ -251,7 +260,10 @@ class LazyModel:
             except Exception as e:
                 self._error = RuntimeError(f"cannot load model {self.path}: {e}")
                 raise self._error from e
-        return self._model.segment(rgb, depth)
+        return self._model
+
+    def segment(self, rgb: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+        return self.load().segment(rgb, depth)
 
 
 def semantics_status(config: SemanticsConfig) -> dict:

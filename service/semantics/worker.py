@@ -19,6 +19,19 @@ after each so as to be busy at most `max_duty` of the time; once they are slow o
 back-fills without rest. The map's coverage (keyframes
 segmented / keyframes) is `MapStore.segmentation_coverage`.
 
+Tracking first: in the service the worker shares the process (and its GIL) and the cores
+with every robot's tracking, which must keep its camera's rate (a robot's frame queue holds
+1 s of frames; beyond it frames are dropped). The service gives the worker a probe,
+`tracking_busy(margin)`: true while a robot's frame queue holds more than
+`semantics.yield_queue` frames or (with `margin`) its tracking used more than 1 -
+`semantics.min_slack` of the last second. The worker starts a step (a model run; a fusion,
+which is Python and holds the GIL; a back-fill) only while the probe is false, else waits
+(counted: `waits`, `wait_s`); keyframes handed over meanwhile find the queue full and wait in
+the store for the back-fill. A keyframe that waited `semantics.max_wait` seconds for the
+margin goes on without it (the queue still decides), so a robot whose tracking is always
+busy still gets a live keyframe segmented every few seconds. `source: auto`'s model
+is loaded when the worker starts (`semantics.preload`), not on the first keyframe.
+
 Without `background` (offline runs) `submit` does the work at once, so runs are
 reproducible.
 
@@ -36,6 +49,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -68,12 +82,14 @@ class SemanticKeyframe:
 _STOP = object()
 MERGE_AFTER_JOIN = 10  # keyframes after a join of two parts of the map that merge twin objects in theirs
 WAITING_LABELS = 512  # deferred keyframes whose camera labels wait in RAM for the back-fill (~5-50 kB each)
+WAIT_POLL = 0.02  # s between two looks at the tracking probe while tracking is busy
 
 
 class SemanticWorker:
     """Segments (model source) and fuses keyframes into objects, and stores them."""
 
-    def __init__(self, store: SemanticStore, segmenter: Segmenter, config: SemanticsConfig, *, background: bool = True):
+    def __init__(self, store: SemanticStore, segmenter: Segmenter, config: SemanticsConfig, *, background: bool = True,
+                 tracking_busy: Callable[[bool], bool] | None = None):
         self.store = store
         self.segmenter = segmenter
         self.config = config
@@ -96,6 +112,13 @@ class SemanticWorker:
         self._per_robot: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         self.last_error: str | None = None
         self.seconds = 0.0
+        self.waits = 0  # steps (model run, fusion) that waited for tracking (`tracking_busy`)
+        self.wait_s = 0.0  # ... and the seconds they waited
+        # the service's probe: tracking_busy(margin) is True while a robot's tracking needs the
+        # cores (its frame queue, and with `margin` its frame-time margin, see the module's
+        # doc); None: never wait (offline runs)
+        self.tracking_busy = tracking_busy
+        self._closing = threading.Event()  # close(): the queued keyframes are done without waiting
         self._queue: queue.Queue | None = None
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()  # fusion state vs `flush` from another thread
@@ -145,6 +168,7 @@ class SemanticWorker:
 
     def close(self, timeout: float = 60.0) -> None:
         """Finish the queued keyframes and write the objects (idempotent)."""
+        self._closing.set()
         if self._thread is not None:
             self._queue.put(_STOP)
             self._thread.join(timeout)
@@ -163,16 +187,48 @@ class SemanticWorker:
         """Keyframes processed, dropped, failed and skipped, and those processed that showed a
         dynamic-class thing (a person: `dynamic`, not mapped) (of `robot`'s keyframes when
         given, else of all), and the map's objects."""
-        keys = ("processed", "dropped", "deferred", "backfilled", "errors", "skipped", "dynamic")
+        keys = ("processed", "dropped", "deferred", "backfilled", "errors", "skipped", "dynamic", "waits", "wait_s")
         counts = self._per_robot.get(robot, collections.Counter()) if robot is not None else {
             k: getattr(self, k) for k in keys}
         out = {k: counts.get(k, 0) for k in keys}
+        out["wait_s"] = round(out["wait_s"], 2)
         return {**out, "objects": len(self.fusion.confirmed()), "last_error": self.last_error,
                 "ms_per_keyframe": 1e3 * self.seconds / self.processed if self.processed else None}
 
-    def _count(self, kf: SemanticKeyframe, what: str) -> None:
-        setattr(self, what, getattr(self, what) + 1)
-        self._per_robot[kf.robot][what] += 1
+    def _count(self, kf: SemanticKeyframe, what: str, n: float = 1) -> None:
+        setattr(self, what, getattr(self, what) + n)
+        self._per_robot[kf.robot][what] += n
+
+    def _busy(self, margin: bool = True) -> bool:
+        """The probe: does a robot's tracking need the cores now (its queue, and with `margin`
+        its frame-time margin)? (False without a probe, and once closing; a probe that fails
+        counts as not busy.)"""
+        probe = self.tracking_busy
+        if probe is None or self._closing.is_set():
+            return False
+        try:
+            return bool(probe(margin))
+        except Exception as e:  # (a session ending under it)
+            log.debug("semantics: tracking probe: %s", e)
+            return False
+
+    def _yield_to_tracking(self, kf: SemanticKeyframe, waited: float = 0.0) -> float:
+        """Wait while tracking needs the cores (`tracking_busy`) before a step of `kf`, which
+        already waited `waited` seconds; past `semantics.max_wait` the margin no longer
+        counts, only the queues. Returns the seconds `kf` has waited."""
+        bound = float(self.config.max_wait)
+        margin = not (bound > 0 and waited >= bound)
+        if not self._busy(margin):
+            return waited
+        t = time.perf_counter()
+        while self._busy(margin):
+            time.sleep(WAIT_POLL)
+            if margin and bound > 0 and waited + time.perf_counter() - t >= bound:
+                margin = False
+        dt = time.perf_counter() - t
+        self._count(kf, "waits")
+        self._count(kf, "wait_s", dt)
+        return waited + dt
 
     # -- the worker's thread ----------------------------------------------------------------
     def _loop(self) -> None:
@@ -182,6 +238,13 @@ class SemanticWorker:
                                os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + int(self.config.nice))
             except (AttributeError, OSError) as e:  # pragma: no cover - not Linux
                 log.info("semantic worker keeps its priority: %s", e)
+        if self.config.preload and callable(getattr(self.segmenter, "load", None)):
+            try:  # source auto's model now, before robots stream (it costs tracking a stall on a first keyframe)
+                t = time.perf_counter()
+                self.segmenter.load()
+                log.info("semantics: model %s loaded in %.2f s", self.segmenter.name, time.perf_counter() - t)
+            except Exception as e:  # said again, and counted, on each keyframe that needs it
+                log.warning("semantics: %s", e)
         duty = min(1.0, max(0.05, float(self.config.max_duty)))
         backfilling = False  # the last look found a keyframe to back-fill: look again at once
         while True:
@@ -189,7 +252,7 @@ class SemanticWorker:
                 kf = self._queue.get(block=not backfilling, timeout=0.5 if self.backfills else None)
             except queue.Empty:  # the back-fill: only while no robot maps (slow or idle), tracking keeps the cores
                 idle = time.monotonic() - self._last_keyframe >= float(self.config.idle_after)
-                kf = self._next_backfill() if idle else None
+                kf = self._next_backfill() if idle and not self._busy() else None
                 backfilling = kf is not None
                 if kf is None:
                     continue
@@ -246,6 +309,9 @@ class SemanticWorker:
         t = time.perf_counter()
         source = "camera" if kf.labels is not None and self.config.source != "model" else "model"
         try:
+            waited = 0.0
+            if kf.depth is not None and (kf.labels is None or self.config.source == "model"):
+                waited = self._yield_to_tracking(kf)  # the model run
             labels = self._labels(kf) if kf.depth is not None else None  # (no depth: no model run for nothing)
             if labels is None or kf.depth is None:
                 self._count(kf, "skipped")
@@ -254,6 +320,7 @@ class SemanticWorker:
                 if kf.depth is None or kf.image is None or not isinstance(self.segmenter, CameraLabels):
                     self.store.mark_segmented([kf.node_id], source, "skipped")
                 return
+            self._yield_to_tracking(kf, waited)  # the fusion (Python: it holds the GIL tracking needs)
             with self._lock:
                 joins = self.connectivity.joins
                 self.connectivity.refresh(self.store)  # the links stored since the last keyframe
