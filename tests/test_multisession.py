@@ -71,3 +71,109 @@ def test_the_second_session_lies_in_the_first_ones_frame(two_walks):
     for gt, kfs, bound in ((gt_a, kf_a, 0.006), (gt_b, kf_b, 0.0075)):  # measured 0.19 / 0.25 cm
         err = np.array([np.linalg.norm((to_truth @ poses[n])[:3, 3] - gt.poses[i][:3, 3]) for n, i in kfs])
         assert np.sqrt(np.mean(err ** 2)) < bound, (np.sqrt(np.mean(err ** 2)), bound)
+
+
+# -- offline: `mnemoslam run DATASET --db MAP.db --out DIR` (issue 22 item 6) ---------------------
+
+def _run(*argv) -> str:
+    """`mnemoslam run ARGV` (semantics and grid off), its standard output; exit code 0 asserted."""
+    import contextlib
+    import io
+
+    from mnemoslam.service.cli import main
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main(["run", *argv, "-q", "--set", "semantics.enabled=false", "--set", "grid.enabled=false"])
+    assert code == 0, buf.getvalue()
+    return buf.getvalue()
+
+
+def _summary(folder):
+    import json
+
+    return json.loads((folder / "summary.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def cli_walks(tmp_path_factory):
+    """walk_a, then walk_b, into one map file (not there before) through the CLI, 5 frames/s."""
+    root = tmp_path_factory.mktemp("run_db")
+    db = root / "maps" / "map.db"
+    db.parent.mkdir()
+    printed = {name: _run(f"synthetic:{name}?rate={RATE:g}", "--db", str(db), "--out", str(root / name))
+               for name in ("walk_a", "walk_b")}
+    return root, db, printed
+
+
+def _in_a_frame(root, name):
+    """(name's trajectory.tum placed in the scene by A's first pose (A's frame -> truth), its
+    ground truth at the same stamps)."""
+    from mnemoslam.client.kernel.trajectory import read_tum
+
+    ta, ga = read_tum(root / "walk_a" / "trajectory.tum"), read_tum(root / "walk_a" / "groundtruth.tum")
+    assert ta.stamps[0] == ga.stamps[0]
+    to_truth = ga.poses[0] @ invert(ta.poses[0])
+    t, g = read_tum(root / name / "trajectory.tum"), read_tum(root / name / "groundtruth.tum")
+    k = np.searchsorted(g.stamps, t.stamps)
+    assert np.allclose(g.stamps[k], t.stamps)
+    return np.einsum("ij,njk->nik", to_truth, t.poses), g.poses[k]
+
+
+def test_run_db_adds_a_session_that_joins_the_map_and_writes_it_in_the_maps_frame(cli_walks):
+    root, db, printed = cli_walks
+    assert not (root / "walk_a" / "map.db").exists() and not (root / "walk_b" / "map.db").exists()
+    a, b = _summary(root / "walk_a"), _summary(root / "walk_b")
+    assert (a["session"], a["sessions_before"], a["joined"], a["cross_links"]) == (1, 0, False, 0)
+    assert (b["session"], b["sessions_before"], b["joined"], b["map"]) == (2, 1, True, 0)
+    assert b["cross_links"] >= 2 and sum(b["cross_links_by_type"].values()) == b["cross_links"]
+    # it joined once B walked A's stretch: not at its start (measured at frame 96 of 191, 19.2 s)
+    assert 40 <= b["joined_index"] <= 150 and b["joined_stamp"] == pytest.approx(b["joined_index"] / RATE)
+    line = f"session 2 joined map 0 at keyframe {b['joined_keyframe']} (frame {b['joined_index']}"
+    assert line in printed["walk_b"] and "did not join" not in printed["walk_b"]
+    with MapStore(db, create=False) as store:
+        assert [s.id for s in store.sessions()] == [1, 2]
+        b_nodes = {n.id for n in store.nodes(session_id=2, limit=None, merged=None)}
+        assert b["joined_keyframe"] in b_nodes
+    for name, bound in (("walk_a", 0.006), ("walk_b", 0.009)):  # measured 0.21 / 0.29 cm RMSE
+        est, truth = _in_a_frame(root, name)
+        rmse = np.sqrt(np.mean(np.sum((est[:, :3, 3] - truth[:, :3, 3]) ** 2, axis=1)))
+        assert rmse < bound, (name, rmse)
+    # keyframes.tum too is in A's frame
+    from mnemoslam.client.kernel.trajectory import read_tum
+
+    kb, tb = read_tum(root / "walk_b" / "keyframes.tum"), read_tum(root / "walk_b" / "trajectory.tum")
+    k = np.searchsorted(tb.stamps, kb.stamps)
+    assert np.abs(kb.poses[:, :3, 3] - tb.poses[k, :3, 3]).max() < 1e-6
+
+
+def test_run_without_db_replaces_its_own_map(tmp_path):
+    out = tmp_path / "run"
+    for _ in range(2):
+        printed = _run("synthetic:walk_a?rate=5", "--frames", "0:15", "--out", str(out))
+        with MapStore(out / "map.db", create=False) as store:
+            assert len(store.sessions()) == 1
+    assert "joined" not in printed and _summary(out)["sessions_before"] == 0
+
+
+def test_run_db_negative_control_and_frames(tmp_path):
+    """synthetic:straight after synthetic:loop: no place in common, so no link between them
+    and each its own map; --frames plays a sub-range with the full run's stamps."""
+    db = tmp_path / "map.db"
+    _run("synthetic:loop?rate=5", "--frames", "0:150", "--db", str(db), "--out", str(tmp_path / "loop"))
+    printed = _run("synthetic:straight?rate=5", "--frames", "20:", "--db", str(db), "--out", str(tmp_path / "s"))
+    s = _summary(tmp_path / "s")
+    assert (s["session"], s["joined"], s["map"], s["cross_links"]) == (2, False, 1, 0)
+    assert "session 2 did not join the map's 1 older session(s): a map of its own (1); 0 cross-session link(s)" \
+        in printed
+    from mnemoslam.client.kernel.trajectory import read_tum
+
+    t, g = read_tum(tmp_path / "s" / "trajectory.tum"), read_tum(tmp_path / "s" / "groundtruth.tum")
+    full = open_dataset("synthetic:straight", rate=RATE)
+    assert s["frames"] == len(full) - 20 == len(t)
+    assert t.stamps[0] == pytest.approx(20 / RATE) and np.allclose(g.stamps, full.stamps[20:])
+    assert "ATE RMSE" in printed
+    with MapStore(db, create=False) as store:
+        mine = {n.id for n in store.nodes(session_id=2, limit=None, merged=None)}
+        assert all((lk.from_id in mine) == (lk.to_id in mine) for lk in store.links())
+
