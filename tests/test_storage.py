@@ -1206,3 +1206,4 @@ def test_map_index_says_when_a_session_joined_an_older_map(store, rng):
     m = index.maps()
     assert list(m) == [0] and m[0]["sessions"] == [a, b] and m[0]["robots"] == ["A", "B"]
     assert m[0]["keyframes"] == 6 and m[0]["last_change"] >= store.session(b).started_at
+    assert f"joined map 0 at keyframe {nb[2]} (stamp 12.000)" in db_info(store.path)
