@@ -247,9 +247,10 @@ def test_service_walk_b_after_walk_a_relocalizes_once_and_maps_show_it(tmp_path)
         to_truth = gt_a.poses[np.searchsorted(gt_a.stamps, traj_a.stamps[0])] @ invert(traj_a.poses[0])
         k = np.searchsorted(gt_b.stamps, traj_b.stamps)
         err = np.linalg.norm(np.einsum("ij,njk->nik", to_truth, traj_b.poses)[:, :3, 3] - gt_b.poses[k, :3, 3], axis=1)
-        assert np.sqrt(np.mean(err ** 2)) < 0.015, np.sqrt(np.mean(err ** 2))  # the issue's bound
+        # measured 0.30 cm (the issue asks for <= 1.5 cm)
+        assert np.sqrt(np.mean(err ** 2)) < 0.009, np.sqrt(np.mean(err ** 2))
         T = np.reshape(b["T_map_session"], (4, 4))
         assert np.allclose(np.reshape(e["T_map_session"], (4, 4)), T, atol=0.01)
-        assert np.linalg.norm((to_truth @ T)[:3, 3] - gt_b.poses[k[0], :3, 3]) < 0.02
+        assert np.linalg.norm((to_truth @ T)[:3, 3] - gt_b.poses[k[0], :3, 3]) < 0.015  # measured 0.45 cm
     finally:
         svc.stop()
