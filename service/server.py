@@ -45,7 +45,8 @@ class SlamService:
         )
         self.store: MapStore | None = None
         self.maps = MapIndex()  # which map each keyframe and session is in (storage.connectivity)
-        self._joins_pending: list[SessionJoin] = []  # joins seen, announced once their map update is written
+        # joins seen (and when), announced once their map update is written
+        self._joins_pending: list[tuple[SessionJoin, float]] = []
         self._maps_lock = threading.Lock()
         self.mapping: MappingProcess | None = None  # every robot's map update (loop.process)
         # the map's semantic worker, shared by every robot (one object set), and why it is off
@@ -358,7 +359,8 @@ class SlamService:
     def check_relocalized(self) -> list[dict]:
         """Read the links stored since the last look (`MapIndex`); for each session whose
         keyframes first joined an older map, once that keyframe's map update is written (its
-        statistics are its last write: the poses it moved are stored), a log line and a
+        statistics are its last write: the poses it moved are stored; at the latest 5 s after
+        the join was seen), a log line and a
         `relocalized` event on its robot's events key. Returns the events' data."""
         store = self.store
         if store is None:
@@ -366,11 +368,14 @@ class SlamService:
         out = []
         with self._maps_lock:
             try:
-                self._joins_pending += self.maps.refresh(store)
-                ready = [j for j in self._joins_pending if store.statistics(j.node) is not None]
+                now = time.monotonic()
+                self._joins_pending += [(j, now) for j in self.maps.refresh(store)]
+                # (at the latest 5 s after it was seen: a keyframe rehearsal merged may have no statistics)
+                ready = [j for j, seen in self._joins_pending
+                         if now - seen > 5.0 or store.statistics(j.node) is not None]
                 if not ready:
                     return []
-                self._joins_pending = [j for j in self._joins_pending if j not in ready]
+                self._joins_pending = [(j, seen) for j, seen in self._joins_pending if j not in ready]
                 sessions = {s.id: s for s in store.sessions()}
                 for j in ready:
                     j = self.maps.join(j.session_id) or j
