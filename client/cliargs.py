@@ -18,6 +18,19 @@ def positive_int(text: str) -> int:
     return value
 
 
+def frame_range_arg(text: str) -> tuple[int, int | None]:
+    """argparse `type=` for --frames START:END (client.datasets.subrange.parse_frames)."""
+    from .datasets.subrange import parse_frames
+
+    try:
+        return parse_frames(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+FRAMES_HELP = ("play only frames START to END-1 of the dataset (either may be left out: 300: or :500), each with "
+               "its stamp and ground truth as in the full run; --max-frames then counts from START")
+
 TOPICS_HELP = ("ROS bags: the topics to play, e.g. color=/camera/rgb/image_raw,depth=/camera/depth/image_raw,"
                "info=/camera/rgb/camera_info[,pose=/groundtruth] (roles color, depth, info, pose; repeatable). "
                "Needed only for a role the bag has several topics of; the others are found by message type")
@@ -36,4 +49,4 @@ def want_progress(quiet: bool = False, stream=None) -> bool:
         return False
 
 
-__all__ = ["TOPICS_HELP", "positive_int", "want_progress"]
+__all__ = ["FRAMES_HELP", "TOPICS_HELP", "frame_range_arg", "positive_int", "want_progress"]

@@ -113,7 +113,7 @@ class PlannerClient:
 
     # -- the maps: occupancy grid, cloud, paths on the grid (docs/grid.md) ----------------------
     def maps(self) -> list[dict]:
-        """[{"map", "keyframes"}] of the database."""
+        """[{"map", "id", "keyframes", "sessions", "robots", "objects", "last_change"}] of the database."""
         return self.get("/maps")
 
     def grid(self, map_id: int, resolution: float | None = None) -> dict:

@@ -495,7 +495,7 @@ def _no_service(settings: ZenohSettings, session, streamer: CameraStreamer, wait
 def add_stream_arguments(parser):
     """Define the `mnemoslam stream` options on `parser` (an argparse (sub)parser) and set
     `func=stream_main`. Returns the parser."""
-    from .cliargs import TOPICS_HELP, positive_int
+    from .cliargs import FRAMES_HELP, TOPICS_HELP, frame_range_arg, positive_int
     from .datasets import FORMATS
 
     src = parser.add_mutually_exclusive_group(required=True)
@@ -528,6 +528,7 @@ def add_stream_arguments(parser):
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"key expression prefix (default {DEFAULT_PREFIX})")
     parser.add_argument("--max-frames", type=positive_int, metavar="N",
                         help="stop after this many frames (a positive integer; default: all)")
+    parser.add_argument("--frames", type=frame_range_arg, metavar="START:END", help=FRAMES_HELP)
     parser.add_argument("--wait", type=_wait_seconds, nargs="?", const=math.inf, default=5.0, metavar="SECONDS",
                         help="wait for the service: without SECONDS as long as it takes (a camera started before "
                              "the service), else that long; without --wait 5 s, then `stream` fails naming the "
@@ -591,6 +592,8 @@ def stream_main(args) -> int:
     if camera is not None:
         if getattr(args, "topics", None):
             raise ValueError("--topics applies to ROS bags only, not to --camera")
+        if getattr(args, "frames", None) is not None:
+            raise ValueError("--frames applies to datasets, not to --camera")
         if labels:
             raise ValueError("--labels: a camera device / video file has no labels (only synthetic datasets do)")
         from .capture import CaptureSource
@@ -598,11 +601,14 @@ def stream_main(args) -> int:
         dataset = CaptureSource(camera, max_frames=max_frames)
     else:
         from .datasets import open_dataset
+        from .datasets.subrange import frame_range
 
-        options = {"max_frames": max_frames} if max_frames else {}
+        frames = getattr(args, "frames", None)
+        options = {"max_frames": max_frames} if max_frames and frames is None else {}
         if getattr(args, "topics", None):
             options["topics"] = args.topics
-        dataset = open_dataset(dataset_spec, getattr(args, "format", None), **options)
+        dataset = frame_range(open_dataset(dataset_spec, getattr(args, "format", None), **options), frames,
+                              max_frames)
     connect = getattr(args, "connect", None) or [DEFAULT_ENDPOINT]
     settings = ZenohSettings(mode=getattr(args, "mode", "peer") or "peer", connect=list(connect))
     quiet = bool(getattr(args, "quiet", False))

@@ -23,16 +23,22 @@ def _cmd_run(args) -> int:
     from .runner import run_dataset
 
     config = load_config(args.config, _overrides(args, {"loop": {"enabled": False}} if args.odometry_only else {}))
-    options = {"max_frames": args.max_frames} if args.max_frames else {}
+    from mnemoslam.client.datasets.subrange import frame_range
+
+    options = {"max_frames": args.max_frames} if args.max_frames and args.frames is None else {}
     if args.topics:
         options["topics"] = args.topics
-    dataset = open_dataset(args.dataset, args.format, **options)
+    dataset = frame_range(open_dataset(args.dataset, args.format, **options), args.frames, args.max_frames)
     if args.passes > 1:
         from mnemoslam.client.datasets.passes import Passes
 
         dataset = Passes(dataset, args.passes)
-    out = run_dataset(dataset, config, args.out, progress=want_progress(args.quiet))
+    if args.db:
+        check_db_folder(args.db)
+    out = run_dataset(dataset, config, args.out, progress=want_progress(args.quiet), db=args.db)
     print(out.summary.line())
+    if out.summary.map_line():
+        print(out.summary.map_line())
     g = getattr(out, "grid", None)
     if g:
         line = f"grid: {g['width']}x{g['height']} cells, {g['observed']} observed"
@@ -56,7 +62,8 @@ def _cmd_run(args) -> int:
         if args.out and config.loop.enabled:
             from .evaluation import evaluate_map_loops
 
-            print(evaluate_map_loops(dataset.ground_truth, Path(args.out) / "map.db", config.loop.min_age).format())
+            print(evaluate_map_loops(dataset.ground_truth, Path(args.db) if args.db else Path(args.out) / "map.db",
+                                     config.loop.min_age, session_id=out.summary.session).format())
         if out.links is not None:
             print(out.links.format())
     return 0 if out.summary.tracked else 1
@@ -204,7 +211,7 @@ def _add_set(parser, whose: str = "") -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mnemoslam.client.cliargs import TOPICS_HELP, positive_int
+    from mnemoslam.client.cliargs import FRAMES_HELP, TOPICS_HELP, frame_range_arg, positive_int
     from mnemoslam.client.datasets import FORMATS
 
     p = argparse.ArgumentParser(prog="mnemoslam", description="Long-term, memory-managed visual SLAM.")
@@ -214,7 +221,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a dataset offline through the SLAM pipeline")
     r.add_argument("dataset", help="dataset folder (TUM, EuRoC, KITTI, 7-Scenes), ROS bag (rosbag2 folder, .db3, "
                                    ".mcap, ROS 1 .bag) or synthetic[:loop|figure8|...]")
-    r.add_argument("--out", required=True, help="output folder (trajectory.tum, keyframes.tum, summary.json, map.db, "
+    r.add_argument("--out", required=True, help="output folder (trajectory.tum, keyframes.tum, summary.json, map.db "
+                                                "unless --db, "
                                                 "grid.pgm + grid.yaml, cloud.ply)")
     r.add_argument("--format", choices=list(FORMATS), help="override layout detection")
     r.add_argument("--topics", action="append", metavar="ROLE=TOPIC,...", help=TOPICS_HELP)
@@ -224,6 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "frame rate (long runs from any dataset; groundtruth.tum follows the same stamps)")
     r.add_argument("--max-frames", type=positive_int, metavar="N",
                    help="stop after this many frames (a positive integer; default: all)")
+    r.add_argument("--frames", type=frame_range_arg, metavar="START:END", help=FRAMES_HELP)
+    r.add_argument("--db", metavar="MAP.db",
+                   help="add the run as a session to this map database (made when absent) instead of a new "
+                        "DIR/map.db; its trajectories are in the map's frame once it joined the map")
     r.add_argument("--odometry-only", action="store_true", help="no loop closure (loop.enabled: false), the baseline")
     _add_set(r)
     r.add_argument("-q", "--quiet", action="store_true", help=QUIET_HELP)

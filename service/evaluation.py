@@ -311,17 +311,18 @@ def evaluate_loops(gt: Trajectory, node_ids, node_stamps, links, min_age: float 
 
 
 def evaluate_map_loops(gt: Trajectory, db_path: str | Path, min_age: float = 10.0, types=None,
-                       **options) -> LoopReport:
+                       session_id: int | None = None, **options) -> LoopReport:
     """`evaluate_loops` (with `options`) over the links of a map database of the given
     `types` (LinkType values; default: every loop link, appearance and proximity by space, and
     rehearsal's `merged` links: a keyframe merged into the node of a place seen before closed
-    that revisit as a loop link would, with the merge link's relative pose)."""
+    that revisit as a loop link would, with the merge link's relative pose). With
+    `session_id`, only that session's keyframes and the links between them (the ground truth
+    is one session's: another session's stamps mean other poses)."""
     from mnemoslam.storage import LinkType, MapStore
 
     types = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.MERGED) if types is None else types
     with MapStore(db_path, create=False) as store:
-        nodes = store.nodes(limit=None)
-        links = [x for t in types for x in store.links(type=t)]
+        nodes, links = _session_graph(store, session_id, types)
     return evaluate_loops(gt, [n.id for n in nodes], [n.stamp for n in nodes],
                           [(x.from_id, x.to_id, x.transform) for x in links], min_age=min_age, **options)
 
@@ -427,14 +428,23 @@ def evaluate_links(gt: Trajectory, node_ids, node_stamps, links, max_dt: float =
     return LinkReport((float(bounds[0]), float(bounds[1])), out, rows)
 
 
+def _session_graph(store, session_id: int | None, types=None) -> tuple[list, list]:
+    """(nodes, links of `types` or all) of the map, or of one session (links inside it)."""
+    nodes = store.nodes(limit=None, session_id=session_id)
+    links = [x for t in types for x in store.links(type=t)] if types is not None else store.links()
+    if session_id is not None:
+        mine = {n.id for n in store.nodes(limit=None, session_id=session_id, merged=None)}
+        links = [x for x in links if x.from_id in mine and x.to_id in mine]
+    return nodes, links
+
+
 def evaluate_map_links(gt: Trajectory, db_path: str | Path, max_dt: float = 0.02,
-                       bounds: tuple[float, float] = (5.0, 3.0)) -> LinkReport:
+                       bounds: tuple[float, float] = (5.0, 3.0), session_id: int | None = None) -> LinkReport:
     """`evaluate_links` over every link of a map database (every session, merged keyframes
-    included)."""
+    included; with `session_id`, as `evaluate_map_loops`)."""
     from mnemoslam.storage import MapStore
 
     with MapStore(db_path, create=False) as store:
-        nodes = store.nodes(limit=None)
-        links = store.links()
+        nodes, links = _session_graph(store, session_id)
     return evaluate_links(gt, [n.id for n in nodes], [n.stamp for n in nodes],
                           [(x.from_id, x.to_id, int(x.type), x.transform) for x in links], max_dt, bounds)

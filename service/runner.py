@@ -44,6 +44,17 @@ class RunSummary:
     loops: int = 0  # accepted loop closures
     merged: int = 0  # keyframes merged into a node the map had (rehearsal): the map has keyframes - merged nodes
     links_dropped: int = 0  # verified loop / proximity links refused because their estimated uncertainty was too large
+    # the map database's session of the run, and which map it ended in (its own, or an older one it joined:
+    # `run --db` onto an existing map); joined_* say when (its keyframe at the joining link, that keyframe's stamp)
+    session: int | None = None
+    map: int | None = None
+    joined: bool = False
+    joined_keyframe: int | None = None
+    joined_stamp: float | None = None
+    joined_index: int | None = None  # the dataset's frame index of that keyframe
+    cross_links: int = 0  # links between the session's keyframes and other sessions' (all types)
+    cross_links_by_type: dict | None = None  # {link type name: count}
+    sessions_before: int = 0  # sessions the map database had before the run
 
     def line(self) -> str:
         merged = f" ({self.merged} merged)" if self.merged else ""
@@ -51,6 +62,19 @@ class RunSummary:
         return (f"{self.dataset}: {self.frames} frames, {self.tracked} tracked, {self.keyframes} keyframes{merged}, "
                 f"{self.lost} lost, {self.skipped} skipped, {self.bad} unreadable, {self.segments} segment(s), "
                 f"{self.loops} loop(s){dropped}, {self.fps:.1f} frames/s")
+
+    def map_line(self) -> str | None:
+        """Where the session ended up in a map with older sessions (None for a run into a new map)."""
+        if self.session is None or not self.sessions_before:
+            return None
+        by_type = ", ".join(f"{n} {k}" for k, n in sorted((self.cross_links_by_type or {}).items()))
+        links = f"{self.cross_links} cross-session link(s)" + (f" ({by_type})" if by_type else "")
+        if self.joined:
+            return (f"session {self.session} joined map {self.map} at keyframe {self.joined_keyframe} (frame "
+                    f"{self.joined_index}, stamp {self.joined_stamp:.3f} s); {links}; trajectories in map "
+                    f"{self.map}'s frame")
+        return (f"session {self.session} did not join the map's {self.sessions_before} older session(s): a map of "
+                f"its own ({self.map}); {links}; trajectories in its own frame")
 
 
 @dataclass
@@ -71,10 +95,12 @@ class RunOutput:
 
 
 def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = None,
-                progress: bool = True) -> RunOutput:
+                progress: bool = True, db: str | Path | None = None) -> RunOutput:
     """Run every frame of `dataset` through one pipeline; write `trajectory.tum`,
     `keyframes.tum` (and `groundtruth.tum` when the dataset has it), the map database
-    `map.db` (the same one the service writes) and, with grid.enabled, the map's occupancy
+    `map.db` (the same one the service writes; a run replaces it) or, with `db`, a new session
+    in that map database (made when absent: the run continues the map, and its trajectories are
+    in the map's frame once the session joined it, `RunSummary.joined`) and, with grid.enabled, the map's occupancy
     grid and cloud (`grid.pgm`, `grid.yaml`, `cloud.ply`; synthetic: `groundtruth_grid.*`)
     into `out_dir`; with semantics on also
     `objects.json` (the fused objects at their final positions) and, for synthetic data,
@@ -86,10 +112,16 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             out_dir = Path(out_dir)
             out_dir.mkdir(parents=True, exist_ok=True)
             out_dir_db = out_dir
-        db = out_dir_db / "map.db"
-        for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
-            p.unlink(missing_ok=True)  # a run replaces the previous run's map
+        if db is None:
+            db = out_dir_db / "map.db"
+            for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
+                p.unlink(missing_ok=True)  # a run replaces the previous run's map
+        else:  # a session more in that map (a new file when absent; its folder must exist)
+            db = Path(db)
+            if not db.parent.is_dir():
+                raise DatasetError(f"--db {db}: the folder {db.parent} does not exist")
         store = stack.enter_context(MapStore(db))
+        before = len(store.sessions())
         pipeline = build_pipeline(store, dataset.name, dataset.calibration, config)  # map update inline
         out = _run(dataset, pipeline, progress)
         pipeline.close()  # the graph's final poses to the database, the session ended
@@ -104,8 +136,9 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             out.summary.loops = len(mapper.loops)
             out.summary.merged = mapper.merged
             out.summary.links_dropped = mapper.links_dropped
+        _session_map(store, pipeline.session_id, out, before)
         if dataset.ground_truth is not None:  # every link of the map against the true relative poses
-            out.links = evaluate_map_links(dataset.ground_truth, db)
+            out.links = evaluate_map_links(dataset.ground_truth, db, session_id=pipeline.session_id)
     if out_dir is not None:
         write_tum(out_dir / "trajectory.tum", out.trajectory)
         write_tum(out_dir / "trajectory_online.tum", out.online)
@@ -126,6 +159,31 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
         if config.grid.enabled:
             out.grid = write_run_grids(db, out_dir, config, dataset, out.keyframes)
     return out
+
+
+def _session_map(store, session_id: int | None, out: RunOutput, sessions_before: int) -> None:
+    """The summary's session, its map and join (storage.connectivity.MapIndex), and its links
+    to other sessions' keyframes."""
+    from mnemoslam.storage import link_name
+    from mnemoslam.storage.connectivity import MapIndex
+
+    s = out.summary
+    s.session, s.sessions_before = session_id, sessions_before
+    if session_id is None:
+        return
+    index = MapIndex()
+    index.refresh(store)
+    j = index.join(session_id)
+    s.map = j.map if j is not None else None
+    if j is not None and j.joined:
+        s.joined, s.joined_keyframe, s.joined_stamp = True, j.node, j.stamp
+        s.joined_index = next((r.index for r in out.results if r.node_id == j.node), None)
+    mine = {n.id for n in store.nodes(session_id=session_id, limit=None, merged=None)}
+    by_type: dict[str, int] = {}
+    for lk in store.links(session_id=session_id):
+        if (lk.from_id in mine) != (lk.to_id in mine):
+            by_type[link_name(lk.type)] = by_type.get(link_name(lk.type), 0) + 1
+    s.cross_links, s.cross_links_by_type = sum(by_type.values()), by_type
 
 
 def write_run_grids(db: Path, out_dir: Path, config: Config, dataset: Dataset, keyframes: Trajectory) -> dict | None:

@@ -20,7 +20,8 @@ from collections import Counter, deque
 from mnemoslam.client.kernel import protocol
 from mnemoslam.client.kernel.frames import Calibration, Frame
 from mnemoslam.client.transport import ZenohSettings, open_session, undeclare_all
-from mnemoslam.storage import MapStore, StoreError
+from mnemoslam.storage import MapStore, StoreError, link_name
+from mnemoslam.storage.connectivity import MapIndex, SessionJoin
 
 from . import malloc
 from .builder import build_pipeline, build_semantics
@@ -43,6 +44,10 @@ class SlamService:
             max_width=config.service.max_image_side, max_height=config.service.max_image_side,
         )
         self.store: MapStore | None = None
+        self.maps = MapIndex()  # which map each keyframe and session is in (storage.connectivity)
+        # joins seen (and when), announced once their map update is written
+        self._joins_pending: list[tuple[SessionJoin, float]] = []
+        self._maps_lock = threading.Lock()
         self.mapping: MappingProcess | None = None  # every robot's map update (loop.process)
         # the map's semantic worker, shared by every robot (one object set), and why it is off
         self.semantics: tuple[SemanticWorker | None, str | None] = (None, "service not started")
@@ -77,6 +82,8 @@ class SlamService:
         self.semantics = build_semantics(self.store, self.config, background=True)
         if self.semantics[0] is not None:  # tracking first: the worker waits while a robot's tracking is busy
             self.semantics[0].tracking_busy = self.tracking_busy
+        self.maps = MapIndex()
+        self.maps.refresh(self.store)  # the joins of the sessions before this start are history: no event
         self.zenoh = open_session(ZenohSettings(z.mode, list(z.listen), list(z.connect),
                                                 z.multicast_scouting, z.gossip_scouting, z.shared_memory))
         self._subscribers = [
@@ -321,6 +328,7 @@ class SlamService:
         last_trim = time.monotonic()
         while not self._stopped.wait(min(1.0, self.config.service.idle_timeout / 4, self.config.service.info_timeout)):
             now = time.monotonic()
+            self.check_relocalized()
             if 0 < self.config.service.malloc_trim_s <= now - last_trim:  # the C heap's free pages back (issue 24)
                 malloc.trim()
                 last_trim = now
@@ -346,7 +354,48 @@ class SlamService:
 
         def on_event(kind: str, data: dict) -> None:
             self.publish(events, protocol.encode_event(robot, kind, **data))
+            if kind in ("map_corrected", "loop_closed"):  # (the map update's: a join shows first here)
+                self.check_relocalized()
         return on_event
+
+    def check_relocalized(self) -> list[dict]:
+        """Read the links stored since the last look (`MapIndex`); for each session whose
+        keyframes first joined an older map, once that keyframe's map update is written (its
+        statistics are its last write: the poses it moved are stored; at the latest 5 s after
+        the join was seen), a log line and a
+        `relocalized` event on its robot's events key. Returns the events' data."""
+        store = self.store
+        if store is None:
+            return []
+        out = []
+        with self._maps_lock:
+            try:
+                now = time.monotonic()
+                self._joins_pending += [(j, now) for j in self.maps.refresh(store)]
+                # (at the latest 5 s after it was seen: a keyframe rehearsal merged may have no statistics)
+                ready = [j for j, seen in self._joins_pending
+                         if now - seen > 5.0 or store.statistics(j.node) is not None]
+                if not ready:
+                    return []
+                self._joins_pending = [(j, seen) for j, seen in self._joins_pending if j not in ready]
+                sessions = {s.id: s for s in store.sessions()}
+                for j in ready:
+                    j = self.maps.join(j.session_id) or j
+                    first = store.get_node(j.first_node)
+                    s = sessions.get(j.session_id)
+                    if first is None or s is None:
+                        continue
+                    data = {"session_id": j.session_id, "map": j.map, "node_id": j.node, "stamp": j.stamp,
+                            "peer": j.peer, "link": link_name(j.link),
+                            "T_map_session": [round(float(v), 9) for v in first.pose.reshape(-1)]}
+                    log.info("relocalized robot=%s session=%d map=%s keyframe=%d stamp=%.3f peer=%d link=%s "
+                             "T_map_session.t=[%.3f, %.3f, %.3f]", s.robot, j.session_id, j.map, j.node, j.stamp,
+                             j.peer, data["link"], *first.pose[:3, 3])
+                    self.publish(self.keys.events(s.robot), protocol.encode_event(s.robot, "relocalized", **data))
+                    out.append(data)
+            except StoreError as e:  # a store closing under a stopping service
+                log.debug("relocalization check: %s", e)
+        return out
 
     def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:
         on_event = self._event_publisher(robot)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import datetime as _dt
 from pathlib import Path
 
+from .connectivity import MapIndex
 from .records import StoreError
 from .store import MapStore
 
@@ -31,6 +32,9 @@ def db_info(path: str | Path) -> str:
         per_session = store.session_stats()
         sessions = store.sessions()
         integrity = store.integrity_check()
+        index = MapIndex()
+        index.refresh(store)
+        joins = {s.id: index.join(s.id) for s in sessions}
     lines = [
         f"database  {Path(path)}",
         f"schema    v{st['schema_version']}",
@@ -38,16 +42,20 @@ def db_info(path: str | Path) -> str:
         f"sessions  {st['sessions']}",
     ]
     if sessions:
-        lines.append(f"  {'id':>4}  {'robot':<16} {'map':>4} {'nodes':>7}  {'first stamp':>17}  {'last stamp':>17}  "
-                     f"{'started':<19}  ended")
+        lines.append(f"  {'id':>4}  {'robot':<16} {'map':>4} {'in map':>6} {'nodes':>7}  {'first stamp':>17}  "
+                     f"{'last stamp':>17}  {'started':<19}  ended")
         for s in sessions:
             ps = per_session.get(s.id, {})
             n, first, last = ps.get("nodes", 0), ps.get("first_stamp"), ps.get("last_stamp")
             f = "-" if first is None else f"{first:.6f}"
             la = "-" if last is None else f"{last:.6f}"
             how = f" ({s.end_reason})" if s.end_reason else ""
-            lines.append(f"  {s.id:>4}  {s.robot:<16} {s.map_id:>4} {n:>7}  {f:>17}  {la:>17}  "
-                         f"{_when(s.started_at):<19}  {_when(s.ended_at)}{how}")
+            j = joins.get(s.id)
+            now = "-" if j is None or j.first_node is None else str(j.map)
+            joined = (f"; joined map {j.map} at keyframe {j.node} (stamp {j.stamp:.3f})"
+                      if j is not None and j.joined else "")
+            lines.append(f"  {s.id:>4}  {s.robot:<16} {s.map_id:>4} {now:>6} {n:>7}  {f:>17}  {la:>17}  "
+                         f"{_when(s.started_at):<19}  {_when(s.ended_at)}{how}{joined}")
     by_type = ", ".join(f"{k} {v}" for k, v in st["links_by_type"].items())
     lines += [
         f"nodes     {st['nodes']}",

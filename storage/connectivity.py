@@ -15,9 +15,14 @@ relink) joins the same nodes again, so components never split here.
 """
 from __future__ import annotations
 
+import dataclasses
+import threading
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+
+from .records import LinkType
 
 
 class LinkLog(Protocol):
@@ -68,3 +73,146 @@ class MapConnectivity:
         u, inv = np.unique(np.asarray(nodes, np.int64), return_inverse=True)
         return np.array([self.find(int(n)) for n in u], np.int64)[inv].reshape(-1)
 
+
+
+# -- maps and sessions ---------------------------------------------------------------------------
+
+
+@dataclass
+class SessionJoin:
+    """Which map a session is in and, when its keyframes joined an older map, when and how.
+
+    A session's frame is its first keyframe's camera frame: tracking starts at the identity on
+    the first frame it tracks, which is the session's first keyframe. Until a link joins that
+    keyframe's part of the graph to an older one, the session is its own map (`map` = its own
+    map id). `node` is the session's keyframe at the link that joined it (`peer` the other map's
+    keyframe, `link` its type), `stamp` that keyframe's stamp. `T_map_session` (`MapIndex.join`)
+    is the first keyframe's current pose: the session's frame in the map's frame."""
+
+    session_id: int
+    own_map: int  # the session's map id (sessions.map_id: a new one per session)
+    map: int  # the map its first keyframe is in now
+    first_node: int | None  # None: no keyframe yet
+    node: int | None = None  # None: not joined (yet)
+    peer: int | None = None
+    link: int | None = None
+    stamp: float | None = None
+
+    @property
+    def joined(self) -> bool:
+        return self.node is not None
+
+
+class MapIndex:
+    """Which map each keyframe and each session is in, read incrementally from the store
+    (`link_rows`, `node_sessions`, `sessions`: a `MapReader`). A map is a connected part of the
+    pose graph named by the map id of the session of its oldest node (as `MapConnectivity`'s
+    roots). Replaying the links in the order they were stored, a session joins an older map at
+    the first link after which its first keyframe is no longer its part's oldest node.
+    Thread-safe."""
+
+    def __init__(self):
+        self._links = MapConnectivity()
+        self._rowid = 0
+        self._last_node = 0
+        self._session_of: dict[int, int] = {}  # node -> session
+        self._stamp: dict[int, float] = {}
+        self._time: dict[int, float] = {}  # node -> wall time written
+        self._first: dict[int, int] = {}  # session -> its first node
+        self._first_of: dict[int, int] = {}  # first node -> its session (not joined yet)
+        self._merged: set[int] = set()  # nodes rehearsal merged into another
+        self._sessions: dict = {}  # session id -> SessionRecord
+        self._joins: dict[int, SessionJoin] = {}  # session -> its join (joined ones)
+        self._lock = threading.Lock()
+
+    def refresh(self, store) -> list[SessionJoin]:
+        """Read the nodes, sessions and links stored since the last call; returns the sessions
+        that joined an older map in the links read (oldest link first)."""
+        with self._lock:
+            rowid, rows = store.link_rows(self._rowid)  # links first: every node they name is read next
+            nodes = store.node_sessions(self._last_node)
+            if len(nodes["id"]) or not self._sessions:
+                self._sessions = {s.id: s for s in store.sessions()}
+            for n, s, t, w in zip(nodes["id"].tolist(), nodes["session_id"].tolist(), nodes["stamp"].tolist(),
+                                  nodes["time_enter"].tolist()):
+                self._session_of[n], self._stamp[n], self._time[n] = s, t, w
+                if s not in self._first:
+                    self._first[s] = n
+                    self._first_of[n] = s
+            if len(nodes["id"]):
+                self._last_node = int(nodes["id"][-1])
+            self._rowid = rowid
+            new = []
+            merged_type = int(LinkType.MERGED)
+            for a, b, t in rows.tolist():
+                if t == merged_type:
+                    self._merged.add(b)
+                ra, rb = self._links.find(a), self._links.find(b)
+                if ra == rb:
+                    continue
+                hi = max(ra, rb)
+                s = self._first_of.pop(hi, None)  # a session's first keyframe stops being its part's oldest
+                if s is not None:
+                    node, peer = (a, b) if ra == hi else (b, a)
+                    j = SessionJoin(s, self._sessions[s].map_id if s in self._sessions else -1, -1, hi, node, peer,
+                                    t, self._stamp.get(node))
+                    self._joins[s] = j
+                    new.append(j)
+                self._links.union(a, b)
+            for j in new:
+                j.map = self._map_of(j.first_node)
+            return new
+
+    def _map_of(self, node: int) -> int | None:
+        root = self._links.find(int(node))
+        s = self._session_of.get(root)
+        return None if s is None or s not in self._sessions else self._sessions[s].map_id
+
+    def map_of(self, node: int) -> int | None:
+        """The map `node` is in (after the last `refresh`; None for a node not read yet)."""
+        with self._lock:
+            return self._map_of(node)
+
+    def join(self, session_id: int) -> SessionJoin | None:
+        """The session's map and join (None for an unknown session), after the last `refresh`."""
+        with self._lock:
+            s = self._sessions.get(session_id)
+            if s is None:
+                return None
+            first = self._first.get(session_id)
+            j = self._joins.get(session_id)
+            if j is None:
+                return SessionJoin(session_id, s.map_id, s.map_id, first)
+            return dataclasses.replace(j, map=self._map_of(first))
+
+    def maps(self) -> dict[int, dict]:
+        """{map id: {"sessions": ids, "robots": names, "keyframes": its nodes not merged into
+        another, "last_change": wall time of its newest keyframe or session start / end,
+        "node_ids": every node of it (int64 array)}} after the last `refresh`: every map that
+        has a keyframe (a session joined into an older map is that map's, not one of its own)."""
+        with self._lock:
+            out: dict[int, dict] = {}
+            ids = np.fromiter(self._session_of, np.int64, len(self._session_of))
+            if not len(ids):
+                return out
+            roots = self._links.roots(ids)
+            maps_of_root = {r: self._map_of(r) for r in np.unique(roots).tolist()}
+            node_map = np.array([maps_of_root[r] for r in roots.tolist()], np.int64)
+            for sid, first in self._first.items():
+                m = self._map_of(first)
+                s = self._sessions.get(sid)
+                if m is None or s is None:
+                    continue
+                e = out.setdefault(m, {"sessions": [], "robots": [], "keyframes": 0, "last_change": 0.0,
+                                       "node_ids": np.zeros(0, np.int64)})
+                e["sessions"].append(sid)
+                if s.robot not in e["robots"]:
+                    e["robots"].append(s.robot)
+                e["last_change"] = max(e["last_change"], s.started_at, s.ended_at or 0.0)
+            for m, e in out.items():
+                sel = ids[node_map == m]
+                e["node_ids"] = sel
+                e["keyframes"] = int(len(sel) - len(self._merged.intersection(sel.tolist())))
+                e["last_change"] = max([e["last_change"]] + [self._time[n] for n in sel[-1:].tolist()])
+                e["sessions"].sort()
+            return out

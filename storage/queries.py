@@ -117,6 +117,27 @@ class Queries(Part):
         a = np.array(rows, np.int64)
         return int(a[-1, 0]), a[:, 1:]
 
+    def link_rows(self, rowid: int = 0) -> tuple[int, np.ndarray]:
+        """As `links_after`, with each link's type: (the newest row, (L, 3) int64 (from, to,
+        type) in row order). For which map each keyframe and session is in (`storage.connectivity`)."""
+        with self.db.read() as c:
+            rows = c.execute("SELECT rowid, from_id, to_id, type FROM links WHERE rowid > ? ORDER BY rowid",
+                             (as_int(rowid, "rowid"),)).fetchall()
+        if not rows:
+            return int(rowid), np.zeros((0, 3), np.int64)
+        a = np.array(rows, np.int64)
+        return int(a[-1, 0]), a[:, 1:]
+
+    def node_sessions(self, after_id: int = 0) -> dict[str, np.ndarray]:
+        """The nodes with id > `after_id` by id (merged ones too), without decoding poses:
+        {"id", "session_id" (int64), "stamp", "time_enter" (float64, wall time written)}."""
+        with self.db.read() as c:
+            rows = c.execute("SELECT id, session_id, stamp, time_enter FROM nodes WHERE id > ? ORDER BY id",
+                             (as_int(after_id, "after_id"),)).fetchall()
+        a = np.array(rows, np.float64).reshape(-1, 4)
+        return {"id": a[:, 0].astype(np.int64), "session_id": a[:, 1].astype(np.int64), "stamp": a[:, 2],
+                "time_enter": a[:, 3]}
+
     def load_images(self, node_id: int) -> tuple[bytes | None, bytes | None]:
         """(JPEG colour, PNG-16 millimetre depth) as stored; (None, None) when not kept."""
         nid = as_int(node_id, "node_id")

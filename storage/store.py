@@ -146,6 +146,8 @@ class MapStore:
     links = _via("_queries", Queries.links)
     link_pairs = _via("_queries", Queries.link_pairs)
     links_after = _via("_queries", Queries.links_after)
+    link_rows = _via("_queries", Queries.link_rows)
+    node_sessions = _via("_queries", Queries.node_sessions)
     count_links = _via("_queries", Queries.count_links)
     trajectory = _via("_queries", Queries.trajectory)
     map_updates = _via("_queries", Queries.map_updates)

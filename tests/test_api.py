@@ -121,6 +121,14 @@ def test_semantic_endpoints_on_the_real_service(service):
     the object endpoints say so; without a configured token nothing can change the map."""
     r = service.api.robot("p1")
     assert len(r["position"]) == 3 and isinstance(r["node_id"], int)
+    import numpy as np
+
+    # one map: /robots and /robots/{id} name the same one, /sessions says the session is its own (not joined)
+    assert r["map"] == 0 and [x["map"] for x in service.api.get("/robots")] == [0]
+    s = service.api.get("/sessions")[-1]
+    assert (s["map"], s["map_id"], s["joined"], s["joined_keyframe"]) == (0, 0, False, None)
+    assert s["T_map_session"] is not None and np.allclose(np.reshape(s["T_map_session"], (4, 4)), np.eye(4), atol=1e-6)
+    assert service.api.get(f"/sessions/{s['id']}")["map"] == 0
     with pytest.raises(ApiError) as e:
         service.api.nearest_object("door", robot="p1")
     assert e.value.status == 404 and "no objects" in e.value.detail and "semantics are off" in e.value.detail
@@ -144,7 +152,10 @@ def test_grid_endpoints_on_the_real_service(service):
 
     session = service.session_of("p1")
     keyframes = service.api.nodes(session, limit=1)["total"]
-    assert service.api.maps() == [{"map": 0, "keyframes": keyframes}]
+    maps = service.api.maps()
+    assert [(m["map"], m["id"], m["keyframes"], m["sessions"], m["robots"]) for m in maps] == [
+        (0, 0, keyframes, [session], ["p1"])]
+    assert maps[0]["last_change"] > 1.7e9 and maps[0]["objects"] >= 0
     g = service.api.grid(0)
     assert g["keyframes"] == keyframes > 3
     data = np.array(g["data"])

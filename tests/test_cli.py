@@ -39,9 +39,10 @@ def fake_run(monkeypatch):
     """mnemoslam.service.runner.run_dataset replaced by a recorder (no pipeline runs)."""
     calls = []
 
-    def run_dataset(dataset, config, out_dir=None, progress=True):
-        calls.append(SimpleNamespace(config=config, progress=progress))
-        return SimpleNamespace(summary=SimpleNamespace(line=lambda: "fake run", tracked=1), trajectory=[])
+    def run_dataset(dataset, config, out_dir=None, progress=True, db=None):
+        calls.append(SimpleNamespace(config=config, progress=progress, db=db, dataset=dataset))
+        return SimpleNamespace(summary=SimpleNamespace(line=lambda: "fake run", map_line=lambda: None, tracked=1),
+                               trajectory=[])
 
     monkeypatch.setattr("mnemoslam.service.runner.run_dataset", run_dataset)
     return calls
@@ -116,6 +117,22 @@ def test_run_set_overrides_config_keys(tmp_path, fake_run):
           "--set", "loop.enabled=true", "--odometry-only"])
     c = fake_run[-1].config
     assert (c.service.queue_size, c.memory.stm_size, c.loop.enabled) == (6, 4, False)
+
+
+def test_run_db_and_frames_reach_the_run(tmp_path, capsys, fake_run):
+    out = str(tmp_path / "o")
+    assert main(["run", "synthetic:walk_a?rate=5", "--out", out, "--db", str(tmp_path / "m.db"),
+                 "--frames", "10:20", "--max-frames", "4"]) == 0
+    c = fake_run[-1]
+    assert c.db == str(tmp_path / "m.db") and len(c.dataset) == 4 and c.dataset.origin(0) == 10
+    assert main(["run", "synthetic:walk_a?rate=5", "--out", out, "--frames", "170:"]) == 0
+    assert fake_run[-1].db is None and len(fake_run[-1].dataset) == 11
+    # a missing folder for --db and a bad range are one-line errors before any run
+    assert main(["run", "synthetic:loop", "--out", out, "--db", str(tmp_path / "no" / "m.db")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["run", "synthetic:loop", "--out", out, "--frames", "9:3"])
+    assert "START < END" in capsys.readouterr().err and len(fake_run) == 2
 
 
 @pytest.mark.parametrize("item, message", [

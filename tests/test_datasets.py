@@ -485,3 +485,30 @@ def test_run_passes_writes_ground_truth_at_the_played_stamps(tmp_path):
     est = read_tum(tmp_path / "trajectory.tum")
     assert len(gt) == 20 + 19 + 19 and np.all(np.diff(gt.stamps) > 0)
     np.testing.assert_allclose(est.stamps, gt.stamps)
+
+
+# -- --frames START:END (issue 22): a sub-range, frames and stamps as in the full run -------------
+
+
+def test_frames_range_parses_and_plays_the_full_runs_frames():
+    from mnemoslam.client.datasets.subrange import frame_range, parse_frames
+
+    assert parse_frames("0:500") == (0, 500) and parse_frames("300:") == (300, None) and parse_frames(":5") == (0, 5)
+    for bad in ("5", "5:5", "-1:3", "a:b", "7:3"):
+        with pytest.raises(ValueError):
+            parse_frames(bad)
+    full = open_dataset("synthetic:walk_a?rate=5")
+    assert full.rate == 5.0 and len(full) == 181
+    part = frame_range(full, "20:30")
+    assert len(part) == 10 and part.name.endswith("[20:30]") and part.origin(0) == 20
+    assert np.array_equal(part.stamps, full.stamps[20:30])
+    f, g = part.frame(3), full.frame(23)
+    assert (f.index, f.stamp) == (23, g.stamp) and np.array_equal(f.image, g.image) and np.array_equal(f.depth, g.depth)
+    assert np.array_equal(part.ground_truth.stamps, full.stamps[20:30])
+    assert np.array_equal(part.ground_truth.poses, full.ground_truth.poses[20:30])
+    assert len(frame_range(full, "170:", max_frames=4)) == 4 and len(frame_range(full, "170:")) == 11
+    assert frame_range(full, None) is full
+    with pytest.raises(DatasetError):
+        frame_range(full, "200:300")
+    with pytest.raises(DatasetError, match="rate"):
+        open_dataset("synthetic:walk_a?rate=fast")

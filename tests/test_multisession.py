@@ -71,3 +71,186 @@ def test_the_second_session_lies_in_the_first_ones_frame(two_walks):
     for gt, kfs, bound in ((gt_a, kf_a, 0.006), (gt_b, kf_b, 0.0075)):  # measured 0.19 / 0.25 cm
         err = np.array([np.linalg.norm((to_truth @ poses[n])[:3, 3] - gt.poses[i][:3, 3]) for n, i in kfs])
         assert np.sqrt(np.mean(err ** 2)) < bound, (np.sqrt(np.mean(err ** 2)), bound)
+
+
+# -- offline: `mnemoslam run DATASET --db MAP.db --out DIR` (issue 22 item 6) ---------------------
+
+def _run(*argv) -> str:
+    """`mnemoslam run ARGV` (semantics and grid off), its standard output; exit code 0 asserted."""
+    import contextlib
+    import io
+
+    from mnemoslam.service.cli import main
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main(["run", *argv, "-q", "--set", "semantics.enabled=false", "--set", "grid.enabled=false"])
+    assert code == 0, buf.getvalue()
+    return buf.getvalue()
+
+
+def _summary(folder):
+    import json
+
+    return json.loads((folder / "summary.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def cli_walks(tmp_path_factory):
+    """walk_a, then walk_b, into one map file (not there before) through the CLI, 5 frames/s."""
+    root = tmp_path_factory.mktemp("run_db")
+    db = root / "maps" / "map.db"
+    db.parent.mkdir()
+    printed = {name: _run(f"synthetic:{name}?rate={RATE:g}", "--db", str(db), "--out", str(root / name))
+               for name in ("walk_a", "walk_b")}
+    return root, db, printed
+
+
+def _in_a_frame(root, name):
+    """(name's trajectory.tum placed in the scene by A's first pose (A's frame -> truth), its
+    ground truth at the same stamps)."""
+    from mnemoslam.client.kernel.trajectory import read_tum
+
+    ta, ga = read_tum(root / "walk_a" / "trajectory.tum"), read_tum(root / "walk_a" / "groundtruth.tum")
+    assert ta.stamps[0] == ga.stamps[0]
+    to_truth = ga.poses[0] @ invert(ta.poses[0])
+    t, g = read_tum(root / name / "trajectory.tum"), read_tum(root / name / "groundtruth.tum")
+    k = np.searchsorted(g.stamps, t.stamps)
+    assert np.allclose(g.stamps[k], t.stamps)
+    return np.einsum("ij,njk->nik", to_truth, t.poses), g.poses[k]
+
+
+def test_run_db_adds_a_session_that_joins_the_map_and_writes_it_in_the_maps_frame(cli_walks):
+    root, db, printed = cli_walks
+    assert not (root / "walk_a" / "map.db").exists() and not (root / "walk_b" / "map.db").exists()
+    a, b = _summary(root / "walk_a"), _summary(root / "walk_b")
+    assert (a["session"], a["sessions_before"], a["joined"], a["cross_links"]) == (1, 0, False, 0)
+    assert (b["session"], b["sessions_before"], b["joined"], b["map"]) == (2, 1, True, 0)
+    assert b["cross_links"] >= 2 and sum(b["cross_links_by_type"].values()) == b["cross_links"]
+    # it joined once B walked A's stretch: not at its start (measured at frame 96 of 191, 19.2 s)
+    assert 40 <= b["joined_index"] <= 150 and b["joined_stamp"] == pytest.approx(b["joined_index"] / RATE)
+    line = f"session 2 joined map 0 at keyframe {b['joined_keyframe']} (frame {b['joined_index']}"
+    assert line in printed["walk_b"] and "did not join" not in printed["walk_b"]
+    with MapStore(db, create=False) as store:
+        assert [s.id for s in store.sessions()] == [1, 2]
+        b_nodes = {n.id for n in store.nodes(session_id=2, limit=None, merged=None)}
+        assert b["joined_keyframe"] in b_nodes
+    for name, bound in (("walk_a", 0.006), ("walk_b", 0.009)):  # measured 0.21 / 0.29 cm RMSE
+        est, truth = _in_a_frame(root, name)
+        rmse = np.sqrt(np.mean(np.sum((est[:, :3, 3] - truth[:, :3, 3]) ** 2, axis=1)))
+        assert rmse < bound, (name, rmse)
+    # keyframes.tum too is in A's frame
+    from mnemoslam.client.kernel.trajectory import read_tum
+
+    kb, tb = read_tum(root / "walk_b" / "keyframes.tum"), read_tum(root / "walk_b" / "trajectory.tum")
+    k = np.searchsorted(tb.stamps, kb.stamps)
+    assert np.abs(kb.poses[:, :3, 3] - tb.poses[k, :3, 3]).max() < 1e-6
+
+
+def test_run_without_db_replaces_its_own_map(tmp_path):
+    out = tmp_path / "run"
+    for _ in range(2):
+        printed = _run("synthetic:walk_a?rate=5", "--frames", "0:15", "--out", str(out))
+        with MapStore(out / "map.db", create=False) as store:
+            assert len(store.sessions()) == 1
+    assert "joined" not in printed and _summary(out)["sessions_before"] == 0
+
+
+def test_run_db_negative_control_and_frames(tmp_path):
+    """synthetic:straight after synthetic:loop: no place in common, so no link between them
+    and each its own map; --frames plays a sub-range with the full run's stamps."""
+    db = tmp_path / "map.db"
+    _run("synthetic:loop?rate=5", "--frames", "0:150", "--db", str(db), "--out", str(tmp_path / "loop"))
+    printed = _run("synthetic:straight?rate=5", "--frames", "20:", "--db", str(db), "--out", str(tmp_path / "s"))
+    s = _summary(tmp_path / "s")
+    assert (s["session"], s["joined"], s["map"], s["cross_links"]) == (2, False, 1, 0)
+    assert "session 2 did not join the map's 1 older session(s): a map of its own (1); 0 cross-session link(s)" \
+        in printed
+    from mnemoslam.client.kernel.trajectory import read_tum
+
+    t, g = read_tum(tmp_path / "s" / "trajectory.tum"), read_tum(tmp_path / "s" / "groundtruth.tum")
+    full = open_dataset("synthetic:straight", rate=RATE)
+    assert s["frames"] == len(full) - 20 == len(t)
+    assert t.stamps[0] == pytest.approx(20 / RATE) and np.allclose(g.stamps, full.stamps[20:])
+    assert "ATE RMSE" in printed
+    with MapStore(db, create=False) as store:
+        mine = {n.id for n in store.nodes(session_id=2, limit=None, merged=None)}
+        assert all((lk.from_id in mine) == (lk.to_id in mine) for lk in store.links())
+
+
+# -- through the service: the join is visible (issue 22 item 2) -----------------------------------
+
+def test_service_walk_b_after_walk_a_relocalizes_once_and_maps_show_it(tmp_path):
+    """`serve`, walk_a as robot A, restart, walk_b as robot B: one `relocalized` event naming
+    map 0 with B's frame in it, /maps one map with both sessions, /robots and /robots/B agree,
+    /sessions says when B joined, and B's keyframes over REST lie in A's frame."""
+    from mnemoslam.client.kernel import protocol
+    from mnemoslam.client.streamer import stream_dataset
+    from mnemoslam.client.transport import ZenohSettings, open_session
+    from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
+
+    db = tmp_path / "map.db"
+    # streamed as fast as the service takes the frames, the map update falls behind tracking; every
+    # keyframe goes to it with its images all the same (loop.backlog_images), as in the offline run
+    conf = {"semantics": {"enabled": False}, "service": {"queue_size": 10000, "idle_timeout": 3600.0},
+            "loop": {"backlog_images": 100000}}
+    walks = {name: open_dataset(f"synthetic:{name}", rate=RATE) for name in ("walk_a", "walk_b")}
+    svc = ServiceProcess(db, conf).start()
+    try:
+        stats = stream_dataset(walks["walk_a"], "A", ZenohSettings(connect=[svc.endpoint]), rate=None,
+                               progress=False, wait_for_subscriber=10.0)
+        svc.wait_processed("A", stats.frames)
+        svc.wait_mapped("A")
+        traj_a = keyframe_trajectory(svc.api, svc.session_of("A"))
+    finally:
+        svc.stop()
+    svc = ServiceProcess(db, conf).start()
+    events = []
+    try:
+        z = open_session(ZenohSettings(connect=[svc.endpoint]))
+        sub = z.declare_subscriber(protocol.KeySpace().events("B"),
+                                   lambda s: events.append(protocol.decode_event(s.payload.to_bytes())))
+        try:
+            stats = stream_dataset(walks["walk_b"], "B", ZenohSettings(connect=[svc.endpoint]), rate=None,
+                                   progress=False, wait_for_subscriber=10.0)
+            svc.wait_processed("B", stats.frames)
+            svc.wait_mapped("B")
+            import time
+            time.sleep(2.5)  # the service looks at the links every second
+        finally:
+            sub.undeclare()
+            z.close()
+        api = svc.api
+        sb = svc.session_of("B")
+        reloc = [e for e in events if e.kind == "relocalized"]
+        assert len(reloc) == 1, [e.kind for e in events]
+        e = reloc[0]
+        assert (e["session_id"], e["map"]) == (sb, 0) and e["link"] in ("loop", "proximity", "merged")
+        maps = api.get("/maps")
+        assert len(maps) == 1 and maps[0]["id"] == maps[0]["map"] == 0, maps
+        assert maps[0]["sessions"] == [svc.session_of("A"), sb] and sorted(maps[0]["robots"]) == ["A", "B"]
+        traj_b = keyframe_trajectory(api, sb)
+        assert maps[0]["keyframes"] <= len(traj_a) + len(traj_b) and maps[0]["keyframes"] >= len(traj_a)
+        robots = {r["robot"]: r for r in api.get("/robots")}
+        assert robots["B"]["map"] == api.robot("B")["map"] == 0
+        sess = {s["id"]: s for s in api.get("/sessions")}
+        b = sess[sb]
+        assert (b["map"], b["map_id"], b["joined"], b["joined_keyframe"]) == (0, 1, True, e["node_id"])
+        assert b["joined_stamp"] == pytest.approx(e["stamp"]) and e["stamp"] > 5.0  # not at B's start
+        a = sess[svc.session_of("A")]
+        assert (a["map"], a["joined"]) == (0, False) and np.allclose(np.reshape(a["T_map_session"], (4, 4)), np.eye(4),
+                                                                      atol=1e-6)
+        # in A's frame: A's first keyframe places the map in the scene; B's keyframes and
+        # T_map_session (B's first keyframe's camera in the map) against B's ground truth
+        gt_a, gt_b = walks["walk_a"].ground_truth, walks["walk_b"].ground_truth
+        traj_a = keyframe_trajectory(api, svc.session_of("A"))  # (A's poses after B joined)
+        to_truth = gt_a.poses[np.searchsorted(gt_a.stamps, traj_a.stamps[0])] @ invert(traj_a.poses[0])
+        k = np.searchsorted(gt_b.stamps, traj_b.stamps)
+        err = np.linalg.norm(np.einsum("ij,njk->nik", to_truth, traj_b.poses)[:, :3, 3] - gt_b.poses[k, :3, 3], axis=1)
+        # measured 0.30 cm (the issue asks for <= 1.5 cm)
+        assert np.sqrt(np.mean(err ** 2)) < 0.009, np.sqrt(np.mean(err ** 2))
+        T = np.reshape(b["T_map_session"], (4, 4))
+        assert np.allclose(np.reshape(e["T_map_session"], (4, 4)), T, atol=0.01)
+        assert np.linalg.norm((to_truth @ T)[:3, 3] - gt_b.poses[k[0], :3, 3]) < 0.015  # measured 0.45 cm
+    finally:
+        svc.stop()

@@ -1172,3 +1172,38 @@ def test_v5_takes_merged_keyframes_out_of_the_rtree(tmp_path, rng):
         s.merge_node(ids[2], ids[0], pose(0.1), np.eye(6))
         assert [n.id for n in s.nodes(bbox=((-1, -1, -1), (5, 1, 1)), merged=False)] == [ids[0], ids[3]]
     assert sorted(r[0] for r in rows(path, "SELECT id FROM nodes_rtree")) == [ids[0], ids[3]]
+
+
+# -- which map each session is in (storage.connectivity.MapIndex, issue 22) ---------------------
+
+
+def test_map_index_says_when_a_session_joined_an_older_map(store, rng):
+    from mnemoslam.storage.connectivity import MapIndex
+
+    info = np.eye(6)
+    a = store.begin_session("A", CAL)
+    na = [store.add_keyframe(record(rng, a, float(t), pose(x=t))) for t in range(3)]
+    for p, q in zip(na, na[1:]):
+        store.add_link(p, q, LinkType.NEIGHBOR, np.eye(4), info)
+    b = store.begin_session("B", CAL)
+    nb = [store.add_keyframe(record(rng, b, 10.0 + t, pose(x=t))) for t in range(3)]
+    for p, q in zip(nb, nb[1:]):
+        store.add_link(p, q, LinkType.NEIGHBOR, np.eye(4), info)
+    index = MapIndex()
+    assert index.refresh(store) == []
+    j = index.join(b)
+    assert (j.map, j.own_map, j.first_node, j.joined) == (1, 1, nb[0], False)
+    assert index.map_of(nb[2]) == 1 and index.map_of(na[2]) == 0
+    assert sorted(index.maps()) == [0, 1] and index.maps()[1]["sessions"] == [b]
+    # B's third keyframe closes a loop to A's second: B is in map 0 from then on, and only then
+    store.add_link(na[1], nb[2], LinkType.GLOBAL_CLOSURE, np.eye(4), info)
+    store.add_link(na[0], nb[1], LinkType.GLOBAL_CLOSURE, np.eye(4), info)  # a second link: no second join
+    new = index.refresh(store)
+    assert [(x.session_id, x.map, x.node, x.peer, x.link, x.stamp) for x in new] == [
+        (b, 0, nb[2], na[1], LinkType.GLOBAL_CLOSURE, 12.0)]
+    assert index.refresh(store) == [] and index.join(b).joined and index.join(a).joined is False
+    assert index.map_of(nb[0]) == 0
+    m = index.maps()
+    assert list(m) == [0] and m[0]["sessions"] == [a, b] and m[0]["robots"] == ["A", "B"]
+    assert m[0]["keyframes"] == 6 and m[0]["last_change"] >= store.session(b).started_at
+    assert f"joined map 0 at keyframe {nb[2]} (stamp 12.000)" in db_info(store.path)

@@ -67,7 +67,8 @@ def _is_bag(path: Path) -> bool:
 def open_dataset(spec: str | Path, format: str | None = None, **options) -> Dataset:
     """Open a dataset folder, a ROS bag (a rosbag2 folder with metadata.yaml, a `.db3` /
     `.mcap` file, a ROS 1 `.bag` file), or the synthetic scene with `synthetic[:TRAJECTORY][?person]`
-    (`?person`: with the walking person, as `person=True`).
+    (`?person`: with the walking person, as `person=True`; `?rate=HZ`: its frame rate, default 30;
+    both: `?person&rate=5`).
 
     `options` go to the player (e.g. `max_frames`; for bags `topics`, see
     `client.datasets.rosbag`; for the synthetic scene `noise`, `seed`, `frames`, `person`, ...).
@@ -81,9 +82,16 @@ def open_dataset(spec: str | Path, format: str | None = None, **options) -> Data
 
         base, _, extra = text.partition("?")  # synthetic:loop?person: with the walking person
         for flag in filter(None, extra.split("&")):
-            if flag != "person":
-                raise DatasetError(f"{text}: unknown synthetic option {flag!r} (known: person)")
-            options.setdefault("person", True)
+            name, eq, value = flag.partition("=")
+            if flag == "person":
+                options.setdefault("person", True)
+            elif name == "rate" and eq:  # synthetic:walk_a?rate=5: frames per second (default 30)
+                try:
+                    options["rate"] = float(value)
+                except ValueError:
+                    raise DatasetError(f"{text}: rate must be a number of frames per second, got {value!r}") from None
+            else:
+                raise DatasetError(f"{text}: unknown synthetic option {flag!r} (known: person, rate=HZ)")
         trajectory = base.split(":", 1)[1] if ":" in base else "loop"
         return SyntheticDataset(trajectory=trajectory, **options)
     path = Path(text).expanduser()

@@ -176,7 +176,7 @@ Event message (JSON, on ``<prefix>/<robot>/events``)
 ====================================================
 ``{"version": 1, "robot", "kind", "data": {...}}`` with kind one of `EVENT_KINDS`
 ("keyframe_added", "loop_closed", "tracking_lost", "map_corrected", "session_started",
-"session_ended", "frame_rejected") and JSON data (numpy scalars / arrays are converted to
+"session_ended", "frame_rejected", "relocalized") and JSON data (numpy scalars / arrays are converted to
 numbers / lists). The service sends:
 
 ==================  ==========================================================================
@@ -191,6 +191,13 @@ loop_closed         ``from``, ``to`` (node ids: the older keyframe, the new one)
                     "proximity" (a keyframe the graph placed near the new one) or "merged"
                     (rehearsal: ``to`` was merged into the older node ``from``)
 map_corrected       ``nodes``: how many keyframe poses the map update moved
+relocalized         the robot's session joined an older map (once per session, when a link
+                    first joins its keyframes to that map's): ``session_id``, ``map`` (the map
+                    id it is in now), ``node_id`` and ``stamp`` (its keyframe at the joining
+                    link), ``peer`` (the map's keyframe at that link), ``link`` (its type's
+                    name), ``T_map_session`` (16 numbers, row-major 4×4: the session's own frame,
+                    its first keyframe's camera, in the map's frame); poses published from then
+                    on are in that map's frame
 session_ended       ``session_id``, ``reason``: "restarted" (the camera's stamps jumped back by
                     more than ``service.restart_gap``: a camera or clock restart; a
                     ``session_started`` of the new session follows), "idle" or "stopped"
@@ -225,7 +232,7 @@ COLOR_ENCODINGS = {"raw": 0, "png": 1, "jpeg": 2}
 SECOND_ENCODINGS = {"none": 0, "raw": 1, "png": 2}
 LABEL_ENCODINGS = {"none": 0, "raw": 1, "png": 2}
 EVENT_KINDS = ("keyframe_added", "loop_closed", "tracking_lost", "map_corrected", "session_started", "session_ended",
-               "frame_rejected")
+               "frame_rejected", "relocalized")
 _KIND_NAMES = {v: k for k, v in KINDS.items()}
 _COLOR_NAMES = {v: k for k, v in COLOR_ENCODINGS.items()}
 _SECOND_NAMES = {v: k for k, v in SECOND_ENCODINGS.items()}

@@ -13,7 +13,7 @@ from ..grid.maps import GridHolder
 from ..metrics import Metrics, RequestTimer
 from ..server import SlamService
 from ..viewer import Viewer
-from .dependencies import Access, IndexHolder
+from .dependencies import Access, IndexHolder, MapsHolder
 from .routes import ROUTERS
 
 
@@ -24,6 +24,7 @@ def create_app(service: SlamService) -> FastAPI:
     app.state.service = service
     app.state.access = Access.from_config(service.config)
     app.state.objects = IndexHolder()
+    app.state.maps = MapsHolder()  # which map each keyframe and session is in (storage.connectivity)
     app.state.grids = GridHolder(service.config.grid)  # the maps' occupancy grids (service/grid)
     app.state.semantics = None  # (when, semantics_status()) for the object endpoints
     app.state.metrics = Metrics(service)

@@ -16,6 +16,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from mnemoslam.storage import ApiStore, SessionRecord
+from mnemoslam.storage.connectivity import MapIndex
 
 from ..config import Config
 from ..semantics.queries import NotFound, ObjectIndex, QueryError, Unavailable
@@ -114,6 +115,34 @@ def get_session(session_id: DbId, store: StoreDep) -> SessionRecord:
 
 
 SessionDep = Annotated[SessionRecord, Depends(get_session)]
+
+
+# -- the maps ---------------------------------------------------------------------------------------
+class MapsHolder:
+    """One `storage.connectivity.MapIndex` per open store of the service (which map each
+    keyframe and session is in), brought up to date at each `get`: /maps, /sessions, /robots."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._store = None
+        self._index: MapIndex | None = None
+
+    def get(self, store) -> MapIndex:
+        with self._lock:
+            if self._index is None or self._store is not store:
+                self._store, self._index = store, MapIndex()
+            self._index.refresh(store)
+            return self._index
+
+
+def robots_with_maps(service, maps: MapsHolder) -> list[dict]:
+    """The service's robots, each with `map`: the map its latest keyframe is in (its own
+    session's until its keyframes joined an older map; None without a keyframe)."""
+    robots = service.robots()
+    if service.store is None or not any(r.get("node_id") is not None for r in robots):
+        return [{**r, "map": None} for r in robots]
+    index = maps.get(service.store)
+    return [{**r, "map": index.map_of(r["node_id"]) if r.get("node_id") is not None else None} for r in robots]
 
 
 # -- the object endpoints ----------------------------------------------------------------------

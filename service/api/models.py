@@ -60,8 +60,8 @@ class RobotStatus(Open):
     map_backlog: int
     restarts: int = Field(0, description="camera restarts (stamps back by more than service.restart_gap): its "
                           "session ended \"restarted\" and session_id is the new one's")
-    map: int | None = Field(None, description="(GET /robots/{robot}) the map id of the oldest session that links "
-                            "join its latest keyframe to: its own session's until it relocalizes in an older map")
+    map: int | None = Field(None, description="the map id of the oldest session that links join its latest keyframe "
+                            "to: its own session's until it relocalizes in an older map (null without a keyframe)")
 
 
 class CalibrationOut(BaseModel):
@@ -84,6 +84,17 @@ class SessionSummary(BaseModel):
     calibration: CalibrationOut
     end_reason: str | None = Field(description='"stopped", "idle", "restarted" (a camera restart), "crashed"; '
                                                'null while it runs')
+    map: int | None = Field(None, description="the map its keyframes are in now: map_id (its own) until a link "
+                            "joined them to an older map's, then that map's id (null: no keyframe yet)")
+    joined: bool = Field(False, description="whether its keyframes joined an older map")
+    joined_keyframe: int | None = Field(None, description="its keyframe at the link that joined it to that map")
+    joined_stamp: float | None = Field(None, description="that keyframe's stamp (s, the camera's clock)")
+    joined_peer: int | None = Field(None, description="the map's keyframe at that link")
+    joined_link: str | None = Field(None, description="that link's type (loop, proximity, merged, ...)")
+    T_map_session: list[float] | None = Field(None, description=(
+        "the session's frame in its map's frame, row-major 4×4: the session's odometry starts at the identity on "
+        "its first keyframe, so this is that keyframe's current (optimised) pose; the identity for a session that "
+        "is its own map's first; null without a keyframe"))
 
 
 class SessionOut(SessionSummary):
@@ -227,7 +238,13 @@ class DeletedOut(BaseModel):
 
 class MapOut(BaseModel):
     map: int = Field(description="the map id (of its oldest session)")
-    keyframes: int
+    id: int = Field(description="the same map id")
+    keyframes: int = Field(description="its keyframes (not merged into another)")
+    sessions: list[int] = Field(description="the sessions whose keyframes are in it (joined or its own)")
+    robots: list[str] = Field(description="their robots")
+    objects: int = Field(description="semantic objects anchored on its keyframes")
+    last_change: float = Field(description="wall time (s since the epoch) of its newest keyframe or session start / "
+                               "end")
 
 
 class GridOut(BaseModel):

@@ -33,9 +33,16 @@ def _grids(request: Request, store) -> MapGrids:
 
 @read_routes.get("/maps", response_model=list[MapOut])
 def maps(request: Request, store: StoreDep):
-    """The maps of the database (connected parts of the pose graph, by the map id of their
-    oldest session) with their keyframe counts."""
-    return [{"map": m, "keyframes": len(ids)} for m, ids in sorted(_grids(request, store).maps().items()) if m >= 0]
+    """The maps of the database: connected parts of the pose graph, each named by the map id of
+    its oldest session (storage.connectivity.MapIndex), with the sessions whose keyframes are in
+    it (a session that relocalized in an older map is that map's), their robots, keyframes,
+    objects and last change."""
+    index = request.app.state.maps.get(store)
+    maps = index.maps()
+    anchors = store.object_arrays()["node_id"]
+    objects = {m: int(np.isin(anchors, e["node_ids"]).sum()) for m, e in maps.items()}
+    return [{"map": m, "id": m, "keyframes": e["keyframes"], "sessions": e["sessions"], "robots": e["robots"],
+             "objects": objects[m], "last_change": e["last_change"]} for m, e in sorted(maps.items())]
 
 
 @read_routes.get("/maps/{map_id}/grid", response_model=GridOut, responses={

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any
 
-from fastapi import Body, HTTPException, Query
+from fastapi import Body, HTTPException, Query, Request
 from fastapi.responses import PlainTextResponse
 
 from mnemoslam.client.kernel.protocol import ROBOT_PATTERN
@@ -60,18 +60,37 @@ def _parse_bbox(text: str | None):
 
 
 # -- reads ----------------------------------------------------------------------------------
+def _with_map(sessions, store, index) -> list[dict]:
+    """Each session's dict with the map it is in and when it joined it (`SessionSummary`)."""
+    joins = {s.id: index.join(s.id) for s in sessions}
+    first = {n.id: n.pose for n in store.get_nodes([j.first_node for j in joins.values()
+                                                     if j is not None and j.first_node is not None])}
+    out = []
+    for s in sessions:
+        d, j = s.to_dict(), joins[s.id]
+        if j is not None and j.first_node is not None:
+            d["map"] = j.map
+            if j.first_node in first:
+                d["T_map_session"] = [float(v) for v in first[j.first_node].reshape(-1)]
+            if j.joined:
+                d.update(joined=True, joined_keyframe=j.node, joined_stamp=j.stamp, joined_peer=j.peer,
+                         joined_link=link_name(j.link))
+        out.append(d)
+    return out
+
+
 @read_routes.get("/sessions", response_model=list[SessionSummary])
-def sessions(store: StoreDep, robot: Annotated[str | None, Query(
+def sessions(store: StoreDep, request: Request, robot: Annotated[str | None, Query(
         pattern=f"^{ROBOT_PATTERN.pattern}$", description="only this robot's sessions")] = None):
-    """The sessions, oldest first (only `robot`'s with ?robot=); each one's configuration is
-    in GET /sessions/{id}."""
-    return [s.to_dict() for s in store.sessions(robot=robot)]
+    """The sessions, oldest first (only `robot`'s with ?robot=), each with the map it is in,
+    when it joined it and `T_map_session`; each one's configuration is in GET /sessions/{id}."""
+    return _with_map(store.sessions(robot=robot), store, request.app.state.maps.get(store))
 
 
 @read_routes.get("/sessions/{session_id}", response_model=SessionOut, responses=error_responses(404))
-def session(session: SessionDep):
-    """One session, with the configuration it ran with."""
-    return session.to_dict()
+def session(session: SessionDep, store: StoreDep, request: Request):
+    """One session, with its map (as GET /sessions) and the configuration it ran with."""
+    return _with_map([session], store, request.app.state.maps.get(store))[0]
 
 
 @read_routes.get("/sessions/{session_id}/nodes", response_model=NodePage, responses=error_responses(400, 404))
