@@ -160,8 +160,13 @@ class MapIndex:
                     new.append(j)
                 self._links.union(a, b)
             for j in new:
-                j.map = self._map_of(j.first_node)
+                j.map = self._current_map(j)
             return new
+
+    def _current_map(self, j: SessionJoin) -> int:
+        """The map the session's first keyframe is in now (its own while that is unknown)."""
+        m = None if j.first_node is None else self._map_of(j.first_node)
+        return j.own_map if m is None else m
 
     def _map_of(self, node: int) -> int | None:
         root = self._links.find(int(node))
@@ -183,7 +188,7 @@ class MapIndex:
             j = self._joins.get(session_id)
             if j is None:
                 return SessionJoin(session_id, s.map_id, s.map_id, first)
-            return dataclasses.replace(j, map=self._map_of(first))
+            return dataclasses.replace(j, map=self._current_map(j))
 
     def maps(self) -> dict[int, dict]:
         """{map id: {"sessions": ids, "robots": names, "keyframes": its nodes not merged into
