@@ -181,7 +181,7 @@ class WorkingMemory:
         node) never go; `preferred` ones (near the current pose) and those that entered WM
         since the last loop closure (up to recent_wm_ratio of WM) go only when nothing else
         can, and after them the nodes retrieved in the last retrieval_immunity updates, so
-        that WM never holds more than max_wm_nodes."""
+        that WM never holds more than its limit."""
         if not self.over_limit(update_ms):
             return []
         n = len(self._wm)
