@@ -41,7 +41,7 @@ lint: $(STAMP)
 ## finder, so it reads the code through build/typecheck/mnemoslam/{service,client,storage}, links
 ## to this checkout's folders (its messages name files by those paths).
 TYPECHECK ?= mnemoslam.client.kernel mnemoslam.service.tracking mnemoslam.service.config mnemoslam.storage \
-	mnemoslam.service.grid
+	mnemoslam.service.grid mnemoslam.service.memory mnemoslam.service.mapping
 typecheck: $(STAMP)
 	mkdir -p build/typecheck/mnemoslam
 	for d in service client storage; do ln -sfn "$(CURDIR)/$$d" build/typecheck/mnemoslam/$$d; done

@@ -27,7 +27,9 @@ import contextlib
 import dataclasses
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import gtsam
 import numpy as np
@@ -247,6 +249,7 @@ class PoseGraph:
             if new_link is not None:
                 self._links.append(new_link)
             else:
+                assert new_prior is not None  # a node without an odometry link has a prior
                 self._priors[nid] = new_prior
             self._nodes.append(nid)
             self._raw[nid] = pose.copy()
@@ -349,8 +352,8 @@ class PoseGraph:
                 self._snap = snap
             self._published.update({nid: p.copy() for nid, p in poses.items()})
 
-    def _loop_noise(self, info: np.ndarray, kernel: str):
-        noise = gtsam.noiseModel.Gaussian.Information(info)
+    def _loop_noise(self, info: np.ndarray, kernel: str) -> gtsam.noiseModel.Base:
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Information(info)
         if kernel == "huber":
             noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.robust_width), noise)
         elif kernel == "cauchy":
@@ -404,6 +407,7 @@ class PoseGraph:
                 accepted, reason = False, (f"loop link error {err_after:.2f} σ > max {self.max_error:g} σ "
                                            "after optimisation")
             elif max_err > self.max_error and check != "link":
+                assert worst is not None  # max_err > max_error > 0: some link's error
                 accepted, reason = False, (f"link {worst[0]}->{worst[1]} error {max_err:.2f} σ > max "
                                            f"{self.max_error:g} σ after optimisation")
             else:
@@ -454,7 +458,7 @@ class PoseGraph:
             return len(gone)
 
     def _remove_links_locked(self, links: list[_Link], restore: dict[int, np.ndarray] | None,
-                             back: list[_Link] = ()) -> None:
+                             back: Sequence[_Link] = ()) -> None:
         """Remove `links` (and put the loop links `back` again, with the default kernel, in the
         same update)."""
         self._swap_links_locked(links, [(lk, self._loop_noise(lk.information, self.robust)) for lk in back])
@@ -471,7 +475,7 @@ class PoseGraph:
                     self._cache = None
             self._cache = {k: _ro(v.copy()) for k, v in restore.items()}  # exactly as before
 
-    def _swap_links_locked(self, gone: list[_Link], new: list[tuple[_Link, object]]) -> list[_Link]:
+    def _swap_links_locked(self, gone: list[_Link], new: Sequence[tuple[_Link, gtsam.noiseModel.Base]]) -> list[_Link]:
         """One iSAM2 update that removes the factors of links `gone` and adds links `new`
         ((link, noise model), their factor indices given here); the active links follow, the
         new ones last. Returns the new links. The estimate cache is left to the caller."""
@@ -663,8 +667,8 @@ class PoseGraph:
                      [(p[2], "p", n) for n, p in self._priors.items()], key=lambda x: x[0])
         for new, (_, kind, obj) in enumerate(old):
             if kind == "l":
-                obj.factor_index = new
+                cast(_Link, obj).factor_index = new
             else:
-                pose, sig, _ = self._priors[obj]
-                self._priors[obj] = (pose, sig, new)
+                pose, sig, _ = self._priors[cast(int, obj)]
+                self._priors[cast(int, obj)] = (pose, sig, new)
         self._n_factors = len(old)

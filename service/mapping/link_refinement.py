@@ -55,6 +55,7 @@ class LinkEstimate:
         """6×6 information (rotation first) of the link: the inverse of its covariance, no
         more confident in any direction than `floor` (a 6×6 information, e.g. the verified
         link's own): the covariance's eigenvalues in the floor's units are floored at 1."""
+        assert self.covariance is not None  # asked of a refined estimate only
         C = 0.5 * (self.covariance + self.covariance.T)
         L = np.linalg.cholesky(np.linalg.inv(floor))  # floor covariance = L Lᵀ
         Li = np.linalg.inv(L)

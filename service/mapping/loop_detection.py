@@ -26,6 +26,7 @@ over the postings of the node's words (vectorized), and a bounded graph walk fro
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -148,7 +149,7 @@ class LoopDetector:
         return adj, mean / std + 1.0
 
     # -- prediction ---------------------------------------------------------------------
-    def _predict(self, cand: np.ndarray, neighbours: dict[int, list[int]]) -> tuple[np.ndarray, float]:
+    def _predict(self, cand: np.ndarray, neighbours: Mapping[int, list[int]]) -> tuple[np.ndarray, float]:
         """prior = prediction matrix × last posterior (BayesFilter::generatePrediction /
         updatePrediction / normalize): (prior of each candidate, prior of the virtual place).
 
@@ -218,7 +219,7 @@ class LoopDetector:
         return float(raw[i]) / other if other > 0 else float("inf")
 
     # -- update -------------------------------------------------------------------------
-    def process(self, node_id: int, word_ids, neighbours: dict[int, list[int]] | None = None,
+    def process(self, node_id: int, word_ids, neighbours: Mapping[int, list[int]] | None = None,
                 candidates=None) -> LoopHypothesis:
         node_id = int(node_id)
         word_ids = np.asarray(word_ids, np.int64)

@@ -234,6 +234,7 @@ class Mapper:
     # -- map update ------------------------------------------------------------------------
     def _run(self) -> None:
         while True:
+            assert self._queue is not None  # the background thread runs with its queue
             update = self._queue.get()
             if update is None:
                 return
@@ -303,6 +304,7 @@ class Mapper:
         stats.likelihood_top = [(int(i), float(s)) for i, s in hyp.likelihood[:5]]
         stats.decision = "none" if hyp.best_id is None else ("accepted" if hyp.accepted else f"rejected: {hyp.reason}")
         if hyp.accepted:
+            assert hyp.best_id is not None  # an accepted hypothesis has a node
             stats.decision, v = self._close_loop(u, hyp.best_id, LinkType.GLOBAL_CLOSURE)
             if v is not None:
                 stats.matches, stats.inliers, stats.refined = v.matches, v.inliers, v.refined
@@ -338,6 +340,7 @@ class Mapper:
         res = ba.solve() if continues else None
         if res is None:
             return None
+        assert u.odom_from is not None  # solved: the window continued from it
         c = self.config
         links = {}
         kfs = list(ba.keyframes)
@@ -375,6 +378,8 @@ class Mapper:
         to the survivor (it replaces the odometry link to the keyframe). The keyframe is then
         merged: no node, no words; the survivor's weight grows. Returns the survivor (None: the
         keyframe becomes a node) and what was verified on the way."""
+        # the caller's condition; an odometry link comes with its transform and information
+        assert u.odom_from is not None and u.transform is not None and u.information is not None
         c = self._rehearsal_candidate(u)
         if c is None:
             return Rehearsal()
@@ -397,6 +402,7 @@ class Mapper:
         if decision != "ok":
             r["decision"] = decision
             return Rehearsal()
+        assert v.transform is not None and v.information is not None  # accepted: both set
         r["distance"] = float(np.linalg.norm(v.transform[:3, 3]))
         r["rotation"] = float(rotation_angle(v.transform[:3, :3]))
         if r["distance"] > mc.rehearsal_max_distance or r["rotation"] > mc.rehearsal_max_rotation:
@@ -429,6 +435,7 @@ class Mapper:
         LTM's nodes there come from the database's spatial index (with working memory
         bounded a revisited place is mostly in LTM: it would become a node again)."""
         mc = self.memory_config
+        assert u.odom_from is not None  # _rehearse's condition
         where = self.graph.pose(u.odom_from) @ u.transform
         nodes = [n for n in self.memory.tiers.wm if n in self.vocabulary]
         nodes += self.memory.ltm_near(where, 4 * mc.rehearsal_max_distance)
@@ -511,7 +518,7 @@ class Mapper:
                                "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined)})
 
     def _register(self, u: KeyframeUpdate, candidate: int, prior: np.ndarray | None = None,
-                  place=None) -> tuple[str, Verification | None]:
+                  place=None) -> tuple[str, Verification]:
         """Verify a candidate (PnP, then dense refinement). With a `prior` (T_candidate_new
         from the graph) a candidate PnP refuses is also registered densely from it. `place`:
         the candidate's data (`Memory.place`) when it is not in RAM. Returns ("ok" or
@@ -553,6 +560,7 @@ class Mapper:
         c = self.config
         if not c.link_refine or not v.inliers:
             return "ok", v
+        assert v.transform is not None and v.information is not None  # accepted: both set
         e = refine_link(self.camera, u.features, self.memory.features[candidate], v.transform,
                         depth_noise=c.link_depth_noise, min_inliers=c.min_inliers,
                         max_sigma=(c.link_max_sigma_translation, c.link_max_sigma_rotation))
@@ -574,6 +582,7 @@ class Mapper:
     def _add_link(self, u: KeyframeUpdate, candidate: int, kind: LinkType, v: Verification) -> str:
         """Add a verified link to the graph (which may refuse it) and store it (the poses it
         moved are written at the end of the update). Returns "accepted" or "rejected: graph why"."""
+        assert v.transform is not None and v.information is not None  # accepted: both set
         outcome = self.graph.add_loop(candidate, u.node_id, v.transform, v.information)
         if not outcome.accepted:
             return f"rejected: graph {outcome.reason}"
@@ -607,7 +616,7 @@ class Mapper:
         return moved
 
     def _close_loop(self, u: KeyframeUpdate, candidate: int, kind: LinkType,
-                    prior: np.ndarray | None = None) -> tuple[str, Verification | None]:
+                    prior: np.ndarray | None = None) -> tuple[str, Verification]:
         """Verify a loop candidate, make the link accurate or drop it (`_accurate`) and add it
         to the graph. Returns the decision ("accepted" or "rejected: why") and the verification."""
         decision, v = self._register(u, candidate, prior)

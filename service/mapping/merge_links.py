@@ -71,4 +71,4 @@ class MergeLinks:
     def _within_tolerance(self, a: np.ndarray, b: np.ndarray) -> bool:
         tol_t, tol_r = self.graph.move_tolerance
         d = invert(a) @ b
-        return float(np.linalg.norm(d[:3, 3])) < tol_t and rotation_angle(d[:3, :3]) < tol_r
+        return bool(float(np.linalg.norm(d[:3, 3])) < tol_t and rotation_angle(d[:3, :3]) < tol_r)

@@ -199,8 +199,11 @@ def _handle(msg, config, memory, store, cameras, mappers, counts, send) -> None:
         u: KeyframeUpdate = msg[2]
         m = mappers.get(key)
         if m is None:
+            def on_event(kind: str, data: dict, k=key) -> None:
+                send(("event", k, kind, data))
+
             m = mappers[key] = Mapper(cameras[key], config, store, background=False, memory=memory,
-                                      on_event=lambda kind, data, k=key: send(("event", k, kind, data)))
+                                      on_event=on_event)
         try:
             m.submit(u)
         except Exception:  # a failed map update must not stop the mapper

@@ -63,6 +63,7 @@ def refine(v: Verification, new: DenseView, candidate: DenseView, *, max_correct
     degrees) is the refined link's standard deviation."""
     if not v.accepted:
         return v
+    assert v.transform is not None  # accepted: set
     res = icp.register(new.levels(), candidate.levels(), v.transform, hypotheses=False, min_inlier_ratio=min_overlap)
     if not res.ok:
         return v

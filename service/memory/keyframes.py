@@ -51,6 +51,7 @@ class KeyframeWriter:
         """Persist a keyframe (node, features, images, odometry link) and return its id."""
         link = None
         if self.last_node is not None and segment == self.last_segment:
+            assert self.last_pose is not None  # set with last_node
             link = (self.last_node, invert(self.last_pose) @ pose, odometry_information(inliers))
         image_jpeg = depth_png = None
         if self.config.storage.keep_images:
@@ -72,6 +73,7 @@ class KeyframeWriter:
     def _save_grid(self, node_id: int, frame: Frame, pose: np.ndarray, segment: int) -> None:
         """The keyframe's local grid, stored with it (its own small transaction after the
         keyframe's: a keyframe without one gets it from its stored depth when needed)."""
+        assert self.grids is not None and frame.depth is not None  # add_keyframe's condition
         try:
             g = self.grids.make(frame.depth, pose, segment, accel=frame.extras.get("accel"))
             if g is not None:

@@ -260,6 +260,7 @@ class Memory:
         if p is not None:
             self._places.move_to_end(node)
             return p
+        assert self.store is not None  # not in RAM: an LTM node, and only a map with a store has LTM
         try:
             keypoints, descriptors, points, word_ids = self.store.load_features(node)
         except UnknownIdError:
@@ -341,6 +342,7 @@ class Memory:
         here = pose(node)
         r = c.proximity_radius
         box = (tuple(here[:3, 3] - r), tuple(here[:3, 3] + r))
+        assert self.store is not None  # to_retrieve asks only with a store
         # the map's nodes only: keyframes merged by rehearsal keep their rows (and their place in
         # the R*Tree), and a patrolled place holds ever more of them
         # (another map's too: brought back, they are candidates for an appearance link, never for
@@ -375,6 +377,7 @@ class Memory:
         self._views.pop(node, None)
 
     def _retrieve(self, node: int) -> bool:
+        assert self.store is not None  # retrieve: LTM nodes, and only a map with a store has LTM
         try:
             keypoints, descriptors, points, word_ids = self.store.load_features(node)
         except UnknownIdError:
@@ -400,6 +403,7 @@ class Memory:
         retrieval; they are never "recent" for transfer (the new session's nodes stay first).
         Returns WM's nodes at their stored poses, for the mapper's graph (`_place_previous`)."""
         store = self.store
+        assert store is not None  # a reopened map: the mapper has a store
         ids = store.node_ids(ended=True)
         if not len(ids):
             return {}
@@ -430,6 +434,7 @@ class Memory:
         of it: nodes and links at their stored poses, and its loop closures (appearance and
         proximity links)."""
         store, sid = self.store, int(session_id)
+        assert store is not None  # a stored session: the mapper has a store
         unmapped = set(store.unmapped_nodes(session_ids=[sid]).get(sid, ()))
         stored = [n for n in store.nodes(session_id=sid, limit=None) if n.id not in unmapped]  # by id = in time
         nodes = [n for n in stored if n.merged_into is None]
@@ -477,8 +482,9 @@ class Memory:
                 closures.append((lk.from_id, lk.to_id))
                 self.link(lk.to_id, lk.from_id)
         if self.loop_config.refine_dense:
-            for n in own:
-                self._views.defer(n)
+            assert isinstance(self._views, StoredViews)  # a store's views
+            for node_id in own:
+                self._views.defer(node_id)
         self._index_words(words)  # those the vocabulary does not hold (it loads only WM's with a WM limit)
         k = max(len(self._order) - self._tiers.stm_size, 0)
         self._tiers.restore(stm=self._order[k:], wm=self._order[:k], ltm=(), weights={n.id: n.weight for n in nodes})
@@ -494,6 +500,7 @@ class Memory:
         Returns them at their stored poses: the mapper's graph places them there, each with
         the tight prior (that map is already optimised, so it stays where it is and anchors
         the new session, which a loop link to it places in the old map's frame)."""
+        assert self.store is not None  # previous map's nodes: the mapper has a store
         records = [r for r in self.store.get_nodes(node_ids) if r.id not in self._stamps]
         for r in records:
             self._stamps[r.id] = -np.inf  # another session's: always old enough to be a candidate
@@ -509,6 +516,7 @@ class Memory:
             if not todo:
                 return
             missing = self._vocabulary.missing_words(np.concatenate([np.asarray(w, np.int64) for w in todo.values()]))
+            assert self.store is not None  # stored nodes' words: the mapper has a store
             self._vocabulary.reload_nodes(todo, descriptors=self.store.load_words(missing) if len(missing) else None)
 
     # -- the map update's other reads and writes (memory is its one way to the store) ------------
@@ -523,6 +531,7 @@ class Memory:
         the depth and grey image decoded from its stored PNG-16 / JPEG (for dense refinement;
         lossy JPEG, millimetre depth). UnknownIdError for an unknown node."""
         store = self.store
+        assert store is not None  # a stored keyframe: the mapper has a store
         node = store.get_node(node_id)
         if node is None:
             raise UnknownIdError(f"no node {node_id}")

@@ -52,7 +52,8 @@ class StoredViews(dict):
 
     def __init__(self, store: MapUpdateStore, camera: PinholeCamera):
         super().__init__()
-        self._store, self._camera, self._stored = store, camera, set()
+        self._store, self._camera = store, camera
+        self._stored: set[int] = set()
 
     def defer(self, node_id) -> None:
         """Decode this node's view from the store when it is first asked for."""

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import threading
 import weakref
+from typing import Any
 
 import numpy as np
 
@@ -745,7 +746,7 @@ class Vocabulary:
         O(W) pass (no search). Words flagged `dormant` (optional; e.g. a map's store state has
         none) are kept unlinked, unless a node of the postings references them."""
         p = st.get("params")
-        kw = {}
+        kw: dict[str, Any] = {}
         if p is not None:
             kw = dict(nndr=float(p[0]), max_distance=int(p[1]), n_tables=int(p[2]),
                       key_bits=int(p[3]), max_chain=int(p[4]), seed=int(p[5]))

@@ -211,7 +211,7 @@ class WorkingMemory:
                 if self.retrieval_immunity:
                     self._transferred_at[n] = self._clock
 
-    def select_retrievals(self, seeds: Iterable[int], neighbours: Mapping[int, Iterable[int]]) -> list[int]:
+    def select_retrievals(self, seeds: Iterable[int | None], neighbours: Mapping[int, Iterable[int]]) -> list[int]:
         """LTM nodes within retrieval_depth links of the `seeds` (best hypothesis first, then
         the current node), breadth first (nearest in the graph first), at most max_retrieved;
         not those transferred in the last retrieval_immunity updates."""
