@@ -146,10 +146,11 @@ class Vocabulary:
         cap = self._cap
         while cap < need:
             cap *= 2
-        old = (self._desc, self._nxt, self._prv, self._live, self._dormant)
+        old: tuple[np.ndarray, ...] = (self._desc, self._nxt, self._prv, self._live, self._dormant)
         n = self._next_id
         self._alloc(cap)
-        for new, a in zip((self._desc, self._nxt, self._prv, self._live, self._dormant), old):
+        grown: tuple[np.ndarray, ...] = (self._desc, self._nxt, self._prv, self._live, self._dormant)
+        for new, a in zip(grown, old):
             new[:n] = a[:n]
 
     # -- properties ---------------------------------------------------------------------
