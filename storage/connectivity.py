@@ -111,7 +111,7 @@ class MapIndex:
     the first link after which its first keyframe is no longer its part's oldest node.
     Thread-safe."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self._links = MapConnectivity()
         self._rowid = 0
         self._last_node = 0
