@@ -41,7 +41,9 @@ CHILD = Path(__file__).with_name("memory_crash_child.py")
 # update transfers ~3 nodes and retrieves ~2 (those it walks back to); rehearsal merges the
 # keyframes of later passes into them (kills between a merge and its statistics, resumes of
 # sessions merged into an earlier session's nodes).
-MEMORY = {"memory": {"max_wm_nodes": 2, "stm_size": 1, "local_radius": 0.3, "rehearsal": True}}
+# retrieval_immunity 0: nodes move in and out at every update (the churn issue 23 removed by default),
+# so that each kill finds the move it waits for
+MEMORY = {"memory": {"max_wm_nodes": 2, "stm_size": 1, "local_radius": 0.3, "rehearsal": True, "retrieval_immunity": 0}}
 KILLS = ["transfer"] * 5 + ["retrieve"] * 5 + ["anywhere"]  # 10 kills inside a memory move, 1 anywhere
 WAIT_S = 30.0  # the longest a child may take to reach its kill point
 
