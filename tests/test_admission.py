@@ -80,8 +80,10 @@ def test_frames_of_unknown_robots_take_no_slot_and_a_camera_then_maps_normally(s
     frame = dataset.frame(0)
     for i in range(300):  # hundreds of made-up robot ids, one frame each, no camera info
         robot = f"fake{i}"
-        z.put(KEYS.frame(robot), protocol.encode_frame(frame, robot, 0, color="jpeg", depth="png"))
-    assert _until(lambda: _rejected(svc).get("no_calibration", 0) - before >= 300)
+        # BLOCK: a loaded machine must not drop them on the way (put's default drops under congestion)
+        z.put(KEYS.frame(robot), protocol.encode_frame(frame, robot, 0, color="jpeg", depth="png"),
+              congestion_control=zenoh.CongestionControl.BLOCK)
+    assert _until(lambda: _rejected(svc).get("no_calibration", 0) - before >= 300), _rejected(svc)
     assert svc.api.robots() == []
     stats = stream_dataset(dataset, "real", _settings(svc), rate=None, progress=False, wait_for_subscriber=10.0)
     r = svc.wait_processed("real", stats.frames)
