@@ -282,17 +282,17 @@ class Vocabulary:
             s = link.astype(np.int64) - 1
             return slots[np.minimum(np.searchsorted(slots, s), last)] == s
 
+        def kept(link: np.ndarray, table: np.ndarray) -> np.ndarray:
+            """`link` (the removed words' neighbours along `table`) jumped over removed words."""
+            m = np.nonzero(removed(link))[0]
+            while len(m):
+                link[m] = table[link[m] - 1, tbl[m]]
+                m = m[removed(link[m])]
+            return link
+
         nxt, prv = self._nxt, self._prv
-        p = prv[slots].ravel()
-        m = np.nonzero(removed(p))[0]
-        while len(m):
-            p[m] = prv[p[m] - 1, tbl[m]]
-            m = m[removed(p[m])]
-        n = nxt[slots].ravel()
-        m = np.nonzero(removed(n))[0]
-        while len(m):
-            n[m] = nxt[n[m] - 1, tbl[m]]
-            m = m[removed(n[m])]
+        p = kept(prv[slots].ravel(), prv)
+        n = kept(nxt[slots].ravel(), nxt)
         hp = p > 0
         nxt[p[hp] - 1, tbl[hp]] = n[hp]
         self._head[keys[~hp]] = n[~hp]
