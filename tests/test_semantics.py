@@ -601,8 +601,9 @@ def test_service_fuses_streamed_labels_into_stored_objects(tmp_path, monkeypatch
         while time.monotonic() < end and (done(worker.stats()) < svc.robots()[0]["keyframes"]
                                           or not svc.store.count_objects()):
             time.sleep(0.1)
-        # tracking first: the frames came back to back (tracking always busy), so the worker waited
-        assert worker.tracking_busy == svc.tracking_busy and worker.stats()["waits"] >= 1, worker.stats()
+        # tracking first: the worker asks the service's probe before each step (whether it had to
+        # wait here depends on the machine's speed; the waits themselves are tested above)
+        assert worker.tracking_busy == svc.tracking_busy, worker.stats()
         chair = next(o for o in svc.store.objects() if o.label == "chair")
         held = worker.stats()["objects"]
         with ApiThread(create_app(svc)) as url:
