@@ -130,10 +130,47 @@ def test_kitti_stereo(data_dir, name, max_percent, min_tracked):
     assert ev.ate_percent_of_path < max_percent
 
 
+def _yaw_degrees(poses: np.ndarray) -> np.ndarray:
+    """Each camera's rotation about its own y axis (pan, image x) relative to the first camera,
+    in degrees (the y component of the relative rotation vector)."""
+    import cv2
+
+    return np.array([np.degrees(cv2.Rodrigues((poses[0, :3, :3].T @ p[:3, :3]).astype(np.float64))[0][1, 0])
+                     for p in poses])
+
+
 def test_euroc_stereo_still_vehicle(data_dir):
+    """The EuRoC head's vehicle moves 2 mm in all (1.4 mm first to last), so a tracker that
+    never moves has an ATE of 0.66 mm and passes any ATE bound this test could set. What the
+    head does show is the camera panning to and fro by up to 0.16° (frames 6-20; the images
+    shift by 1.2 px against frame 0 at frame 15, phase correlation). The tracker must follow
+    that pan: its frame-to-frame pan error well below the pan itself (which is the error of a
+    frozen tracker: checked here as the negative control). Pitch and roll are left out: the
+    ground truth drifts 0.11° in pitch over the head while the images move by < 0.01° in
+    pitch, and the tracker follows the images."""
     ds, out, ev = _run(require(data_dir / "euroc_v101_head"))
     assert out.summary.tracked == 40
-    assert ev.ate_rmse < 0.01
+    assert ev.ate_rmse < 0.002, ev.ate_rmse  # measured 0.57 mm (a frozen tracker 0.66)
+    est = out.trajectory
+    at = np.searchsorted(ds.ground_truth.stamps, est.stamps)
+    np.testing.assert_array_equal(ds.ground_truth.stamps[at], est.stamps)
+    pan = _yaw_degrees(ds.ground_truth.poses[at])
+    assert np.abs(pan).max() > 0.1, pan  # the motion the test relies on (measured 0.16°)
+
+    def rms(x):
+        return float(np.sqrt(np.mean(np.square(x))))
+
+    def pan_error(poses):
+        """rms error of the frame-to-frame pan against the ground truth's, as a share of the
+        ground truth's rms frame-to-frame pan."""
+        return rms(np.diff(_yaw_degrees(poses)) - np.diff(pan)) / rms(np.diff(pan))
+
+    frozen = np.repeat(np.eye(4)[None], len(est), axis=0)
+    assert pan_error(frozen) == pytest.approx(1.0)  # the negative control: a tracker that never moves
+    # measured 0.34 (0.0096° rms against the truth's 0.028°; the pan against frame 0 correlates
+    # 0.95, the tracker's 0.61 of the truth's: it under-follows sub-pixel motion)
+    assert pan_error(est.poses) < 0.6, pan_error(est.poses)
+    assert np.corrcoef(_yaw_degrees(est.poses), pan)[0, 1] > 0.8  # measured 0.95 (frozen: no pan at all)
 
 
 def test_same_input_same_trajectory_bit_for_bit(data_dir):
