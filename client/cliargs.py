@@ -1,5 +1,6 @@
 """Command-line helpers shared by `mnemoslam stream` (client/streamer.py) and the service's
-commands (service/cli.py): one argparse type for counts, one rule for progress bars."""
+commands (service/cli.py): one argparse type for counts, the dataset options, one rule for
+progress bars."""
 from __future__ import annotations
 
 import argparse
@@ -36,6 +37,27 @@ TOPICS_HELP = ("ROS bags: the topics to play, e.g. color=/camera/rgb/image_raw,d
                "Needed only for a role the bag has several topics of; the others are found by message type")
 
 
+DEPTH_REGISTRATION = {"auto": None, "on": True, "off": False}  # --depth-registration: the 7-Scenes player's register
+DEPTH_REGISTRATION_HELP = (
+    "7-Scenes layout: register depth into the Kinect v1 colour camera (on), play colour and depth as given with "
+    "camera-intrinsics.txt (off), or auto (the default): on for Microsoft's 7-Scenes data only, whose "
+    "camera-intrinsics.txt is the Kinect v1 depth camera's 585 px (or absent); the log says which")
+
+
+def dataset_options(args) -> dict:
+    """The dataset players' options of `run` and `stream` arguments (max_frames, topics, register)."""
+    options = {}
+    max_frames = getattr(args, "max_frames", None)
+    if max_frames and getattr(args, "frames", None) is None:
+        options["max_frames"] = max_frames
+    if getattr(args, "topics", None):
+        options["topics"] = args.topics
+    register = DEPTH_REGISTRATION[getattr(args, "depth_registration", None) or "auto"]
+    if register is not None:
+        options["register"] = register
+    return options
+
+
 def want_progress(quiet: bool = False, stream=None) -> bool:
     """Progress bars only on an interactive terminal: not with -q/--quiet, and not when
     `stream` (default stderr, where tqdm draws) is a pipe or a file, where every update would
@@ -49,4 +71,5 @@ def want_progress(quiet: bool = False, stream=None) -> bool:
         return False
 
 
-__all__ = ["FRAMES_HELP", "TOPICS_HELP", "frame_range_arg", "positive_int", "want_progress"]
+__all__ = ["DEPTH_REGISTRATION", "DEPTH_REGISTRATION_HELP", "FRAMES_HELP", "TOPICS_HELP", "dataset_options",
+           "frame_range_arg", "positive_int", "want_progress"]

@@ -495,7 +495,14 @@ def _no_service(settings: ZenohSettings, session, streamer: CameraStreamer, wait
 def add_stream_arguments(parser):
     """Define the `mnemoslam stream` options on `parser` (an argparse (sub)parser) and set
     `func=stream_main`. Returns the parser."""
-    from .cliargs import FRAMES_HELP, TOPICS_HELP, frame_range_arg, positive_int
+    from .cliargs import (
+        DEPTH_REGISTRATION,
+        DEPTH_REGISTRATION_HELP,
+        FRAMES_HELP,
+        TOPICS_HELP,
+        frame_range_arg,
+        positive_int,
+    )
     from .datasets import FORMATS
 
     src = parser.add_mutually_exclusive_group(required=True)
@@ -505,6 +512,8 @@ def add_stream_arguments(parser):
                      help="stream a camera device (index, e.g. 0) or a video file instead")
     parser.add_argument("--format", choices=list(FORMATS), help="override dataset layout detection")
     parser.add_argument("--topics", action="append", metavar="ROLE=TOPIC,...", help=TOPICS_HELP)
+    parser.add_argument("--depth-registration", choices=list(DEPTH_REGISTRATION), default="auto",
+                        help=DEPTH_REGISTRATION_HELP)
     parser.add_argument("--robot", default="robot1", help="robot id, [A-Za-z0-9_-]{1,64} (default robot1)")
     parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the service takes them: "
                                                    "at most --window frames in flight, none dropped)")
@@ -594,21 +603,21 @@ def stream_main(args) -> int:
             raise ValueError("--topics applies to ROS bags only, not to --camera")
         if getattr(args, "frames", None) is not None:
             raise ValueError("--frames applies to datasets, not to --camera")
+        if getattr(args, "depth_registration", None) not in (None, "auto"):
+            raise ValueError("--depth-registration applies to 7-Scenes datasets, not to --camera")
         if labels:
             raise ValueError("--labels: a camera device / video file has no labels (only synthetic datasets do)")
         from .capture import CaptureSource
 
         dataset = CaptureSource(camera, max_frames=max_frames)
     else:
+        from .cliargs import dataset_options
         from .datasets import open_dataset
         from .datasets.subrange import frame_range
 
         frames = getattr(args, "frames", None)
-        options = {"max_frames": max_frames} if max_frames and frames is None else {}
-        if getattr(args, "topics", None):
-            options["topics"] = args.topics
-        dataset = frame_range(open_dataset(dataset_spec, getattr(args, "format", None), **options), frames,
-                              max_frames)
+        dataset = frame_range(open_dataset(dataset_spec, getattr(args, "format", None), **dataset_options(args)),
+                              frames, max_frames)
     connect = getattr(args, "connect", None) or [DEFAULT_ENDPOINT]
     settings = ZenohSettings(mode=getattr(args, "mode", "peer") or "peer", connect=list(connect))
     quiet = bool(getattr(args, "quiet", False))

@@ -16,7 +16,7 @@ def _overrides(args, options: dict | None = None) -> dict:
 
 
 def _cmd_run(args) -> int:
-    from mnemoslam.client.cliargs import want_progress
+    from mnemoslam.client.cliargs import dataset_options, want_progress
     from mnemoslam.client.datasets import open_dataset
 
     from .config import load_config
@@ -25,10 +25,8 @@ def _cmd_run(args) -> int:
     config = load_config(args.config, _overrides(args, {"loop": {"enabled": False}} if args.odometry_only else {}))
     from mnemoslam.client.datasets.subrange import frame_range
 
-    options = {"max_frames": args.max_frames} if args.max_frames and args.frames is None else {}
-    if args.topics:
-        options["topics"] = args.topics
-    dataset = frame_range(open_dataset(args.dataset, args.format, **options), args.frames, args.max_frames)
+    dataset = frame_range(open_dataset(args.dataset, args.format, **dataset_options(args)), args.frames,
+                          args.max_frames)
     if args.passes > 1:
         from mnemoslam.client.datasets.passes import Passes
 
@@ -211,7 +209,14 @@ def _add_set(parser, whose: str = "") -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mnemoslam.client.cliargs import FRAMES_HELP, TOPICS_HELP, frame_range_arg, positive_int
+    from mnemoslam.client.cliargs import (
+        DEPTH_REGISTRATION,
+        DEPTH_REGISTRATION_HELP,
+        FRAMES_HELP,
+        TOPICS_HELP,
+        frame_range_arg,
+        positive_int,
+    )
     from mnemoslam.client.datasets import FORMATS
 
     p = argparse.ArgumentParser(prog="mnemoslam", description="Long-term, memory-managed visual SLAM.")
@@ -226,6 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "grid.pgm + grid.yaml, cloud.ply)")
     r.add_argument("--format", choices=list(FORMATS), help="override layout detection")
     r.add_argument("--topics", action="append", metavar="ROLE=TOPIC,...", help=TOPICS_HELP)
+    r.add_argument("--depth-registration", choices=list(DEPTH_REGISTRATION), default="auto",
+                   help=DEPTH_REGISTRATION_HELP)
     r.add_argument("--config", help="YAML config file (default: built-in defaults)")
     r.add_argument("--passes", type=positive_int, default=1, metavar="N",
                    help="play the sequence forward, backward, forward... N passes in all, stamps continuing at its "

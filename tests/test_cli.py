@@ -101,6 +101,28 @@ def test_run_max_frames_must_be_positive(tmp_path, capsys, value):
     assert not (tmp_path / "o").exists()
 
 
+def test_run_depth_registration_reaches_the_7scenes_player(tmp_path, fake_run, capsys):
+    """--depth-registration auto|on|off: the 7-Scenes player's `register` (None, True, False);
+    any other dataset refuses on/off in one line."""
+    import cv2
+    import numpy as np
+
+    seq = tmp_path / "scene" / "seq-01"
+    seq.mkdir(parents=True)
+    for k in range(2):
+        cv2.imwrite(str(seq / f"frame-{k:06d}.color.png"), np.full((12, 16, 3), 100 + k, np.uint8))
+        cv2.imwrite(str(seq / f"frame-{k:06d}.depth.png"), np.full((12, 16), 1500, np.uint16))
+        np.savetxt(seq / f"frame-{k:06d}.pose.txt", np.eye(4))
+    (tmp_path / "scene" / "camera-intrinsics.txt").write_text("20 0 8\n0 20 6\n0 0 1\n")  # not the Kinect's
+    out = str(tmp_path / "o")
+    for option, registered in ((None, False), ("auto", False), ("on", True), ("off", False)):
+        extra = ["--depth-registration", option] if option else []
+        assert main(["run", str(seq.parent), "--out", out, *extra]) == 0
+        assert (fake_run[-1].dataset.registration is not None) == registered, option
+    assert main(["run", "synthetic:loop", "--out", out, "--max-frames", "2", "--depth-registration", "off"]) == 2
+    assert "applies to 7-Scenes only" in capsys.readouterr().err
+
+
 def test_run_set_overrides_config_keys(tmp_path, fake_run):
     out = str(tmp_path / "o")
     assert main(["run", "synthetic:loop", "--out", out, "--max-frames", "2", "--set", "loop.enabled=false",

@@ -347,19 +347,97 @@ def test_sevenscenes_defaults_and_bad_pose(tmp_path):
         open_dataset(scene)
 
 
-def test_sevenscenes_registers_depth_into_the_colour_camera_by_default(tmp_path):
-    """Default: the Kinect v1 colour camera (525 px at 640 wide, scaled to the images), depth
-    registered into it, and the ground truth moved to it (2.5 cm along the depth camera's x)."""
+def test_sevenscenes_registers_depth_into_the_colour_camera_when_asked(tmp_path):
+    """register=True: the Kinect v1 colour camera (525 px at 640 wide, scaled to the images),
+    depth registered into it, and the ground truth moved to it (2.5 cm along the depth camera's x)."""
     from mnemoslam.client.datasets.registration import DepthRegistration
 
     scene = make_sevenscenes(tmp_path)
-    raw, ds = open_dataset(scene, register=False), open_dataset(scene)
+    raw, ds = open_dataset(scene, register=False), open_dataset(scene, register=True)
     cam = ds.calibration.camera
     assert (cam.width, cam.height) == (16, 12) and cam.fx == pytest.approx(525 * 16 / 640)
     assert isinstance(ds.registration, DepthRegistration) and ds.registration.depth_camera == raw.calibration.camera
     np.testing.assert_array_equal(ds.frame(0).depth, ds.registration.register(raw.frame(0).depth))
     shift = ds.ground_truth.positions - raw.ground_truth.positions
     np.testing.assert_allclose(shift, np.tile([0.025, 0, 0], (2, 1)), atol=1e-12)  # identity rotations
+
+
+KINECT_AT_16 = "14.625 0 8\n0 14.625 6\n0 0 1\n"  # 585, 585, 320, 240 at 640 px wide, for 16 px wide images
+
+
+@pytest.mark.parametrize("intrinsics,registered", [
+    (None, True),  # no camera-intrinsics.txt: Microsoft's data, the 7-Scenes default
+    (KINECT_AT_16, True),  # the Kinect v1 depth camera's
+    ("14.625 0 8.0125\n0 14.625 6\n0 0 1\n", True),  # cx 320.5 at 640 wide: within 1 px
+    ("500 0 330\n0 501 250\n0 0 1\n", False),  # another sensor's
+    ("14.625 0 8.05\n0 14.625 6\n0 0 1\n", False),  # cx 322 at 640 wide: beyond the 1 px
+])
+def test_sevenscenes_registers_only_the_kinect_data_by_default(tmp_path, caplog, intrinsics, registered):
+    """By default depth is registered only for Microsoft's 7-Scenes data (the Kinect v1 depth
+    camera's intrinsics, or none given); any other sequence in the layout plays as given, with
+    its own intrinsics. register=True / False overrides either way; one INFO line says which."""
+    scene = make_sevenscenes(tmp_path)
+    (scene / "camera-intrinsics.txt").unlink()
+    if intrinsics is not None:
+        (scene / "camera-intrinsics.txt").write_text(intrinsics)
+    raw = open_dataset(scene, register=False)
+    assert raw.registration is None
+    with caplog.at_level(logging.INFO, logger="mnemoslam.client.datasets.sevenscenes"):
+        ds = open_dataset(scene)
+    lines = [r for r in caplog.records if "registered" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].levelno == logging.INFO
+    assert (ds.registration is not None) == registered
+    assert ("into the Kinect v1 colour camera" in lines[0].getMessage()) == registered, lines[0].getMessage()
+    if registered:
+        assert ds.calibration.camera.fx == pytest.approx(525 * 16 / 640)
+        assert open_dataset(scene, register=False).registration is None
+    else:
+        assert ds.calibration.camera == raw.calibration.camera  # the sequence's own intrinsics
+        np.testing.assert_array_equal(ds.frame(0).depth, raw.frame(0).depth)
+        np.testing.assert_array_equal(ds.ground_truth.poses, raw.ground_truth.poses)
+        assert open_dataset(scene, register=True).registration is not None
+
+
+def test_depth_registration_is_a_7scenes_option_only(tmp_path):
+    for path in (make_tum(tmp_path), "synthetic:loop"):
+        with pytest.raises(DatasetError, match="applies to 7-Scenes only"):
+            open_dataset(path, register=True)
+    assert len(open_dataset(make_tum(tmp_path / "b"), register=None)) > 0  # None: every player's default
+
+
+def write_sevenscenes(ds, root: Path) -> Path:
+    """`ds` (RGB-D frames with ground truth) written in the 7-Scenes layout: seq-01 of colour
+    PNGs, depth PNGs in millimetres and 4x4 pose files, with its own camera-intrinsics.txt."""
+    seq = root / "seq-01"
+    for i in range(len(ds)):
+        f = ds.frame(i)
+        write_png(seq / f"frame-{i:06d}.color.png", f.image)
+        write_png(seq / f"frame-{i:06d}.depth.png", np.round(f.depth * 1000).astype(np.uint16))
+        np.savetxt(seq / f"frame-{i:06d}.pose.txt", ds.ground_truth.poses[i])
+    c = ds.calibration.camera
+    np.savetxt(root / "camera-intrinsics.txt", [[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1]])
+    return root
+
+
+@pytest.mark.slow
+def test_sevenscenes_layout_from_another_sensor_runs_with_its_own_intrinsics(tmp_path, capsys):
+    """Issue 26: a sequence in the 7-Scenes layout from another RGB-D sensor (depth registered to
+    colour, fx 600 px at 640 wide) played by `mnemoslam run` with its own intrinsics and no
+    depth registration. Registered into a Kinect v1 colour camera (525 px, 2.5 cm baseline; the
+    player's default before) the same frames gave 7.43 cm."""
+    from mnemoslam.client.synthetic import SyntheticDataset
+    from mnemoslam.service.cli import main
+    from mnemoslam.service.evaluation import evaluate, read_trajectory
+
+    syn = SyntheticDataset("loop", rate=10, width=320, height=240, fx=300.0, max_frames=100)  # exact depth, poses
+    folder = write_sevenscenes(syn, tmp_path / "other_sensor")
+    out = tmp_path / "out"
+    assert main(["run", str(folder), "--out", str(out), "--set", "semantics.enabled=false", "-q"]) == 0
+    ev = evaluate(read_trajectory(out / "groundtruth.tum"), read_trajectory(out / "trajectory.tum"))
+    assert ev.matched == 100, capsys.readouterr().out
+    assert ev.ate_rmse < 0.015, ev.ate_rmse  # measured 0.49 cm (the synthetic frames played directly: 0.50)
+    ds = open_dataset(folder)
+    assert ds.registration is None and ds.calibration.camera == syn.camera
 
 
 # ---------------------------------------------------------------- layout detection

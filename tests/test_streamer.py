@@ -292,6 +292,19 @@ def test_stream_main(collector, capsys):
     capsys.readouterr()
 
 
+def test_stream_depth_registration_is_for_7scenes_datasets_only(tmp_path):
+    """`stream --depth-registration on|off` goes to the 7-Scenes player; with another dataset or
+    a camera it is a one-line error before anything is sent."""
+    from tests.test_datasets import make_sevenscenes, make_tum
+
+    args = _parse(["stream", str(make_sevenscenes(tmp_path)), "--depth-registration", "on"])
+    assert args.depth_registration == "on"
+    with pytest.raises(DatasetError, match="applies to 7-Scenes only"):
+        stream_main(_parse(["stream", str(make_tum(tmp_path)), "--depth-registration", "off", "-q"]))
+    with pytest.raises(ValueError, match="--depth-registration"):
+        stream_main(_parse(["stream", "--camera", "0", "--depth-registration", "on", "-q"]))
+
+
 def test_stream_skips_unreadable_frames_like_run(tmp_path, collector, caplog):
     """A corrupt image costs its frame (logged, counted in StreamStats.skipped and the summary
     line), not the stream; skipped frames count towards max_frames."""

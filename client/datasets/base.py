@@ -71,13 +71,23 @@ def open_dataset(spec: str | Path, format: str | None = None, **options) -> Data
     both: `?person&rate=5`).
 
     `options` go to the player (e.g. `max_frames`; for bags `topics`, see
-    `client.datasets.rosbag`; for the synthetic scene `noise`, `seed`, `frames`, `person`, ...).
+    `client.datasets.rosbag`; for 7-Scenes `register`: None (the default) registers depth into
+    the Kinect v1 colour camera for Microsoft's data only, True / False always / never, see
+    `client.datasets.sevenscenes`; for the synthetic scene `noise`, `seed`, `frames`, `person`, ...).
     """
     text = str(spec)
     topics = options.pop("topics", None)
+    register = options.pop("register", None)
+
+    def only_7scenes(fmt: str) -> None:
+        if register is not None:
+            raise DatasetError(f"{text}: depth registration (--depth-registration) applies to 7-Scenes only, "
+                               f"not to {fmt}")
+
     if format == "synthetic" or text.startswith("synthetic"):
         if topics:
             raise DatasetError(f"{text}: --topics applies to ROS bags only")
+        only_7scenes("synthetic")
         from ..synthetic import SyntheticDataset
 
         base, _, extra = text.partition("?")  # synthetic:loop?person: with the walking person
@@ -100,6 +110,7 @@ def open_dataset(spec: str | Path, format: str | None = None, **options) -> Data
     if format == "rosbag" or (format is None and _is_bag(path)):
         from .rosbag import RosbagDataset
 
+        only_7scenes("rosbag")
         return RosbagDataset(path, topics=topics, **options)
     if topics:
         raise DatasetError(f"{path}: --topics applies to ROS bags only")
@@ -107,6 +118,10 @@ def open_dataset(spec: str | Path, format: str | None = None, **options) -> Data
         raise DatasetError(f"{path}: not a dataset folder (nor a ROS bag: .bag, .db3, .mcap or a rosbag2 folder "
                            "with metadata.yaml)")
     fmt = format or detect_format(path)
+    if fmt == "7scenes":
+        options["register"] = register
+    else:
+        only_7scenes(fmt)
     if fmt == "tum":
         from .tum import TumDataset as cls
     elif fmt == "euroc":

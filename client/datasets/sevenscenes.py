@@ -3,17 +3,26 @@
 (4x4 camera-to-world), or a scene folder (its first `seq-XX` in sorted order is played).
 
 There are no timestamps: frame number k is stamped k/30 s. `camera-intrinsics.txt` in the
-sequence folder or its parent (default 585, 585, 320, 240) holds the *depth* camera's
-intrinsics, and the ground truth (KinectFusion) is the depth camera's pose.
+sequence folder or its parent (default 585, 585, 320, 240: Microsoft's 7-Scenes) holds the
+intrinsics the depth images were taken with.
 
-7-Scenes colour is not registered to depth (the dataset says so): by default the player
-registers each depth image into the colour camera (`registration.DepthRegistration`) with the
-Kinect v1's nominal colour intrinsics (525, 525, 319.5, 239.5) and its colour camera 2.5 cm
-along the depth camera's +x. It delivers the colour camera's calibration, and the ground truth
-moved to the colour camera by the same extrinsic. Fitted without ground truth on this data
-(depth discontinuities against colour edges, 20 frames of redkitchen): fx 526, fy 531,
-baseline 2.52 cm, principal point within 1.4 px. `register=False` plays the raw images with the
-depth camera's intrinsics, as the dataset's own note suggests.
+Microsoft's 7-Scenes data (a Kinect v1) is not registered: its depth comes from the depth (IR)
+camera, whose intrinsics `camera-intrinsics.txt` holds (585 px), and its ground truth
+(KinectFusion) is the depth camera's pose. For that data the player registers each depth image
+into the colour camera (`registration.DepthRegistration`) with the Kinect v1's nominal colour
+intrinsics (525, 525, 319.5, 239.5) and its colour camera 2.5 cm along the depth camera's +x,
+and delivers the colour camera's calibration and the ground truth moved to the colour camera by
+the same extrinsic. Fitted without ground truth on this data (depth discontinuities against
+colour edges, 20 frames of redkitchen): fx 526, fy 531, baseline 2.52 cm, principal point within
+1.4 px.
+
+Which sequences are registered (`register`): by default (`None`) those whose intrinsics are the
+Kinect v1 depth camera's (585, 585, 320, 240 at 640 px wide, scaled to the image width, within
+1 px) or that have no `camera-intrinsics.txt`, i.e. Microsoft's data; any other sequence in this
+layout (another RGB-D sensor, depth already registered to colour, its own
+`camera-intrinsics.txt`) plays as given, with its own intrinsics. `register=True` registers
+whatever the intrinsics, `register=False` never does (the CLI's `--depth-registration on|off`).
+One INFO line says which the player did.
 """
 from __future__ import annotations
 
@@ -33,21 +42,29 @@ log = logging.getLogger(__name__)
 DEPTH_SCALE = 1000.0
 INVALID_DEPTH = 65535
 FPS = 30.0
-DEFAULT_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
+KINECT_DEPTH_INTRINSICS = (585.0, 585.0, 320.0, 240.0)  # Microsoft 7-Scenes: the Kinect v1 depth camera, 640×480
+DEFAULT_INTRINSICS = KINECT_DEPTH_INTRINSICS
 KINECT_COLOUR_INTRINSICS = (525.0, 525.0, 319.5, 239.5)  # Kinect v1 colour camera, nominal
 KINECT_COLOUR_OFFSET = (0.025, 0.0, 0.0)  # m, the colour camera's centre in the depth camera's frame
 
 
-def read_intrinsics(seq: Path) -> tuple[float, float, float, float]:
-    """fx, fy, cx, cy from camera-intrinsics.txt (a 3x3 matrix) in `seq` or its parent."""
+def read_intrinsics(seq: Path) -> tuple[tuple[float, float, float, float], Path | None]:
+    """(fx, fy, cx, cy) from camera-intrinsics.txt (a 3x3 matrix) in `seq` or its parent, and
+    that file; the 7-Scenes default and None when there is none."""
     for path in (seq / "camera-intrinsics.txt", seq.parent / "camera-intrinsics.txt"):
         if path.is_file():
             K = numbers(path, read_rows(path, 3))
             if K.shape != (3, 3):
                 raise DatasetError(f"{path}: expected a 3x3 matrix, got shape {K.shape}")
-            return K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    log.info("%s: no camera-intrinsics.txt; using the 7-Scenes default %s", seq, DEFAULT_INTRINSICS)
-    return DEFAULT_INTRINSICS
+            return (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])), path
+    return DEFAULT_INTRINSICS, None
+
+
+def is_kinect_depth(intrinsics: tuple[float, float, float, float], width: int) -> bool:
+    """Whether (fx, fy, cx, cy) of images `width` pixels wide are the Kinect v1 depth camera's
+    of Microsoft's 7-Scenes (585, 585, 320, 240 at 640 px wide, within 1 px there)."""
+    at_640 = np.asarray(intrinsics, float) * (640.0 / width)
+    return bool(np.allclose(at_640, KINECT_DEPTH_INTRINSICS, rtol=0.0, atol=1.0))
 
 
 def read_poses(paths: list[Path]) -> tuple[np.ndarray, np.ndarray]:
@@ -73,7 +90,7 @@ class SevenScenesDataset(Dataset):
 
     format = "7scenes"
 
-    def __init__(self, path: Path, *, max_frames: int | None = None, register: bool = True):
+    def __init__(self, path: Path, *, max_frames: int | None = None, register: bool | None = None):
         path = Path(path)
         seq = path
         if not any(path.glob("frame-*.color.*")):
@@ -91,13 +108,27 @@ class SevenScenesDataset(Dataset):
         self.stamps = numbers(seq, [s[len("frame-"):] for s in stems]) / FPS
         w, h = image_size(self._colour[0])
         self._shape = (h, w)
-        depth_camera = pinhole(*read_intrinsics(seq), w, h)
+        intrinsics, source = read_intrinsics(seq)
+        depth_camera = pinhole(*intrinsics, w, h)
+        given = (f"{source.name} {tuple(round(v, 3) for v in intrinsics)}" if source else
+                 f"no camera-intrinsics.txt (the 7-Scenes default {intrinsics})")
+        if register is None:  # Microsoft's 7-Scenes data only
+            register = source is None or is_kinect_depth(intrinsics, w)
+            why = (f"{given}: the Kinect v1 depth camera's (Microsoft 7-Scenes; --depth-registration off plays it "
+                   "as given)" if register else f"{given}: not the Kinect v1 depth camera's (585 px), so played as "
+                   "given (--depth-registration on registers it)")
+        else:
+            why = f"{given}; depth registration {'on' if register else 'off'} as asked"
         self.registration = None
         if register:
             T_colour_depth = np.eye(4)
             T_colour_depth[:3, 3] = -np.asarray(KINECT_COLOUR_OFFSET)
             colour_camera = pinhole(*KINECT_COLOUR_INTRINSICS, 640, 480).scaled(w / 640)  # nominal at 640×480
             self.registration = DepthRegistration(depth_camera, colour_camera, T_colour_depth)
+            log.info("%s: depth registered into the Kinect v1 colour camera (fx %.1f px, %.1f cm baseline); %s",
+                     seq, colour_camera.fx, 100 * KINECT_COLOUR_OFFSET[0], why)
+        else:
+            log.info("%s: colour and depth as registered, with their own intrinsics; %s", seq, why)
         camera = self.registration.colour_camera if register else depth_camera
         self.calibration = Calibration(camera, None, DEPTH_SCALE)
         poses, valid = read_poses([seq / f"{s}.pose.txt" for s in stems])
