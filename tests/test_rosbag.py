@@ -41,7 +41,7 @@ class BagWriter:
 
     def __init__(self, path: Path, storage: str, color="rgb8", depth="16UC1", pose="PoseStamped",
                  color_topic=COLOR_TOPIC, depth_topic=DEPTH_TOPIC, info_topics=(INFO_TOPIC,), pose_topic="/groundtruth",
-                 distortion=(0.0, 0.0, 0.0, 0.0, 0.0)):
+                 distortion=None):
         from rosbags.rosbag1 import Writer as Writer1
         from rosbags.rosbag2 import StoragePlugin
         from rosbags.rosbag2 import Writer as Writer2
@@ -90,6 +90,8 @@ class BagWriter:
     def info(self, stamp_ns, calibration, distortion=None):
         c = calibration.camera
         distortion = self.distortion if distortion is None else distortion
+        if distortion is None:  # the calibration's own (zeros when it has none)
+            distortion = c.distortion or (0.0, 0.0, 0.0, 0.0, 0.0)
         K = np.array([c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1], np.float64)
         P = np.array([c.fx, 0, c.cx, 0, 0, c.fy, c.cy, 0, 0, 0, 1, 0], np.float64)
         R = np.eye(3).reshape(-1)
@@ -338,17 +340,22 @@ def test_pairs_by_header_stamp_and_reads_frames_in_any_order(tmp_path):
         ds.frame(0)
 
 
-def test_distorted_images_are_undistorted_and_rect_topics_use_p(tmp_path):
+def test_distorted_bag_delivers_raw_images_with_their_distortion_and_rect_topics_use_p(tmp_path):
+    """A CameraInfo distortion goes into the calibration and the images stay as recorded: the
+    depth is registered to the raw colour image, undistorting the images would move it (the
+    service undistorts feature coordinates instead)."""
+    import dataclasses
+
     frames = list(_frames(2))
     D = (0.1, -0.05, 0.001, 0.002, 0.0)
     ds = open_dataset(_small_bag(tmp_path / "raw", "mcap", frames, pose=None, distortion=D))
-    K = _calibration().camera.K
-    assert ds.calibration.camera == _calibration().camera
-    assert np.array_equal(ds.frame(1).image, cv2.undistort(frames[1].image, K, np.array(D)))
-    assert ds.frame(1).depth.shape == (24, 32)
+    assert ds.calibration.camera == dataclasses.replace(_calibration().camera, distortion=D)
+    assert np.array_equal(ds.frame(1).image, frames[1].image)
+    assert np.array_equal(ds.frame(1).depth, frames[1].depth)
     rect = open_dataset(_small_bag(tmp_path / "rect", "mcap", frames, pose=None, distortion=D,
                                    color_topic="/camera/rgb/image_rect_color"))
     assert np.array_equal(rect.frame(1).image, frames[1].image)  # already rectified: P, no remap
+    assert rect.calibration.camera == _calibration().camera and not rect.calibration.camera.distorted
 
 
 def test_two_colour_topics_need_topics(tmp_path):
