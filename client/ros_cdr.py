@@ -263,11 +263,12 @@ def decode_depth(msg, size=None, max_side: int = 65535) -> np.ndarray:
 # CameraInfo -> Calibration
 
 def calibration(msg, intrinsics: str = "k", max_side: int = 65535) -> Calibration:
-    """The pinhole calibration of a sensor_msgs/CameraInfo: K (``intrinsics="k"``: images
-    without distortion, e.g. a RealSense's) or the left 3×3 of P (``"p"``: the rectified
-    images of image_rect topics). Depth scale 1000 (16UC1 millimetres; 32FC1 depth is metres
-    anyway). ProtocolError ``bad_info`` for a size or intrinsics we cannot use, binning or a
-    region of interest."""
+    """The pinhole calibration of a sensor_msgs/CameraInfo: K and the lens distortion D
+    (``intrinsics="k"``: the raw images, depth registered to them; plumb_bob or
+    rational_polynomial D, other models only when D is zero) or the left 3×3 of P (``"p"``:
+    the rectified images of image_rect topics, no distortion). Depth scale 1000 (16UC1
+    millimetres; 32FC1 depth is metres anyway). ProtocolError ``bad_info`` for a size or
+    intrinsics we cannot use, binning or a region of interest."""
     w, h = int(msg.width), int(msg.height)
     if not (1 <= w <= max_side and 1 <= h <= max_side):
         raise ProtocolError("bad_info", f"camera info size {w}×{h} outside 1..{max_side}")
@@ -283,7 +284,16 @@ def calibration(msg, intrinsics: str = "k", max_side: int = 65535) -> Calibratio
     fx, fy, cx, cy = float(m[0, 0]), float(m[1, 1]), float(m[0, 2]), float(m[1, 2])
     if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
         raise ProtocolError("bad_info", f"camera info {intrinsics.upper()}: fx {fx}, fy {fy}, cx {cx}, cy {cy}")
-    return Calibration(PinholeCamera(fx, fy, cx, cy, w, h), None, DEPTH_SCALE)
+    distortion: tuple[float, ...] = ()
+    d = np.asarray(msg.d, np.float64).reshape(-1)
+    if intrinsics == "k" and d.size and np.any(d != 0):
+        model = str(msg.distortion_model)
+        if model not in ("plumb_bob", "rational_polynomial") or d.size not in (4, 5, 8) \
+                or not np.all(np.isfinite(d)):
+            raise ProtocolError("bad_info", f"camera info distortion {model!r} with {d.size} coefficients is not "
+                                            "supported (plumb_bob, rational_polynomial; or use the rectified images)")
+        distortion = tuple(float(v) for v in d)
+    return Calibration(PinholeCamera(fx, fy, cx, cy, w, h, distortion), None, DEPTH_SCALE)
 
 
 # ------------------------------------------------------------------------------------------
@@ -402,14 +412,17 @@ def encode_compressed_depth(depth: np.ndarray, ns: int, frame_id: str = "camera"
 
 
 def encode_camera_info(calib: Calibration, ns: int, frame_id: str = "camera") -> bytes:
-    """A calibration as CDR sensor_msgs/CameraInfo (plumb_bob, no distortion, K and P)."""
+    """A calibration as CDR sensor_msgs/CameraInfo (K, P, and D: plumb_bob with the camera's
+    distortion, zeros when it has none; rational_polynomial for 8 coefficients)."""
     c = calib.camera
     ts = typestore()
     T = ts.types
     k = np.array([c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0])
     p = np.array([c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
-    msg = T[CAMERA_INFO](header=_header(ns, frame_id), height=c.height, width=c.width, distortion_model="plumb_bob",
-                         d=np.zeros(5), k=k, r=np.eye(3).reshape(-1), p=p, binning_x=0, binning_y=0,
+    d = np.zeros(5) if not c.distortion else np.array(c.distortion, np.float64)
+    model = "rational_polynomial" if len(d) == 8 else "plumb_bob"
+    msg = T[CAMERA_INFO](header=_header(ns, frame_id), height=c.height, width=c.width, distortion_model=model,
+                         d=d, k=k, r=np.eye(3).reshape(-1), p=p, binning_x=0, binning_y=0,
                          roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                                     do_rectify=False))
     return serialize(msg, CAMERA_INFO)

@@ -11,7 +11,7 @@ from typing import Callable
 from mnemoslam.client.kernel.frames import Calibration
 from mnemoslam.storage import MapStore
 
-from .config import Config, SemanticsConfig
+from .config import Config, ConfigError, SemanticsConfig
 from .mapping.mapper import Mapper
 from .mapping.process import MappingProcess
 from .memory.keyframes import KeyframeWriter
@@ -45,6 +45,21 @@ def unused_semantics_keys(config: SemanticsConfig) -> list[str]:
             if f.name != "enabled" and getattr(config, f.name) != getattr(default, f.name)]
 
 
+def with_distortion(calibration: Calibration, distortion: list[float] | None) -> Calibration:
+    """The calibration with `features.distortion` (None: the source's; []: none; else the
+    coefficients k1, k2, p1, p2[, k3[, k4, k5, k6]]) as its camera's lens distortion."""
+    if distortion is None or tuple(distortion) == calibration.camera.distortion:
+        return calibration
+    try:
+        camera = dataclasses.replace(calibration.camera, distortion=tuple(float(v) for v in distortion))
+        out = dataclasses.replace(calibration, camera=camera)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"features.distortion: {e}") from None
+    log.info("lens distortion %s (features.distortion; the source said %s)", list(camera.distortion),
+             list(calibration.camera.distortion))
+    return out
+
+
 def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config: Config, *,
                    mapping: MappingProcess | None = None, background: bool = False,
                    on_event: Callable[[str, dict], None] | None = None,
@@ -55,6 +70,7 @@ def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config
     data)`, its semantic worker (`semantics`: the map's shared (worker, why off) from
     `build_semantics`, which the caller closes; else one of its own, see `build_semantics`,
     that the pipeline closes), and the pipeline over them. End it with `Pipeline.close()`."""
+    calibration = with_distortion(calibration, config.features.distortion)
     writer = KeyframeWriter(store, robot, calibration, config)
     mapper = None
     if config.loop.enabled:

@@ -31,6 +31,7 @@ class FeatureConfig:
     min_depth: float = 0.2  # metres; nearer / farther depth readings are ignored
     max_depth: float = 6.0  # (Vis/MaxDepth is 0 = inf in RTAB-Map; Kinect noise grows as z^2)
     depth_noise: float = 0.003  # RGB-D depth std. dev. = this × z² (m; Kinect noise plus colour/depth misregistration), weighs depth in pose refinement
+    distortion: list[float] | None = None  # lens distortion k1, k2, p1, p2[, k3] of the camera's raw images, overriding the source's (TUM fr1/fr2's published values, ROS CameraInfo D, a camera's info); [] ignores it; null keeps the source's. Feature coordinates are undistorted, depth read at the raw pixel
 
 
 @dataclass

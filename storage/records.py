@@ -172,14 +172,17 @@ MAX_OBJECT_KEYFRAMES = 64
 def calibration_to_dict(c: Calibration) -> dict:
     """The stored (JSON) form of a calibration."""
     cam = c.camera
-    return {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
-            "height": cam.height, "baseline": c.baseline, "depth_scale": c.depth_scale}
+    d = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
+         "height": cam.height, "baseline": c.baseline, "depth_scale": c.depth_scale}
+    if cam.distortion:  # (left out when none: older readers see the same form)
+        d["distortion"] = list(cam.distortion)
+    return d
 
 
 def calibration_from_dict(d: dict) -> Calibration:
     """The calibration of its stored form (`calibration_to_dict`)."""
     cam = PinholeCamera(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
-                        int(d["width"]), int(d["height"]))
+                        int(d["width"]), int(d["height"]), tuple(float(v) for v in d.get("distortion") or ()))
     return Calibration(cam, None if d.get("baseline") is None else float(d["baseline"]),
                        float(d.get("depth_scale", 1000.0)))
 

@@ -78,7 +78,7 @@ def test_depth_backprojection_rejects_invalid_and_edges():
     depth[100:140, 100:140] = np.nan
     depth[300:340, 100:140] = 0.0
     xy = np.array([[200, 200], [320, 200], [120, 120], [120, 320], [500, 400]], np.float32)
-    pts = ex._depth_points(depth, xy)
+    pts = ex._depth_points(depth, xy, xy)  # (no distortion: raw and undistorted pixels alike)
     assert np.allclose(pts[0], [(200 - CAM.cx) / CAM.fx * 2, (200 - CAM.cy) / CAM.fy * 2, 2.0], atol=1e-5)
     assert np.isnan(pts[1:4, 2]).all()  # edge, NaN, zero
     assert pts[4, 2] == pytest.approx(4.0)

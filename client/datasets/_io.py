@@ -57,9 +57,10 @@ def image_size(path: str | Path) -> tuple[int, int]:
     return w, h
 
 
-def pinhole(fx, fy, cx, cy, width, height) -> PinholeCamera:
+def pinhole(fx, fy, cx, cy, width, height, distortion=()) -> PinholeCamera:
     """A PinholeCamera with plain Python numbers (not numpy scalars)."""
-    return PinholeCamera(float(fx), float(fy), float(cx), float(cy), int(width), int(height))
+    return PinholeCamera(float(fx), float(fy), float(cx), float(cy), int(width), int(height),
+                         tuple(float(v) for v in distortion))
 
 
 def read_rows(path: str | Path, min_fields: int = 1) -> list[list[str]]:

@@ -5,6 +5,9 @@ or a `*.tum` file next to `mav0/`.
 The raw pinhole + radial-tangential stereo pair is rectified once (cv2.stereoRectify, alpha 0,
 zero disparity); frames carry the rectified grey left/right images. The frame camera is the
 rectified left camera, rotated by R1 from raw cam0; ground truth (body poses) is converted to it.
+The images are rectified here, unlike the RGB-D players' (which leave lens distortion to the
+service's feature coordinates): stereo matching needs rectified rows, and there is no depth
+image registered to the raw pixels to keep; the frame camera has no distortion.
 """
 from __future__ import annotations
 

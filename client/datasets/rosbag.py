@@ -12,10 +12,12 @@ Topics, by message type (and, for `sensor_msgs/Image`, by the encoding of its fi
   (format like "16UC1; compressedDepth png": a small config header then a 16-bit PNG; for
   32FC1 the PNG holds quantized inverse depth). 0 means "no measurement" in every encoding;
   depth must be registered to the colour image (same size);
-- camera info: `sensor_msgs/CameraInfo` (its first message). Intrinsics are K, and images
-  are undistorted with K and D (plumb_bob / rational_polynomial / equidistant) when D is not
-  zero; for a colour topic whose name contains "rect" the images are already rectified and
-  the intrinsics are P's;
+- camera info: `sensor_msgs/CameraInfo` (its first message). Intrinsics are K and the
+  lens distortion D (plumb_bob / rational_polynomial) goes into the calibration: the images
+  are delivered raw, as the depth is registered to the raw colour image, and the service
+  undistorts feature coordinates (`PinholeCamera.distortion`); only equidistant (fisheye)
+  images are undistorted here (colour bilinear, depth nearest). For a colour topic whose name
+  contains "rect" the images are already rectified and the intrinsics are P's;
 - ground truth (optional): `geometry_msgs/PoseStamped`, `PoseWithCovarianceStamped` or
   `nav_msgs/Odometry`, taken as the camera's pose in the world (camera-to-world; ATE uses
   the positions).
@@ -466,19 +468,23 @@ class RosbagDataset(Dataset):
                 raise DatasetError(f"{self.path}: camera info {topic}: no intrinsics (K is {K.tolist()}; "
                                    f"an uncalibrated camera)")
             fx, fy, cx, cy = K[0], K[4], K[2], K[5]
-        maps = None
+        maps, distortion = None, ()
         if not rectified and len(D) and np.abs(D).max() > 0:
             model = str(msg.distortion_model)
-            Km = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-            if model in ("plumb_bob", "rational_polynomial"):
-                maps = cv2.initUndistortRectifyMap(Km, D, None, Km, (w, h), cv2.CV_32FC1)
+            if model in ("plumb_bob", "rational_polynomial") and len(D) in (4, 5, 8):
+                # the images stay raw (the depth is registered to them): the service undistorts
+                # feature coordinates and dense back-projection rays (PinholeCamera.distortion)
+                distortion = tuple(float(v) for v in D)
+                log.info("%s: lens distortion %s D=%s (the images stay raw, feature coordinates are undistorted)",
+                         self.path, model, np.round(D, 5).tolist())
             elif model == "equidistant" and len(D) >= 4:
+                Km = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
                 maps = cv2.fisheye.initUndistortRectifyMap(Km, D[:4], np.eye(3), Km, (w, h), cv2.CV_32FC1)
+                log.info("%s: images undistorted (%s, D=%s)", self.path, model, np.round(D, 5).tolist())
             else:
-                raise DatasetError(f"{self.path}: camera info {topic}: distortion model {model!r} not supported "
-                                   f"(plumb_bob, rational_polynomial, equidistant)")
-            log.info("%s: images undistorted (%s, D=%s)", self.path, model, np.round(D, 5).tolist())
-        return Calibration(pinhole(fx, fy, cx, cy, w, h), None, DEPTH_SCALE), maps
+                raise DatasetError(f"{self.path}: camera info {topic}: distortion model {model!r} with {len(D)} "
+                                   f"coefficients not supported (plumb_bob, rational_polynomial, equidistant)")
+        return Calibration(pinhole(fx, fy, cx, cy, w, h, distortion), None, DEPTH_SCALE), maps
 
     def _poses(self, info, topic: str) -> Trajectory:
         stamps, msgs = [], []

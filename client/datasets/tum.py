@@ -2,7 +2,9 @@
 (5000 units per metre), optional `groundtruth.txt` (TUM format, camera-to-world).
 
 Frames are the rgb images that have a depth image within 20 ms (one-to-one), stamped with the
-rgb stamp. Intrinsics come from the sequence name (freiburg1/2/3, as published by TUM).
+rgb stamp. Intrinsics and lens distortion come from the sequence name (freiburg1/2/3, as
+published by TUM); the images are delivered raw (depth is registered to the raw colour image)
+and the service undistorts feature coordinates.
 """
 from __future__ import annotations
 
@@ -36,6 +38,10 @@ INTRINSICS = {  # fx, fy, cx, cy of the TUM cameras
     "freiburg3": (535.4, 539.2, 320.1, 247.6),
 }
 DEFAULT_INTRINSICS = (525.0, 525.0, 319.5, 239.5)  # the ROS OpenNI default
+DISTORTION = {  # k1, k2, p1, p2, k3 of the TUM colour cameras (freiburg3's images are undistorted already)
+    "freiburg1": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+    "freiburg2": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+}
 
 
 def associate(a_stamps, b_stamps, max_dt: float = MAX_DT) -> tuple[np.ndarray, np.ndarray]:
@@ -85,6 +91,15 @@ def read_list(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return stamps[order], files[order]
 
 
+def distortion_for(name: str) -> tuple[float, ...]:
+    """The published lens distortion of the TUM camera named in a sequence folder name
+    (empty for freiburg3 and unknown names)."""
+    for key, D in DISTORTION.items():
+        if key in name:
+            return D
+    return ()
+
+
 def intrinsics_for(name: str) -> tuple[float, float, float, float]:
     """fx, fy, cx, cy of the TUM camera named in a sequence folder name."""
     for key, K in INTRINSICS.items():
@@ -100,6 +115,9 @@ class TumDataset(Dataset):
     format = "tum"
 
     def __init__(self, path: Path, *, max_frames: int | None = None):
+        """`max_frames`: only the first frames. The camera's distortion is TUM's published one
+        for freiburg1/2 (the frames are the raw images, depth registered to them); the service's
+        `features.distortion` overrides it."""
         path = Path(path)
         self.path = path
         self.name = path.resolve().name
@@ -113,7 +131,8 @@ class TumDataset(Dataset):
         self._rgb, self._depth = rgb_f[ia[:n]], depth_f[ib[:n]]
         w, h = image_size(self._rgb[0])
         self._shape = (h, w)
-        self.calibration = Calibration(pinhole(*intrinsics_for(self.name), w, h), None, DEPTH_SCALE)
+        self.calibration = Calibration(pinhole(*intrinsics_for(self.name), w, h, distortion_for(self.name)), None,
+                                       DEPTH_SCALE)
         gt = path / "groundtruth.txt"
         self.ground_truth = sample_poses(read_tum(gt), self.stamps) if gt.is_file() else None
 

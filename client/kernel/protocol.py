@@ -147,9 +147,16 @@ Camera info message (JSON, utf-8, on ``<prefix>/<robot>/camera/info``)
 =====================================================================
 ``{"version": 1, "robot": "r1", "kind": "rgbd" | "stereo" | "mono", "fx": 525.0, "fy": 525.0,
 "cx": 319.5, "cy": 239.5, "width": 640, "height": 480, "baseline": null | metres,
-"depth_scale": 1000.0}`` - pinhole intrinsics of the undistorted (rectified) images. fx, fy
+"depth_scale": 1000.0}`` - pinhole intrinsics of the images. fx, fy
 finite > 0; cx, cy finite; width, height integers 1..65535; baseline finite > 0 for stereo
 and null otherwise; depth_scale finite > 0. Unknown extra fields are ignored.
+
+Optional ``"distortion": [k1, k2, p1, p2, k3]``: the lens distortion of the images the camera
+sends (OpenCV's radial-tangential order; 4, 5 or 8 finite numbers, ``bad_field`` otherwise).
+Absent, null or all zeros: the images are undistorted. The camera sends its raw images (an
+RGB-D camera's depth registered to the raw colour image) and the service undistorts feature
+coordinates; stereo images must be rectified (no distortion). Writers leave the field out
+when there is none, so an older service reads the message as before.
 
 Optional ``"classes": ["other", "wall", ...]``: the class table of the camera's label images,
 names indexed by class id: 1..65536 (`MAX_CLASSES`) distinct names of 1..64 printable
@@ -873,7 +880,8 @@ def _calibration_fields(calibration: Calibration, kind: str) -> dict:
     c = calibration.camera
     return {"fx": float(c.fx), "fy": float(c.fy), "cx": float(c.cx), "cy": float(c.cy), "width": int(c.width),
             "height": int(c.height), "baseline": None if calibration.baseline is None else float(calibration.baseline),
-            "depth_scale": float(calibration.depth_scale)}
+            "depth_scale": float(calibration.depth_scale),
+            **({"distortion": [float(v) for v in c.distortion]} if c.distortion else {})}
 
 
 def _check_info(obj: dict, what: str = "camera info") -> CameraInfo:
@@ -892,7 +900,17 @@ def _check_info(obj: dict, what: str = "camera info") -> CameraInfo:
     if (kind == "stereo") != (baseline is not None):
         raise ProtocolError("bad_field", f"{what}: a {kind} camera must {'' if kind == 'stereo' else 'not '}"
                                          f"have a baseline, got {baseline!r}")
-    cal = Calibration(PinholeCamera(fx, fy, cx, cy, width, height), baseline, depth_scale)
+    distortion = obj.get("distortion")
+    if distortion is None:
+        distortion = ()
+    elif (not isinstance(distortion, list) or len(distortion) not in (4, 5, 8)
+          or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                     for v in distortion)):
+        raise ProtocolError("bad_field", f"{what}: distortion must be a list of 4, 5 or 8 finite numbers "
+                                         f"(k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {distortion!r:.80}")
+    if baseline is not None and any(distortion):
+        raise ProtocolError("bad_field", f"{what}: a stereo camera sends rectified images, without distortion")
+    cal = Calibration(PinholeCamera(fx, fy, cx, cy, width, height, tuple(distortion)), baseline, depth_scale)
     classes = obj.get("classes")
     return CameraInfo(robot, kind, cal, None if classes is None else check_classes(classes, what))
 

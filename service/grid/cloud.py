@@ -21,7 +21,11 @@ def keyframe_points(color: np.ndarray | None, depth: np.ndarray, camera: Pinhole
     v, u = np.mgrid[0:depth.shape[0]:d, 0:depth.shape[1]:d]
     ok = np.isfinite(z) & (z > 0) & (z <= max_depth)
     zz = z[ok].astype(np.float32)
-    P = np.column_stack([(u[ok] - camera.cx) / camera.fx * zz, (v[ok] - camera.cy) / camera.fy * zz, zz])
+    if camera.distorted and depth.shape[:2] == (camera.height, camera.width):  # undistorted rays of the raw pixels
+        r = camera.pixel_rays()[::d, ::d][ok]
+        P = np.column_stack([r[:, 0] * zz, r[:, 1] * zz, zz])
+    else:
+        P = np.column_stack([(u[ok] - camera.cx) / camera.fx * zz, (v[ok] - camera.cy) / camera.fy * zz, zz])
     if color is None:
         C = np.full((len(P), 3), 200, np.uint8)
     else:

@@ -224,8 +224,12 @@ class LocalGridMaker:
         if self._rays is None or self._rays_key != key:
             cam = self.camera
             h, w = shape
-            v, u = np.mgrid[0:h:d, 0:w:d].astype(np.float32)
-            self._rays = ((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy)
+            if cam.distorted and (h, w) == (cam.height, cam.width):  # the undistorted ray of each raw pixel
+                r = cam.pixel_rays()[::d, ::d]
+                self._rays = (r[..., 0], r[..., 1])
+            else:
+                v, u = np.mgrid[0:h:d, 0:w:d].astype(np.float32)
+                self._rays = ((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy)
             self._rays_key = key
         return self._rays
 

@@ -37,7 +37,8 @@ class DenseView:
         self.depth = np.ascontiguousarray(depth[::factor, ::factor], dtype=np.float32)
         self.grey = g[: self.depth.shape[0], : self.depth.shape[1]]
         self.camera = PinholeCamera(camera.fx / factor, camera.fy / factor, camera.cx / factor,
-                                    camera.cy / factor, self.depth.shape[1], self.depth.shape[0])
+                                    camera.cy / factor, self.depth.shape[1], self.depth.shape[0],
+                                    camera.distortion)  # (normalized coefficients: any image scale)
         self.steps = tuple(s // factor for s in icp.STEPS)
         self.factor = factor
 

@@ -89,7 +89,11 @@ def extract_segments(labels: np.ndarray, depth: np.ndarray, camera: PinholeCamer
         ys, xs = np.nonzero(np.isin(cc, big))
         comp = cc[ys, xs]
         z = d[ys, xs]
-        pts = np.stack([(xs * s - camera.cx) * z / camera.fx, (ys * s - camera.cy) * z / camera.fy, z], axis=1)
+        if camera.distorted:  # the undistorted ray of each raw pixel
+            r = camera.pixel_rays()[np.minimum(ys * s, camera.height - 1), np.minimum(xs * s, camera.width - 1)]
+            pts = np.stack([r[:, 0] * z, r[:, 1] * z, z], axis=1)
+        else:
+            pts = np.stack([(xs * s - camera.cx) * z / camera.fx, (ys * s - camera.cy) * z / camera.fy, z], axis=1)
         order = np.argsort(comp, kind="stable")
         bounds = np.searchsorted(comp[order], big)
         ends = np.append(bounds[1:], len(order))

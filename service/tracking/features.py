@@ -19,7 +19,7 @@ class FrameFeatures:
     """Keypoints of one frame. `points` holds camera-frame 3-D coordinates, NaN rows where
     the keypoint has no depth."""
 
-    keypoints: np.ndarray  # (N, 2) float32 pixel coordinates (level 0)
+    keypoints: np.ndarray  # (N, 2) float32 pixel coordinates (level 0) of the pinhole K, the lens distortion removed
     descriptors: np.ndarray  # (N, 32) uint8 ORB
     points: np.ndarray  # (N, 3) float32 camera frame, NaN when unknown
     octaves: np.ndarray  # (N,) int8 pyramid level of each keypoint
@@ -91,7 +91,10 @@ class FeatureExtractor:
     # -- public -------------------------------------------------------------------------
     def extract(self, frame: Frame) -> FrameFeatures:
         grey = frame.grey
-        _, desc, xy, octave = self._detect(grey)
+        _, desc, raw, octave = self._detect(grey)
+        # Distortion: the keypoints' coordinates are undistorted (one vectorised call), the
+        # depth is read at the raw pixel it is registered to (ORB-SLAM's mvKeysUn).
+        xy = self.calibration.camera.undistort_points(raw)
         z_sigma = disparity = None
         if self.calibration.baseline and frame.right is not None:
             points, disparity = self._stereo_points(grey, frame.right, xy, desc, octave)
@@ -99,7 +102,7 @@ class FeatureExtractor:
             cam = self.calibration.camera
             z_sigma = points[:, 2] ** 2 * np.float32(self.stereo.disparity_sigma / (cam.fx * self.calibration.baseline))
         elif frame.depth is not None:
-            points = self._depth_points(frame.depth, xy)
+            points = self._depth_points(frame.depth, raw, xy)
             z_sigma = points[:, 2] ** 2 * np.float32(self.config.depth_noise)
         else:
             points = np.full((len(xy), 3), np.nan, np.float32)
@@ -144,13 +147,15 @@ class FeatureExtractor:
         return [kps[i] for i in keep]
 
     # -- 3-D from depth -----------------------------------------------------------------
-    def _depth_points(self, depth: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """Back-project keypoints with the depth image. A reading is rejected when it is
-        missing, outside [min_depth, max_depth], or on a depth edge (3×3 range > 5% of z)."""
+    def _depth_points(self, depth: np.ndarray, raw: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """Back-project keypoints with the depth image: the depth read at the raw pixel `raw`
+        (where the image has it), the ray of the undistorted pixel `xy`. A reading is rejected
+        when it is missing, outside [min_depth, max_depth], or on a depth edge (3×3 range > 5%
+        of z)."""
         cam = self.calibration.camera
         h, w = depth.shape[:2]
-        u = np.clip(np.rint(xy[:, 0]).astype(int), 1, w - 2)
-        v = np.clip(np.rint(xy[:, 1]).astype(int), 1, h - 2)
+        u = np.clip(np.rint(raw[:, 0]).astype(int), 1, w - 2)
+        v = np.clip(np.rint(raw[:, 1]).astype(int), 1, h - 2)
         offsets = np.array([-1, 0, 1])
         patch = depth[(v[:, None, None] + offsets[None, :, None]), (u[:, None, None] + offsets[None, None, :])]
         patch = patch.reshape(len(xy), 9).astype(np.float32)

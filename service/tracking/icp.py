@@ -120,8 +120,16 @@ def depth_pyramid(depth: np.ndarray, cam: PinholeCamera, steps=STEPS, min_depth=
     holds the Gaussian-pyramid grey image and its gradients, which enables the photometric
     term of `register`; the steps must then be powers of two. Level pixel x samples full
     image pixel step·x, the centre of a Gaussian pyramid's level pixel.
+
+    A camera with lens distortion: the depth (nearest) and grey (bilinear) images are first
+    remapped to its pinhole camera (`PinholeCamera.undistort_maps`, computed once), as ICP both
+    back-projects pixels and projects points into the reference image; the levels then hold
+    the pinhole geometry (a depth value stays the z of its own ray).
     """
     depth = np.where(np.isfinite(depth) & (depth >= min_depth) & (depth <= max_depth), depth, 0).astype(np.float32)
+    if cam.distorted:
+        maps = cam.undistort_maps()
+        depth = cv2.remap(depth, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     images = {}
     if grey is not None:
         g = np.asarray(grey)
@@ -130,6 +138,8 @@ def depth_pyramid(depth: np.ndarray, cam: PinholeCamera, steps=STEPS, min_depth=
         g = g.astype(np.float32) / 255.0 if g.dtype == np.uint8 else g.astype(np.float32)
         if g.shape != depth.shape:
             raise ValueError(f"grey image {g.shape} does not match the depth image {depth.shape}")
+        if cam.distorted:
+            g = cv2.remap(g, *cam.undistort_maps(), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         bad = [s for s in steps if s < 1 or s & (s - 1)]
         if bad:
             raise ValueError(f"pyramid steps must be powers of two with a grey image, got {bad}")
