@@ -40,20 +40,20 @@ def keyframe_points(color: np.ndarray | None, depth: np.ndarray, camera: Pinhole
 
 
 def voxel_filter(P: np.ndarray, C: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """One point per voxel: the mean of its points and colours."""
+    """One point per voxel: the mean of its points and colours, voxels in the order of their
+    keys (one sort of the keys, then sums over each run of equal keys)."""
     if len(P) == 0 or voxel <= 0:
         return P, C
     key = np.floor(P / voxel).astype(np.int64)
     key -= key.min(axis=0)
     dims = key.max(axis=0) + 1
     flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    n = len(counts)
-    out_p = np.zeros((n, 3))
-    out_c = np.zeros((n, 3))
-    for k in range(3):
-        out_p[:, k] = np.bincount(inv, P[:, k], n) / counts
-        out_c[:, k] = np.bincount(inv, C[:, k], n) / counts
+    order = np.argsort(flat, kind="stable")
+    flat = flat[order]
+    start = np.flatnonzero(np.concatenate(([True], flat[1:] != flat[:-1])))
+    counts = np.diff(np.append(start, len(flat)))[:, None]
+    out_p = np.add.reduceat(P[order].astype(np.float64), start) / counts
+    out_c = np.add.reduceat(C[order].astype(np.float64), start) / counts
     return out_p.astype(np.float32), np.rint(out_c).astype(np.uint8)
 
 
