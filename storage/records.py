@@ -172,8 +172,8 @@ MAX_OBJECT_KEYFRAMES = 64
 def calibration_to_dict(c: Calibration) -> dict:
     """The stored (JSON) form of a calibration."""
     cam = c.camera
-    d = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
-         "height": cam.height, "baseline": c.baseline, "depth_scale": c.depth_scale}
+    d: dict[str, object] = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
+                            "height": cam.height, "baseline": c.baseline, "depth_scale": c.depth_scale}
     if cam.distortion:  # (left out when none: older readers see the same form)
         d["distortion"] = list(cam.distortion)
     return d

@@ -30,6 +30,18 @@ def slam_config(overrides: dict | None = None):
     return load_config(overrides=merge_overrides({"semantics": {"enabled": False}}, overrides or {}))
 
 
+def service_config(overrides: dict | None = None) -> dict:
+    """The config overrides of a service a test starts (`ServiceProcess`) with semantics off, for
+    the tests about tracking, storage, admission or the API: with the model found, the default
+    (`semantics.source: auto`) segments the keyframes of a camera that streams no labels (~0.4 s
+    of CPU each, live and then the back-fill) beside what they assert. The semantic service
+    tests (tests/test_semantic_*.py, test_api, test_viewer) and test_service's SIGKILL test (a kill
+    while the worker writes) keep the default."""
+    from mnemoslam.service.config import merge_overrides
+
+    return merge_overrides({"semantics": {"enabled": False}}, overrides or {})
+
+
 def require(path: Path) -> Path:
     """A sequence inside the data folder, skipped (or failed in CI) when missing."""
     if not path.exists():

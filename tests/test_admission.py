@@ -18,6 +18,8 @@ from mnemoslam.client.transport import ZenohSettings, open_session
 from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
 from mnemoslam.service.evaluation import evaluate
 
+from conftest import service_config
+
 KEYS = protocol.KeySpace()
 
 
@@ -49,7 +51,7 @@ def _rejected(svc) -> dict:
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory):
     s = ServiceProcess(tmp_path_factory.mktemp("adm") / "map.db",
-                       {"service": {"max_robots": 4, "idle_timeout": 3.0, "info_timeout": 0.5}}).start()
+                       service_config({"service": {"max_robots": 4, "idle_timeout": 3.0, "info_timeout": 0.5}})).start()
     yield s
     s.stop()
 
@@ -238,7 +240,7 @@ class _Rendered:
 
 def test_the_camera_sees_the_services_drops_and_flow_control_avoids_them(tmp_path):
     ds = _Rendered(open_dataset("synthetic:loop", max_frames=60))
-    svc = ServiceProcess(tmp_path / "map.db", {"service": {"queue_size": 1}}).start()
+    svc = ServiceProcess(tmp_path / "map.db", service_config({"service": {"queue_size": 1}})).start()
     try:
         fast = stream_dataset(ds, "fast", _settings(svc), rate=500.0, progress=False, wait_for_subscriber=10.0)
         r = svc.wait_processed("fast", fast.frames)

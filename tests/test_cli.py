@@ -18,6 +18,8 @@ import pytest
 
 from mnemoslam.service.cli import main
 
+from conftest import service_config
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -197,7 +199,8 @@ def test_service_process_takes_nested_and_top_level_keys(tmp_path):
 
     from mnemoslam.service.demo import ServiceProcess
 
-    svc = ServiceProcess(tmp_path / "m.db", {"service": {"queue_size": 3}, "loop": {"enabled": False}, "seed": 2})
+    svc = ServiceProcess(tmp_path / "m.db",
+                         service_config({"service": {"queue_size": 3}, "loop": {"enabled": False}, "seed": 2}))
     cfg = yaml.safe_load(svc.config_path.read_text())
     assert cfg["service"] == {"queue_size": 3} and cfg["loop"] == {"enabled": False} and cfg["seed"] == 2
     assert cfg["zenoh"]["listen"] == [svc.endpoint] and cfg["api"]["port"] == svc.http_port
@@ -379,7 +382,7 @@ def test_stream_wait_waits_for_a_service_started_later(tmp_path):
     once the service is up."""
     from mnemoslam.service.demo import ServiceProcess
 
-    svc = ServiceProcess(tmp_path / "map.db", {"service": {"idle_timeout": 3600.0}})
+    svc = ServiceProcess(tmp_path / "map.db", service_config({"service": {"idle_timeout": 3600.0}}))
     proc = _cli("stream", "synthetic:loop", "--robot", "early", "--max-frames", "10", "--connect", svc.endpoint,
                 "--wait", "-q", cwd=tmp_path)
     try:

@@ -16,13 +16,16 @@ from mnemoslam.service.config import load_config
 from mnemoslam.service.demo import ServiceProcess
 from mnemoslam.service.server import SlamService
 
+from conftest import service_config
+
 FRAMES = 40
 TEXT_0_0_4 = "text/plain; version=0.0.4; charset=utf-8"
 
 
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory):
-    s = ServiceProcess(tmp_path_factory.mktemp("metrics") / "map.db", {"service": {"idle_timeout": 3600.0}}).start()
+    s = ServiceProcess(tmp_path_factory.mktemp("metrics") / "map.db",
+                       service_config({"service": {"idle_timeout": 3600.0}})).start()
     yield s
     s.stop()
 

@@ -26,7 +26,7 @@ from mnemoslam.service.recovery import recover
 from mnemoslam.service.runner import run_dataset
 from mnemoslam.storage import LinkType, MapStore
 
-from conftest import synthetic
+from conftest import service_config, slam_config, synthetic
 
 LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)
 # figure-8 at 10 Hz: the second lap revisits the first; its first 260 frames give ~200
@@ -108,7 +108,9 @@ def uninterrupted(tmp_path_factory):
 
 
 def _uninterrupted_run(ds, out_dir: Path, skip: int = 0) -> dict:
-    out = run_dataset(_AsStreamed(ds, skip), load_config(None, NO_REHEARSAL), out_dir, progress=False)
+    # (semantics off, as in the service runs: `_AsStreamed` frames carry no labels, so the default
+    # would run the segmentation model on every keyframe of the reference run)
+    out = run_dataset(_AsStreamed(ds, skip), slam_config(NO_REHEARSAL), out_dir, progress=False)
     stamps, loops = _loops_by_stamp(out_dir / "map.db")
     np.testing.assert_array_equal(stamps, out.keyframes.stamps)
     return dict(stamps=stamps, loops=loops, poses=dict(zip(stamps, out.keyframes.poses)))
@@ -117,7 +119,7 @@ def _uninterrupted_run(ds, out_dir: Path, skip: int = 0) -> dict:
 def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, uninterrupted):
     ds = synthetic("figure8", **FIGURE8)
     frames = _AsStreamed(ds)  # the frames of the uninterrupted reference run
-    cfg = load_config(None, NO_REHEARSAL)
+    cfg = slam_config(NO_REHEARSAL)
     cfg = dataclasses.replace(cfg, storage=dataclasses.replace(cfg.storage, path=str(tmp_path / "map.db")))
     cut = 150  # after the first loops: the mapped part has loop links too
     store = _DiesMidUpdate(cfg.storage.path)
@@ -239,7 +241,7 @@ def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path, uninterrupted)
     ends the session "crashed" and maps its backlog (loops included) before it serves."""
     db = tmp_path / "map.db"
     ds = synthetic("figure8", **FIGURE8)
-    svc = ServiceProcess(db, {"service": {"queue_size": 10000}, **NO_REHEARSAL}).start()
+    svc = ServiceProcess(db, service_config({"service": {"queue_size": 10000}, **NO_REHEARSAL})).start()
     settings = ZenohSettings(connect=[svc.endpoint])
     t = threading.Thread(target=stream_dataset, args=(ds, "k9", settings),
                          kwargs=dict(rate=None, progress=False, wait_for_subscriber=10.0), daemon=True)
@@ -265,7 +267,7 @@ def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path, uninterrupted)
     assert len(keyframes) == robot["keyframes"] and len(unmapped) >= backlog_at_kill - 5
 
     t0 = time.monotonic()
-    svc2 = ServiceProcess(db, NO_REHEARSAL).start(timeout=300)  # recovery runs before it serves
+    svc2 = ServiceProcess(db, service_config(NO_REHEARSAL)).start(timeout=300)  # recovery runs before it serves
     try:
         startup = time.monotonic() - t0
         session = [x for x in svc2.api.sessions() if x["id"] == sid][0]
@@ -309,7 +311,7 @@ def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path, uninterrupted)
 
 def test_normal_stop_ends_the_session_stopped_and_a_restart_keeps_it(tmp_path):
     db = tmp_path / "map.db"
-    svc = ServiceProcess(db, {"service": {"queue_size": 10000}}).start()
+    svc = ServiceProcess(db, service_config({"service": {"queue_size": 10000}})).start()
     try:
         ds = open_dataset("synthetic:loop", max_frames=30)
         stats = stream_dataset(ds, "st", ZenohSettings(connect=[svc.endpoint]), rate=None, progress=False,
@@ -321,7 +323,7 @@ def test_normal_stop_ends_the_session_stopped_and_a_restart_keeps_it(tmp_path):
         (session,) = s.sessions()
         assert session.end_reason == "stopped" and session.ended_at is not None
         assert s.count_nodes(session_id=session.id) > 0 and s.unmapped_nodes() == {}
-    svc2 = ServiceProcess(db).start()
+    svc2 = ServiceProcess(db, service_config()).start()
     try:
         assert [(x["id"], x["end_reason"]) for x in svc2.api.sessions()] == [(session.id, "stopped")]
     finally:

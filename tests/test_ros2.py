@@ -22,6 +22,8 @@ from mnemoslam.service.config import ConfigError, load_config
 from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
 from mnemoslam.service.ros import compressed_key, parse_robots
 
+from conftest import service_config
+
 FRAMES = 40
 RAW = {"robot": "rosraw", "color": "rosraw/camera/color/image_raw",
        "depth": "rosraw/camera/aligned_depth_to_color/image_raw", "info": "rosraw/camera/color/camera_info",
@@ -263,10 +265,10 @@ def test_ros_robots_map_exactly_as_the_native_robot(tmp_path):
     # loop closure and rehearsal off: they would link the three robots' identical keyframes in the one map.
     # sync_queue FRAMES: the frames are sent unpaced, and the thread that completes a pair decodes it, so
     # one stream's callbacks can run many images behind the other's (10 seen; the default keeps 8)
-    svc = ServiceProcess(tmp_path / "map.db", {
+    svc = ServiceProcess(tmp_path / "map.db", service_config({
         "ros": {"enabled": True, "robots": [RAW, CMP], "sync_queue": FRAMES}, "loop": {"enabled": False},
         "memory": {"rehearsal": False},
-        "service": {"queue_size": 1000, "queue_mb": 1024.0, "idle_timeout": 3600.0}}).start()
+        "service": {"queue_size": 1000, "queue_mb": 1024.0, "idle_timeout": 3600.0}})).start()
     z = None
     try:
         settings = ZenohSettings(connect=[svc.endpoint])

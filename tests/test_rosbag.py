@@ -19,7 +19,7 @@ from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.service.runner import run_dataset
 
-from conftest import require, slam_config
+from conftest import require, service_config, slam_config
 
 # 7-Scenes redkitchen, 30 Hz: its first 3.3 s. Measured 2026-11-25: ATE 0.978 cm over 100 frames
 # from the folder and from each bag (the same trajectory files); streamed from the ROS 1 bag
@@ -207,7 +207,7 @@ def test_bag_frames_are_the_folder_frames(kitchen, name):
 def test_run_cli_on_rosbag2_sqlite3_gives_the_folder_ate(kitchen, tmp_path, capsys):
     """`mnemoslam run BAG --out DIR`: the same trajectory and ATE as the folder's run."""
     _, ds, out, ev, bags = kitchen
-    assert main(["run", str(bags["sqlite3"]), "--out", str(tmp_path), "-q"]) == 0
+    assert main(["run", str(bags["sqlite3"]), "--out", str(tmp_path), "-q", "--set", "semantics.enabled=false"]) == 0
     printed = capsys.readouterr().out
     ate = re.search(r"ATE RMSE ([0-9.]+) cm over (\d+) poses", printed)
     assert ate, printed
@@ -239,7 +239,8 @@ def test_stream_bag_through_the_service_maps_like_the_folder_run(kitchen, tmp_pa
     """`mnemoslam stream BAG` into the real service: every frame processed, the keyframes
     where the folder's offline run put them."""
     _, ds, out, ev, bags = kitchen
-    svc = ServiceProcess(tmp_path / "map.db", {"service": {"queue_size": 10000, "idle_timeout": 3600.0}}).start()
+    svc = ServiceProcess(tmp_path / "map.db",
+                         service_config({"service": {"queue_size": 10000, "idle_timeout": 3600.0}})).start()
     try:
         assert main(["stream", str(bags["ros1.bag"]), "--robot", "bag", "--connect", svc.endpoint, "--wait", "10",
                      "-q"]) == 0

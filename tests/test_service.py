@@ -21,7 +21,7 @@ from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.service.runner import run_dataset
 
-from conftest import FIGURE8, slam_config, synthetic
+from conftest import FIGURE8, service_config, slam_config, synthetic
 
 FRAMES = 90
 
@@ -34,7 +34,8 @@ def _settings(svc):
 def service(tmp_path):
     # idle_timeout: a loaded machine's map update can trail the last frame by more than the
     # default 60 s; the robot must stay listed until the tests have read its map
-    svc = ServiceProcess(tmp_path / "map.db", {"service": {"queue_size": 10000, "idle_timeout": 3600.0}}).start()
+    svc = ServiceProcess(tmp_path / "map.db",
+                         service_config({"service": {"queue_size": 10000, "idle_timeout": 3600.0}})).start()
     yield svc
     svc.stop()
 
@@ -239,7 +240,8 @@ def test_sigkill_mid_stream_keeps_every_reported_keyframe(tmp_path):
 def service_with_p1(tmp_path_factory):
     """A service holding one short session (robot p1, 5 frames), shared by the parameter
     cases: each only reads it, and each used to start its own service holding the same."""
-    svc = ServiceProcess(tmp_path_factory.mktemp("p1") / "map.db", {"service": {"queue_size": 10000}}).start()
+    svc = ServiceProcess(tmp_path_factory.mktemp("p1") / "map.db",
+                         service_config({"service": {"queue_size": 10000}})).start()
     try:
         ds = open_dataset("synthetic:loop", max_frames=5)
         stream_dataset(ds, "p1", _settings(svc), rate=None, progress=False, wait_for_subscriber=10.0)
@@ -365,7 +367,7 @@ def test_config_hides_the_environment_token_and_no_lock_file_stays(tmp_path, mon
     """/config shows the token as *** when it comes from MNEMOSLAM_API_TOKEN; after a clean
     stop nothing but the database is left beside it (no <db>-mapping.lock)."""
     monkeypatch.setenv("MNEMOSLAM_API_TOKEN", "secret-from-env")
-    svc = ServiceProcess(tmp_path / "map.db").start()
+    svc = ServiceProcess(tmp_path / "map.db", service_config()).start()
     try:
         assert svc.api.get("/config")["api"]["token"] == "***"
         stream_dataset(open_dataset("synthetic:loop", max_frames=5), "lk", _settings(svc), rate=None,

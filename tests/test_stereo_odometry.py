@@ -14,7 +14,7 @@ from mnemoslam.service.evaluation import evaluate
 from mnemoslam.service.runner import run_dataset
 from mnemoslam.service.tracking.features import FeatureExtractor
 
-from conftest import require
+from conftest import require, slam_config
 
 pytestmark = pytest.mark.data
 
@@ -22,7 +22,7 @@ pytestmark = pytest.mark.data
 @pytest.mark.parametrize("name,max_percent", [("a", 0.3), ("b", 1.0)])
 def test_kitti_every_frame_tracked(data_dir, name, max_percent):
     ds = open_dataset(require(data_dir / "kitti_odometry_snippets" / "sequences" / name))
-    out = run_dataset(ds, load_config(), progress=False)
+    out = run_dataset(ds, slam_config(), progress=False)
     assert out.summary.tracked == 51 and out.summary.lost == 0 and out.summary.segments == 1
     # measured a: 0.12 %, b: 0.43 % of path with the online disparity offset (without: 0.30 %, 1.58 %)
     assert evaluate(ds.ground_truth, out.trajectory).ate_percent_of_path < max_percent

@@ -73,8 +73,8 @@ class PinholeCamera:
             return xy
         import cv2
 
-        out = cv2.undistortPointsIter(xy.reshape(-1, 1, 2), self.K, np.asarray(self.distortion), None, self.K,
-                                      _UNDISTORT_CRITERIA)
+        out = cv2.undistortPointsIter(xy.reshape(-1, 1, 2), self.K, np.asarray(self.distortion), np.eye(3), self.K,
+                                      _UNDISTORT_CRITERIA)  # (R = identity: no rectification)
         return out.reshape(-1, 2).astype(np.float32)
 
     def pixel_rays(self) -> np.ndarray:
