@@ -197,6 +197,7 @@ SLOW: dict[str, str | set[str]] = {
     "test_stereo_odometry.py": {"test_kitti_every_frame_tracked"},
     "test_loop_detection.py": {"test_revisit_accepted_and_no_false_accepts"},
     "test_ros2.py": {"test_ros_robots_map_exactly_as_the_native_robot"},
+    "test_grid_real.py": {"test_desk_grid_up_is_the_accelerometers_and_agrees_with_the_floor"},
     "test_rosbag.py": {"test_stream_bag_through_the_service_maps_like_the_folder_run",
                        "test_fr1_desk_as_a_bag_with_its_distortion_tracks_as_the_folder"},
 }

@@ -59,7 +59,7 @@ def kitchen(data_dir):
 def test_redkitchen_camera_positions_are_free(kitchen):
     """≥ 90 % of the camera's 1,000 positions (every frame, the grid from every 10th) fall in free
     cells (measured 100 % with the default footprint of 0.2 m, RTAB-Map's GridGlobal/FootprintRadius);
-    without the footprint, from what the depth saw alone: 67 % free, 15 % occupied (the camera held
+    without the footprint, from what the depth saw alone: 72 % free, 15 % occupied (the camera held
     over the counter's edge), the rest never seen (behind the camera)."""
     ds, poses = kitchen
     cams = poses[:, :3, 3]
@@ -72,7 +72,7 @@ def test_redkitchen_camera_positions_are_free(kitchen):
     assert (img.states == G_OCCUPIED).sum() > 1000 and (img.states == G_FREE).sum() > 1500  # measured 2.4k, 3.4k
     bare = _grid_of(ds, poses, 10, GridConfig(footprint_radius=0.0))
     st = _states_at(bare, cams)
-    assert np.mean(st == G_FREE) > 0.55 and np.mean(st == G_OCCUPIED) < 0.25  # measured 0.67, 0.15
+    assert np.mean(st == G_FREE) > 0.55 and np.mean(st == G_OCCUPIED) < 0.25  # measured 0.72, 0.15
 
 
 def _desk(data_dir):
@@ -84,30 +84,34 @@ def _desk(data_dir):
 
 def test_accelerometer_axes_found_from_the_data(data_dir):
     """Of the 48 signed axis permutations, the one that makes the accelerometer's gravity steadiest
-    in the world (ground-truth rotations) is ACCEL_TO_CAMERA."""
+    in the world (ground-truth rotations) and up (+z of the motion-capture world: the specific
+    force at rest points up) is ACCEL_TO_CAMERA. Steadiness alone cannot tell a convention from
+    its negation (0.992 both; x negated next, 0.971); the mean then lies 3.1° from +z (the
+    ground truth's camera orientation is ~3° off the Kinect's, docs/data.md)."""
     ds, acc = _desk(data_dir)
     ig, ie = associate_stamps(ds.ground_truth.stamps, acc[:, 0], max_dt=0.01)
     R = ds.ground_truth.poses[ig, :3, :3]
     a = acc[ie, 1:] / np.linalg.norm(acc[ie, 1:], axis=1, keepdims=True)
-    best, score = None, -1.0
+    best, score, best_mean = None, -1.0, None
     for perm in itertools.permutations(range(3)):
         for signs in itertools.product((-1.0, 1.0), repeat=3):
             M = np.zeros((3, 3))
             M[range(3), perm] = signs
-            g = np.einsum("nij,nj->ni", R, a @ M.T)
-            s = np.linalg.norm(g.mean(axis=0))  # 1 when gravity is one direction in the world
-            if s > score:
-                best, score = M, s
+            g = np.einsum("nij,nj->ni", R, a @ M.T).mean(axis=0)
+            s = np.linalg.norm(g) if g[2] > 0 else -1.0  # 1 when gravity is one direction in the world
+            if s > score + 1e-9:
+                best, score, best_mean = M, s, g
     np.testing.assert_array_equal(best, ACCEL_TO_CAMERA)
-    assert score > 0.95
+    assert score > 0.98 and angle_deg(best_mean, [0.0, 0.0, 1.0]) < 5.0
 
 
 def test_desk_up_from_the_floor_agrees_with_the_accelerometer(data_dir):
     """The map grid's up (`map_to_grid`'s z: the keyframes' up from the floors and desk tops seen,
     every 5th frame's local grid as the keyframe writer makes them) and the accelerometer's mean
-    gravity, both in the ground truth's world, agree within 3° (measured 1.8°; the session's own
-    estimate 0.7°). One frame's accelerometer is off the up of its keyframe by several degrees
-    (median 4.3° where a floor was seen: a handheld camera accelerates)."""
+    gravity, both in the ground truth's world, agree within 3° (measured 1.1°; the session's own
+    floor estimate 1.05°). One frame's accelerometer is off the up of its keyframe by several
+    degrees (median 4.0° where a floor was seen: a handheld camera accelerates). (The grids here
+    are made without the accelerometer: the floor's up alone.)"""
     ds, acc = _desk(data_dir)
     gt = ds.ground_truth
     cfg = GridConfig()
@@ -131,7 +135,7 @@ def test_desk_up_from_the_floor_agrees_with_the_accelerometer(data_dir):
         poses.append(pose)
     G = GlobalGrid(cfg)
     G.update(ids, np.stack(poses), grids)
-    assert len(per_frame) > 20 and sum(g.up_source == "floor" for g in grids.values()) >= 1  # measured 29
+    assert len(per_frame) > 20 and sum(g.up_source == "floor" for g in grids.values()) >= 1  # measured 32
     assert angle_deg(G.map_to_grid[2, :3], g_sum) < 3.0
     assert angle_deg(mk.session_up, g_sum) < 2.0
     assert np.median(per_frame) > 2.0  # the single readings are what an average over the map fixes
