@@ -1,8 +1,12 @@
 """TUM RGB-D player: `rgb.txt` / `depth.txt` lists, colour JPEG/PNG + 16-bit depth PNG
-(5000 units per metre), optional `groundtruth.txt` (TUM format, camera-to-world).
+(5000 units per metre), optional `groundtruth.txt` (TUM format, camera-to-world) and optional
+`accelerometer.txt` (the Kinect's accelerometer, `timestamp ax ay az` in m/s²).
 
 Frames are the rgb images that have a depth image within 20 ms (one-to-one), stamped with the
-rgb stamp. Intrinsics and lens distortion come from the sequence name (freiburg1/2/3, as
+rgb stamp; with an `accelerometer.txt` each frame carries the reading at its stamp (linear
+between the two nearest readings, none when the nearer is more than `ACCEL_MAX_GAP` away) in
+the camera's axes as `frame.extras["accel"]` (x right, y down, z forward; the specific force:
++g along up when still). Intrinsics and lens distortion come from the sequence name (freiburg1/2/3, as
 published by TUM); the images are delivered raw (depth is registered to the raw colour image)
 and the service undistorts feature coordinates.
 """
@@ -42,6 +46,40 @@ DISTORTION = {  # k1, k2, p1, p2, k3 of the TUM colour cameras (freiburg3's imag
     "freiburg1": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
     "freiburg2": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
 }
+#: The Kinect's accelerometer axes (TUM's `accelerometer.txt`: ax ay az) in the colour camera's
+#: (x right, y down, z forward): (-ax, -ay, az). Found from fr1/desk (docs/data.md,
+#: tests/test_grid_real.py): of the 48 signed axis permutations the one that makes gravity
+#: steadiest in the ground truth's world, and the floor seen in depth agrees with it.
+ACCEL_TO_CAMERA = np.diag([-1.0, -1.0, 1.0])
+#: s; a frame farther than this from every accelerometer reading gets none
+ACCEL_MAX_GAP = 0.05
+
+
+def read_accelerometer(path: Path) -> np.ndarray:
+    """TUM's `accelerometer.txt` as an (N, 4) array: stamp, then the reading in the camera's
+    axes (`ACCEL_TO_CAMERA`), m/s², sorted by stamp."""
+    rows = read_rows(path, 4)
+    v = numbers(path, [r[:4] for r in rows]).reshape(-1, 4)
+    v = v[np.argsort(v[:, 0], kind="stable")]
+    v[:, 1:] = v[:, 1:] @ ACCEL_TO_CAMERA.T
+    return v
+
+
+def accel_at(accel: np.ndarray, stamp: float, max_gap: float = ACCEL_MAX_GAP) -> np.ndarray | None:
+    """The reading at `stamp` from `read_accelerometer`'s rows: linear between the readings
+    either side, the nearest one at the ends; None when the nearest is more than `max_gap` away."""
+    if not len(accel):
+        return None
+    t = accel[:, 0]
+    j = int(np.searchsorted(t, stamp))
+    if j == 0 or j == len(t):
+        k = min(j, len(t) - 1)
+        return accel[k, 1:].copy() if abs(t[k] - stamp) <= max_gap else None
+    t0, t1 = t[j - 1], t[j]
+    if min(stamp - t0, t1 - stamp) > max_gap:
+        return None
+    w = (stamp - t0) / (t1 - t0) if t1 > t0 else 0.0
+    return (1.0 - w) * accel[j - 1, 1:] + w * accel[j, 1:]
 
 
 def associate(a_stamps, b_stamps, max_dt: float = MAX_DT) -> tuple[np.ndarray, np.ndarray]:
@@ -135,6 +173,9 @@ class TumDataset(Dataset):
                                        DEPTH_SCALE)
         gt = path / "groundtruth.txt"
         self.ground_truth = sample_poses(read_tum(gt), self.stamps) if gt.is_file() else None
+        acc = path / "accelerometer.txt"
+        #: (N, 4): stamp, reading in camera axes (m/s²); empty without accelerometer.txt
+        self.accel = read_accelerometer(acc) if acc.is_file() else np.zeros((0, 4))
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -142,5 +183,7 @@ class TumDataset(Dataset):
     def frame(self, i: int) -> Frame:
         i = check_index(i, len(self))
         rgb, depth = self._rgb[i], self._depth[i]
-        return Frame(i, float(self.stamps[i]), read_color(rgb, self._shape),
-                     depth=read_depth(depth, DEPTH_SCALE, shape=self._shape), source=f"{rgb}, {depth}")
+        stamp = float(self.stamps[i])
+        a = accel_at(self.accel, stamp)
+        return Frame(i, stamp, read_color(rgb, self._shape), depth=read_depth(depth, DEPTH_SCALE, shape=self._shape),
+                     source=f"{rgb}, {depth}", extras={} if a is None else {"accel": a})

@@ -146,7 +146,7 @@ class Frame:
     depth: np.ndarray | None = None  # H×W float32 metres, 0 / non-finite = invalid
     right: np.ndarray | None = None  # rectified right image (stereo)
     source: str = ""  # where it came from (file names), for error messages
-    extras: dict = field(default_factory=dict)  # e.g. synthetic labels / instance ids
+    extras: dict = field(default_factory=dict)  # e.g. synthetic labels / instance ids, TUM "accel" (camera axes, m/s²)
 
     @property
     def grey(self) -> np.ndarray:

@@ -10,20 +10,20 @@ image (`cells`, row = y, column = x) whose (0, 0) cell is (`origin_x`, `origin_y
 
 Making one (`LocalGridMaker.make`, ~1-3 ms at 640×480 with decimation 4, bench/bench_grid.py):
 the depth is decimated and back-projected; the floor is fitted (the lowest horizontal slab with
-enough points, refined by least squares) unless the up direction comes from an accelerometer;
-points less than `max_ground_height` above the floor are free floor, points up to
-`max_obstacle_height` obstacles, higher ones (the ceiling) ignored; with ray tracing the cells
-from the camera to the farthest seen cell of each bearing (0.5° bins) are free too. Obstacles
-win over free cells of the same keyframe.
+enough points, refined by least squares); points less than `max_ground_height` above the floor
+are free floor, points up to `max_obstacle_height` obstacles, higher ones (the ceiling) ignored;
+with ray tracing the cells from the camera to the farthest seen cell of each bearing (0.5° bins)
+are free too. Obstacles win over free cells of the same keyframe.
 
-The up direction, in order of preference: the session's estimate (the mean normal of the
-floors fitted so far, weighted by their points, kept in the session's odometry frame by
-`LocalGridMaker`), the floor fitted in this keyframe's depth, its accelerometer (`accel`,
-specific force in camera axes, up when still; a handheld camera's is off by several degrees
-from its motion, a floor fit is not) and the configured camera mounting (`grid.up`); each is
-the prior of the next's floor search. The camera height: the floor found in this keyframe
-(measured along the session's up), else the session's lowest floor so far (a plane well above
-it is a table), else `grid.camera_height`.
+The up direction, in order of preference: the session's accelerometer gravity (the mean of the
+keyframes' readings (`accel`, specific force in camera axes, +g along up when still) turned into
+the session's odometry frame by their poses: a handheld camera's single reading is off by
+several degrees from its motion, their mean over the session is not), the session's floor (the
+mean normal of the floors fitted so far, weighted by their points, in the same frame), the
+floor fitted in this keyframe's depth, this keyframe's accelerometer reading and the
+configured camera mounting (`grid.up`); each is the prior of the next's floor search. The
+camera height: the floor found in this keyframe (measured along the session's up), else the
+session's lowest floor so far (a plane well above it is a table), else `grid.camera_height`.
 """
 from __future__ import annotations
 
@@ -45,6 +45,10 @@ UP_SOURCES = ("config", "session", "floor", "accelerometer")
 
 #: m; a plane fitted this much above the session's floor is not the floor
 FLOOR_TOLERANCE = 0.15
+#: keyframes with an accelerometer reading before the session's mean of them leads the up (a
+#: handheld camera's accelerations average out over seconds: on fr1/desk the mean is 4° off
+#: its final value after 10 keyframes, 1.4° after 20; docs/grid.md); the floor leads before
+ACCEL_MIN_READINGS = 15
 
 
 @dataclass
@@ -58,6 +62,7 @@ class LocalGrid:
     cells: np.ndarray  # (H, W) uint8: 0 unknown, 1 free, 2 occupied
     up_source: str = "config"
     floor_points: int = 0  # depth points of the fitted floor (0: none fitted)
+    floor_up: np.ndarray | None = None  # the normal of the floor fitted in this keyframe (camera frame; not stored)
 
     @property
     def up(self) -> np.ndarray:
@@ -96,7 +101,7 @@ class StoredLocalGrid(LocalGrid):
     def __init__(self, rec):
         self.cell_size, self.T_cam_local = float(rec.cell_size), np.asarray(rec.transform, np.float64)
         self.origin_x, self.origin_y, self.blob = int(rec.origin_x), int(rec.origin_y), bytes(rec.cells)
-        self.up_source, self.floor_points = rec.up_source, int(rec.floor_points)
+        self.up_source, self.floor_points, self.floor_up = rec.up_source, int(rec.floor_points), None
 
     @property
     def cells(self) -> np.ndarray:  # type: ignore[override]
@@ -139,6 +144,7 @@ class FloorFit:
     height: float  # camera above the plane (m)
     points: int  # depth points within the slab
     prior_height: float = 0.0  # camera above the slab measured along the prior up (its median)
+    centroid: np.ndarray | None = None  # the mean of the slab's points (camera frame)
 
 
 def fit_floor(points: np.ndarray, up_prior: np.ndarray, config: GridConfig,
@@ -191,7 +197,7 @@ def fit_floor(points: np.ndarray, up_prior: np.ndarray, config: GridConfig,
     if angle_deg(normal, prior) > config.max_ground_angle or d < 0.2:
         return None
     hp = points[sel] @ prior
-    return FloorFit(normal, float(d), int(np.count_nonzero(sel)), float(-np.median(hp)))
+    return FloorFit(normal, float(d), int(np.count_nonzero(sel)), float(-np.median(hp)), c)
 
 
 class LocalGridMaker:
@@ -205,18 +211,50 @@ class LocalGridMaker:
         self._rays: tuple[np.ndarray, np.ndarray] | None = None
         self._segment: int | None = None
         self._up_sum = np.zeros(3)  # Σ fitted up (world) × points
-        self._floor_w: float | None = None  # the lowest fitted floor: up_w · x = floor_w
+        self._acc_sum = np.zeros(3)  # Σ unit accelerometer readings (world)
+        self._acc_n = 0
+        self._floors = np.zeros((0, 3))  # the centre of each fitted floor's points (world), rows [:_n_floors]
+        self._n_floors = 0
         self.last_ms = 0.0
 
     # -- the session's estimate -------------------------------------------------------------------
     def reset(self) -> None:
         self._up_sum = np.zeros(3)
-        self._floor_w = None
+        self._acc_sum = np.zeros(3)
+        self._acc_n = 0
+        self._n_floors = 0
+
+    @property
+    def floor_up(self) -> np.ndarray | None:
+        """The session's floor: the mean normal of its fitted floors (odometry frame)."""
+        n = np.linalg.norm(self._up_sum)
+        return self._up_sum / n if n > 0 else None
+
+    @property
+    def gravity_up(self) -> np.ndarray | None:
+        """The session's accelerometer gravity: the mean of its keyframes' readings (odometry frame)."""
+        n = np.linalg.norm(self._acc_sum)
+        return self._acc_sum / n if n > 0 else None
 
     @property
     def session_up(self) -> np.ndarray | None:
-        n = np.linalg.norm(self._up_sum)
-        return self._up_sum / n if n > 0 else None
+        """The session's up (odometry frame): its accelerometer gravity once it has
+        `ACCEL_MIN_READINGS` readings, else its floor, else the gravity of its few readings."""
+        if self._acc_n >= ACCEL_MIN_READINGS or self.floor_up is None:
+            return self.gravity_up
+        return self.floor_up
+
+    def _floor_level(self, up: np.ndarray) -> float | None:
+        """The session's lowest floor along `up` (up · x of it), from the floor points kept:
+        measured along today's up, so an up refined since (the accelerometer's mean of a few
+        readings at first) moves no floor."""
+        return float(np.min(self._floors[:self._n_floors] @ up)) if self._n_floors else None
+
+    def _add_floor(self, p: np.ndarray) -> None:
+        if self._n_floors == len(self._floors):  # grown by doubling: ~50 µs a look at 20k floors
+            self._floors = np.concatenate([self._floors, np.zeros((max(16, len(self._floors)), 3))])
+        self._floors[self._n_floors] = p
+        self._n_floors += 1
 
     def _rays_for(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         d = max(1, int(self.config.depth_decimation))
@@ -285,38 +323,47 @@ class LocalGridMaker:
         prior = _unit(cfg.up)
         if accel is not None and np.all(np.isfinite(accel)) and np.linalg.norm(accel) > 1.0:
             prior, source = _unit(accel), "accelerometer"
-        if R is not None and self.session_up is not None:
-            prior, source = R.T @ self.session_up, "session"
+            if R is not None:
+                self._acc_sum += R @ prior
+                self._acc_n += 1
+        session = False  # the up is the session's estimate: a floor fitted here gives the height only
+        gravity, floor = self.gravity_up, self.floor_up
+        if R is not None and gravity is not None and self._acc_n >= ACCEL_MIN_READINGS:
+            prior, source, session = R.T @ gravity, "accelerometer", True
+        elif R is not None and floor is not None:
+            prior, source, session = R.T @ floor, "session", True
+        elif R is not None and gravity is not None:  # a few readings: a floor fitted here leads
+            prior, source = R.T @ gravity, "accelerometer"
         fit = fit_floor(P, prior, cfg, N) if len(P) else None
-        if fit is not None and R is not None and self._floor_w is not None:
+        su = self.session_up
+        level = None if su is None else self._floor_level(su)
+        if fit is not None and R is not None and su is not None and level is not None:
             # a plane well above the session's floor is a table or a bed, not the floor (one
             # well below it is: the floor is the lowest plane)
-            su = self.session_up
-            assert su is not None  # (a session floor is fitted along the session's up)
-            if float(su @ c) - fit.prior_height > self._floor_w + FLOOR_TOLERANCE:
+            if float(su @ c) - fit.prior_height > level + FLOOR_TOLERANCE:
                 fit = None
         up, height, floor_points = prior, None, 0
         if fit is not None:
             floor_points = fit.points
-            if source != "session":
+            if not session:
                 up, source, height = fit.up, "floor", fit.height
             else:  # the session's mean up stays (steadier than one fit): the slab gives the height
                 height = fit.prior_height
             if R is not None:  # the session's estimate, in its odometry frame
                 self._up_sum += (R @ fit.up) * fit.points
-                su = self.session_up
-                assert su is not None  # (just added: a unit up with weight fit.points > 0)
-                f = float(su @ c) - height
-                self._floor_w = f if self._floor_w is None else min(self._floor_w, f)
+                assert fit.centroid is not None  # (fit_floor sets it)
+                self._add_floor(c + R @ fit.centroid)
         if height is None:
             su = self.session_up
-            if R is not None and self._floor_w is not None and su is not None:
-                height = float(su @ c) - self._floor_w
+            level = None if su is None else self._floor_level(su)
+            if R is not None and level is not None and su is not None:
+                height = float(su @ c) - level
             else:
                 height = cfg.camera_height
         T = local_frame(up, height)
         grid = self._cells(P, T)
         grid.up_source, grid.floor_points = source, floor_points
+        grid.floor_up = None if fit is None else fit.up
         self.last_ms = (time.perf_counter() - t0) * 1e3
         return grid
 
