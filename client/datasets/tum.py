@@ -2,7 +2,9 @@
 (5000 units per metre), optional `groundtruth.txt` (TUM format, camera-to-world).
 
 Frames are the rgb images that have a depth image within 20 ms (one-to-one), stamped with the
-rgb stamp. Intrinsics come from the sequence name (freiburg1/2/3, as published by TUM).
+rgb stamp; the depth image's own stamp is `frame.extras["depth_stamp"]` (the tracker moves the
+depth by the motion in between: `odometry.depth_time_compensation`). Intrinsics come from the
+sequence name (freiburg1/2/3, as published by TUM).
 """
 from __future__ import annotations
 
@@ -111,6 +113,7 @@ class TumDataset(Dataset):
         n = frame_count(len(ia), max_frames, path)
         self.stamps = rgb_t[ia[:n]]
         self._rgb, self._depth = rgb_f[ia[:n]], depth_f[ib[:n]]
+        self._depth_stamps = depth_t[ib[:n]]
         w, h = image_size(self._rgb[0])
         self._shape = (h, w)
         self.calibration = Calibration(pinhole(*intrinsics_for(self.name), w, h), None, DEPTH_SCALE)
@@ -124,4 +127,5 @@ class TumDataset(Dataset):
         i = check_index(i, len(self))
         rgb, depth = self._rgb[i], self._depth[i]
         return Frame(i, float(self.stamps[i]), read_color(rgb, self._shape),
-                     depth=read_depth(depth, DEPTH_SCALE, shape=self._shape), source=f"{rgb}, {depth}")
+                     depth=read_depth(depth, DEPTH_SCALE, shape=self._shape), source=f"{rgb}, {depth}",
+                     extras={"depth_stamp": float(self._depth_stamps[i])})

@@ -10,6 +10,7 @@ starts from the last known pose.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -181,7 +182,12 @@ class Odometry:
         return None if self.calibration is None else self.calibration.offset
 
     # -- tracking -----------------------------------------------------------------------
-    def track(self, features: FrameFeatures, stamp: float) -> TrackResult:
+    def track(self, features: FrameFeatures, stamp: float, depth_stamp: float | None = None) -> TrackResult:
+        if (depth_stamp is not None and self.config.depth_time_compensation and features.depth is not None
+                and self.pose is not None and self._last_dt and abs(depth_stamp - stamp) > 1e-4):
+            # the depth camera where the motion model puts it at the depth image's stamp
+            motion = _scale_motion(self.velocity, (depth_stamp - stamp) / self._last_dt)
+            features = compensate_depth_time(features, self.camera, motion)
         if self.pose is None or len(self.map) == 0:
             return self._start_segment(features, stamp)
         predicted = self._predict(stamp)
@@ -421,3 +427,41 @@ def _scale_motion(T: np.ndarray, s: float) -> np.ndarray:
     rvec, _ = cv2.Rodrigues(T[:3, :3])
     R, _ = cv2.Rodrigues(rvec * s)
     return make_pose(R, T[:3, 3] * s)
+
+
+def compensate_depth_time(features: FrameFeatures, camera: PinholeCamera, T_color_depth: np.ndarray) -> FrameFeatures:
+    """The features with each depth point moved from the depth image's camera into the colour
+    image's, `T_color_depth` being the depth camera's pose in the colour camera (the camera's
+    motion between the two images' stamps; TUM's Kinect takes them up to 20 ms apart). A
+    keypoint's depth was read at its colour pixel, where the depth camera saw another surface
+    point: its point is carried into the depth camera, the depth read again where it projects
+    (twice: the second read corrects the first's depth), and the point seen there carried
+    back, then placed on the keypoint's colour ray at that depth. A keypoint whose depth is
+    missing there, or more than 5 % from the expected one (a depth edge), loses its depth."""
+    if np.allclose(T_color_depth, np.eye(4)) or features.depth is None:
+        return features
+    depth = features.depth
+    h, w = depth.shape[:2]
+    p = features.points.astype(np.float64)
+    idx = np.nonzero(np.isfinite(p[:, 2]))[0]
+    T_dc = invert(T_color_depth)
+    q = p[idx] @ T_dc[:3, :3].T + T_dc[:3, 3]  # in the depth camera
+    good = q[:, 2] > 1e-3
+    u, v = np.zeros(len(q), int), np.zeros(len(q), int)
+    for _ in range(2):
+        g = good
+        u[g] = np.rint(q[g, 0] / q[g, 2] * camera.fx + camera.cx)
+        v[g] = np.rint(q[g, 1] / q[g, 2] * camera.fy + camera.cy)
+        good &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        z = np.zeros(len(q))
+        z[good] = depth[v[good], u[good]]
+        good &= np.isfinite(z) & (np.abs(z - q[:, 2]) <= 0.05 * q[:, 2])
+        q[good] = np.stack([(u[good] - camera.cx) / camera.fx * z[good], (v[good] - camera.cy) / camera.fy * z[good],
+                            z[good]], axis=1)
+    zc = q[:, 2] * T_color_depth[2, 2] + q[:, :2] @ T_color_depth[2, :2] + T_color_depth[2, 3]  # colour depth
+    z_new = np.where(good, zc, np.nan)
+    xy = features.keypoints[idx].astype(np.float64)
+    points = features.points.copy()
+    points[idx] = np.stack([(xy[:, 0] - camera.cx) / camera.fx * z_new, (xy[:, 1] - camera.cy) / camera.fy * z_new,
+                            z_new], axis=1)
+    return dataclasses.replace(features, points=points)
