@@ -71,7 +71,7 @@ def test_tum_fr1_desk_loops_help_and_link_refinement_never_hurts(data_dir):
     assert out.summary.tracked == len(ds) and out.summary.lost == 0
     ate, ate_off, ate_odometry = (evaluate(ds.ground_truth, t).ate_rmse
                                   for t in (out.trajectory, off.trajectory, _odometry(out)))
-    # measured 2026-11-27: odometry alone 3.94 cm, with loops 2.65 (issue 26's depth-time
+    # measured 2026-11-27: odometry alone 3.91 cm, with loops 2.52 (issue 26's depth-time
     # compensation; before it 4.24 / 2.94, refinement off: 2.97)
     assert ate < ate_odometry and ate <= 1.02 * ate_off, (ate, ate_off, ate_odometry)
     assert ate < 0.035, ate
