@@ -11,7 +11,7 @@ from mnemoslam.client.kernel.geometry import invert, make_pose
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.service.runner import run_dataset
 from mnemoslam.service.tracking.features import FrameFeatures
-from mnemoslam.service.tracking.odometry import compensate_depth_time
+from mnemoslam.service.tracking.odometry import compensate_depth_time, grow_depth_sigma
 
 from conftest import require, slam_config
 
@@ -74,6 +74,24 @@ def test_depth_points_moved_to_the_colour_time():
     # no motion: the features as they were
     same = compensate_depth_time(features, CAM, np.eye(4)).points
     np.testing.assert_array_equal(same, features.points)
+
+
+def test_moved_depth_loses_weight_with_the_motion():
+    """A depth point moved by the motion model's guess is as uncertain as that guess: its σ
+    grows by k × the motion's displacement of it (|t| + z·|θ|, in quadrature), more for a far
+    point under rotation, not at all without motion."""
+    depth = _depth_image(np.eye(4))
+    f = _features(depth)
+    z = f.points[:, 2].astype(np.float64)
+    f.depth_sigma = (0.003 * z ** 2).astype(np.float32)
+    R, _ = cv2.Rodrigues(np.array([0.0, np.radians(1.0), 0.0]))
+    motion = make_pose(R, np.array([0.0, 0.0, 0.004]))
+    grown = grow_depth_sigma(f, motion, 0.5).depth_sigma.astype(np.float64)
+    expected = np.sqrt((0.003 * z ** 2) ** 2 + (0.5 * (0.004 + z * np.radians(1.0))) ** 2)
+    np.testing.assert_allclose(grown, expected, rtol=1e-5)
+    assert np.all(grown > f.depth_sigma)
+    np.testing.assert_array_equal(grow_depth_sigma(f, np.eye(4), 0.5).depth_sigma, f.depth_sigma)
+    np.testing.assert_array_equal(grow_depth_sigma(f, motion, 0.0).depth_sigma, f.depth_sigma)
 
 
 @pytest.mark.data

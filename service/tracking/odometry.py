@@ -188,15 +188,7 @@ class Odometry:
             # the depth camera where the motion model puts it at the depth image's stamp
             motion = _scale_motion(self.velocity, (depth_stamp - stamp) / self._last_dt)
             features = compensate_depth_time(features, self.camera, motion)
-            k = self.config.depth_time_sigma
-            if k > 0 and features.depth_sigma is not None:
-                # the motion model's motion is uncertain: so is the depth moved by it, by k × what
-                # the motion moved a point at that depth (translation and rotation)
-                rvec, _ = cv2.Rodrigues(motion[:3, :3])
-                z = np.nan_to_num(features.points[:, 2].astype(np.float64), nan=0.0)
-                extra = k * (np.linalg.norm(motion[:3, 3]) + z * np.linalg.norm(rvec))
-                sigma = np.sqrt(features.depth_sigma.astype(np.float64) ** 2 + extra ** 2)
-                features = dataclasses.replace(features, depth_sigma=sigma.astype(np.float32))
+            features = grow_depth_sigma(features, motion, self.config.depth_time_sigma)
         if self.pose is None or len(self.map) == 0:
             return self._start_segment(features, stamp)
         predicted = self._predict(stamp)
@@ -474,3 +466,16 @@ def compensate_depth_time(features: FrameFeatures, camera: PinholeCamera, T_colo
     points[idx] = np.stack([(xy[:, 0] - camera.cx) / camera.fx * z_new, (xy[:, 1] - camera.cy) / camera.fy * z_new,
                             z_new], axis=1)
     return dataclasses.replace(features, points=points)
+
+
+def grow_depth_sigma(features: FrameFeatures, motion: np.ndarray, k: float) -> FrameFeatures:
+    """The features with each depth σ grown by `k` × how far `motion` (the depth-time motion,
+    a guess of the motion model) moves a point at that depth, |t| + z·|θ|, added in quadrature:
+    the depth moved by it is as uncertain as that guess (`odometry.depth_time_sigma`)."""
+    if k <= 0 or features.depth_sigma is None:
+        return features
+    rvec, _ = cv2.Rodrigues(motion[:3, :3])
+    z = np.nan_to_num(features.points[:, 2].astype(np.float64), nan=0.0)
+    extra = k * (np.linalg.norm(motion[:3, 3]) + z * np.linalg.norm(rvec))
+    sigma = np.sqrt(features.depth_sigma.astype(np.float64) ** 2 + extra ** 2)
+    return dataclasses.replace(features, depth_sigma=sigma.astype(np.float32))
