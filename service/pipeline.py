@@ -92,7 +92,7 @@ class Pipeline:
             return FrameResult(frame.index, frame.stamp, "skipped", None)
         features = self.extractor.extract(frame)
         t1 = time.perf_counter()
-        tracked = self.odometry.track(features, frame.stamp)
+        tracked = self.odometry.track(features, frame.stamp, frame.extras.get("depth_stamp"))
         if self.odometry.disparity_offset is not None:  # stereo: the next frames use the latest estimate
             self.extractor.disparity_offset = self.odometry.disparity_offset
         t2 = time.perf_counter()

@@ -8,7 +8,9 @@ between the two nearest readings, none when the nearer is more than `ACCEL_MAX_G
 the camera's axes as `frame.extras["accel"]` (x right, y down, z forward; the specific force:
 +g along up when still). Intrinsics and lens distortion come from the sequence name (freiburg1/2/3, as
 published by TUM); the images are delivered raw (depth is registered to the raw colour image)
-and the service undistorts feature coordinates.
+and the service undistorts feature coordinates. The depth image's own stamp is
+`frame.extras["depth_stamp"]` (the tracker moves the depth by the motion in between:
+`odometry.depth_time_compensation`).
 """
 from __future__ import annotations
 
@@ -167,6 +169,7 @@ class TumDataset(Dataset):
         n = frame_count(len(ia), max_frames, path)
         self.stamps = rgb_t[ia[:n]]
         self._rgb, self._depth = rgb_f[ia[:n]], depth_f[ib[:n]]
+        self._depth_stamps = depth_t[ib[:n]]
         w, h = image_size(self._rgb[0])
         self._shape = (h, w)
         self.calibration = Calibration(pinhole(*intrinsics_for(self.name), w, h, distortion_for(self.name)), None,
@@ -184,6 +187,9 @@ class TumDataset(Dataset):
         i = check_index(i, len(self))
         rgb, depth = self._rgb[i], self._depth[i]
         stamp = float(self.stamps[i])
+        extras = {"depth_stamp": float(self._depth_stamps[i])}
         a = accel_at(self.accel, stamp)
+        if a is not None:
+            extras["accel"] = a
         return Frame(i, stamp, read_color(rgb, self._shape), depth=read_depth(depth, DEPTH_SCALE, shape=self._shape),
-                     source=f"{rgb}, {depth}", extras={} if a is None else {"accel": a})
+                     source=f"{rgb}, {depth}", extras=extras)

@@ -10,6 +10,7 @@ starts from the last known pose.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -181,7 +182,13 @@ class Odometry:
         return None if self.calibration is None else self.calibration.offset
 
     # -- tracking -----------------------------------------------------------------------
-    def track(self, features: FrameFeatures, stamp: float) -> TrackResult:
+    def track(self, features: FrameFeatures, stamp: float, depth_stamp: float | None = None) -> TrackResult:
+        if (depth_stamp is not None and self.config.depth_time_compensation and features.depth is not None
+                and self.pose is not None and self._last_dt and abs(depth_stamp - stamp) > 1e-4):
+            # the depth camera where the motion model puts it at the depth image's stamp
+            motion = _scale_motion(self.velocity, (depth_stamp - stamp) / self._last_dt)
+            features = compensate_depth_time(features, self.camera, motion)
+            features = grow_depth_sigma(features, motion, self.config.depth_time_sigma)
         if self.pose is None or len(self.map) == 0:
             return self._start_segment(features, stamp)
         predicted = self._predict(stamp)
@@ -421,3 +428,65 @@ def _scale_motion(T: np.ndarray, s: float) -> np.ndarray:
     rvec, _ = cv2.Rodrigues(T[:3, :3])
     R, _ = cv2.Rodrigues(rvec * s)
     return make_pose(R, T[:3, 3] * s)
+
+
+def compensate_depth_time(features: FrameFeatures, camera: PinholeCamera, T_color_depth: np.ndarray) -> FrameFeatures:
+    """The features with each depth point moved from the depth image's camera into the colour
+    image's, `T_color_depth` being the depth camera's pose in the colour camera (the camera's
+    motion between the two images' stamps; TUM's Kinect takes them up to 20 ms apart). A
+    keypoint's depth was read at its colour pixel, where the depth camera saw another surface
+    point: its point is carried into the depth camera, the depth read again where it projects
+    (twice: the second read corrects the first's depth), and the point seen there carried
+    back, then placed on the keypoint's colour ray at that depth. A keypoint whose depth is
+    missing there, or more than 5 % from the expected one (a depth edge), loses its depth."""
+    if np.allclose(T_color_depth, np.eye(4)) or features.depth is None:
+        return features
+    depth = features.depth
+    h, w = depth.shape[:2]
+    p = features.points.astype(np.float64)
+    idx = np.nonzero(np.isfinite(p[:, 2]))[0]
+    T_dc = invert(T_color_depth)
+    q = p[idx] @ T_dc[:3, :3].T + T_dc[:3, 3]  # in the depth camera
+    good = q[:, 2] > 1e-3
+    u, v = np.zeros(len(q), int), np.zeros(len(q), int)
+    # the depth image is registered to the raw colour image: a point is read at its raw (distorted)
+    # pixel, and the point seen there lies on that pixel's undistorted ray
+    rays = camera.pixel_rays() if camera.distorted else None
+    for _ in range(2):
+        g = np.nonzero(good)[0]
+        if rays is None:
+            u[g] = np.rint(q[g, 0] / q[g, 2] * camera.fx + camera.cx)
+            v[g] = np.rint(q[g, 1] / q[g, 2] * camera.fy + camera.cy)
+        elif len(g):
+            raw, _ = cv2.projectPoints(q[g].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), camera.K,
+                                       np.asarray(camera.distortion))
+            u[g], v[g] = np.rint(raw[:, 0, 0]), np.rint(raw[:, 0, 1])
+        good &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        z = np.zeros(len(q))
+        z[good] = depth[v[good], u[good]]
+        good &= np.isfinite(z) & (np.abs(z - q[:, 2]) <= 0.05 * q[:, 2])
+        if rays is None:
+            x, y = (u[good] - camera.cx) / camera.fx, (v[good] - camera.cy) / camera.fy
+        else:
+            x, y = rays[v[good], u[good], 0], rays[v[good], u[good], 1]
+        q[good] = np.stack([x * z[good], y * z[good], z[good]], axis=1)
+    zc = q[:, 2] * T_color_depth[2, 2] + q[:, :2] @ T_color_depth[2, :2] + T_color_depth[2, 3]  # colour depth
+    z_new = np.where(good, zc, np.nan)
+    xy = features.keypoints[idx].astype(np.float64)
+    points = features.points.copy()
+    points[idx] = np.stack([(xy[:, 0] - camera.cx) / camera.fx * z_new, (xy[:, 1] - camera.cy) / camera.fy * z_new,
+                            z_new], axis=1)
+    return dataclasses.replace(features, points=points)
+
+
+def grow_depth_sigma(features: FrameFeatures, motion: np.ndarray, k: float) -> FrameFeatures:
+    """The features with each depth σ grown by `k` × how far `motion` (the depth-time motion,
+    a guess of the motion model) moves a point at that depth, |t| + z·|θ|, added in quadrature:
+    the depth moved by it is as uncertain as that guess (`odometry.depth_time_sigma`)."""
+    if k <= 0 or features.depth_sigma is None:
+        return features
+    rvec, _ = cv2.Rodrigues(motion[:3, :3])
+    z = np.nan_to_num(features.points[:, 2].astype(np.float64), nan=0.0)
+    extra = k * (np.linalg.norm(motion[:3, 3]) + z * np.linalg.norm(rvec))
+    sigma = np.sqrt(features.depth_sigma.astype(np.float64) ** 2 + extra ** 2)
+    return dataclasses.replace(features, depth_sigma=sigma.astype(np.float32))
