@@ -104,8 +104,10 @@ class BagWriter:
 
     def add_frame(self, frame, calibration, latency_ns=3_000_000) -> None:
         """One camera frame: colour, depth (metres, 0 invalid) and camera info, stamped with the
-        frame's stamp, received `latency_ns` later (depth 1 ms after colour)."""
+        frame's stamp (the depth with its own, `frame.extras["depth_stamp"]`, where the player
+        gave one), received `latency_ns` later (depth 1 ms after colour)."""
         stamp = round(frame.stamp * 1e9)
+        depth_stamp = round(frame.extras.get("depth_stamp", frame.stamp) * 1e9)
         log = stamp + latency_ns
         bgr = frame.image
         if self.color == "rgb8":
@@ -120,12 +122,13 @@ class BagWriter:
         self.write(self.c_color, log, msg)
         mm = np.rint(frame.depth * np.float32(1000)).astype(np.uint16)
         if self.depth == "16UC1":
-            msg = self.image(stamp, mm, "16UC1")
+            msg = self.image(depth_stamp, mm, "16UC1")
         elif self.depth == "32FC1":
-            msg = self.image(stamp, np.where(frame.depth > 0, frame.depth, np.nan).astype(np.float32), "32FC1")
+            msg = self.image(depth_stamp, np.where(frame.depth > 0, frame.depth, np.nan).astype(np.float32), "32FC1")
         else:  # compressed_depth_image_transport: ConfigHeader {int32 format (1 = PNG), float32 A, B}, then PNG
             ok, buf = cv2.imencode(".png", mm)
-            msg = self.compressed(stamp, struct.pack("<iff", 1, 0.0, 0.0) + buf.tobytes(), "16UC1; compressedDepth png")
+            msg = self.compressed(depth_stamp, struct.pack("<iff", 1, 0.0, 0.0) + buf.tobytes(),
+                                  "16UC1; compressedDepth png")
         self.write(self.c_depth, log + 1_000_000, msg)
         for c in self.c_infos:
             self.write(c, log, self.info(stamp, calibration))
@@ -270,8 +273,9 @@ FR1_D = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
 @pytest.mark.data
 def test_fr1_desk_as_a_bag_with_its_distortion_tracks_as_the_folder(data_dir, tmp_path):
     """The same frames as a folder (distortion from the TUM player) and as a rosbag2 (from the
-    CameraInfo's D): raw images in both, the same camera, the same trajectory (exactly with
-    metre depth, within 2 mm ATE with millimetre depth)."""
+    CameraInfo's D; the depth messages carry the depth images' own stamps, as a Kinect driver
+    stamps them): raw images in both, the same camera, the same trajectory (exactly with metre
+    depth, within 2 mm ATE with millimetre depth)."""
     ds = open_dataset(require(data_dir / "rgbd_dataset_freiburg1_desk"), max_frames=FR1_FRAMES)
     assert ds.calibration.camera.distortion == FR1_D
     writers = {depth: BagWriter(tmp_path / depth, "sqlite3", color="rgb8", depth=depth) for depth in ("32FC1", "16UC1")}

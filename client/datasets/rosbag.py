@@ -30,7 +30,8 @@ keys `color`, `depth`, `info`, `pose`). A bag without a pose topic has no ground
 
 Frames are the colour messages that have a depth message within `MAX_DT` (20 ms) by header
 stamp, matched one to one as the TUM player does, stamped with the colour header stamp (a
-topic whose header stamps are all unset, 0, uses the bag's receive times). Opening the bag reads
+topic whose header stamps are all unset, 0, uses the bag's receive times); the depth header
+stamp is `frame.extras["depth_stamp"]` when both topics have header stamps. Opening the bag reads
 every colour and depth message once to index their header stamps (`(topic, receive time,
 rank)` per message, a few numbers each); frames are then read message by message: one cursor
 walks the colour and depth messages in receive order as the players read frames in order, and
@@ -267,6 +268,7 @@ class _Stream:
     logtimes: np.ndarray  # int64 ns
     ranks: np.ndarray  # int
     stamps: np.ndarray  # int64 ns, header stamps (receive times if the header's are unset)
+    header_stamps: bool = True  # False: `stamps` are the receive times
 
 
 def _nearest_info(infos: list[str], color: str) -> list[str]:
@@ -444,7 +446,8 @@ class RosbagDataset(Dataset):
                 log.warning("%s: %s: %d messages repeat a header stamp; the first of each is used", self.path, topic,
                             len(a) - len(keep))
             info = topics[topic]
-            streams.append(_Stream(topic, info.msgtype, info.connections, a[keep, 0], a[keep, 1], stamps[keep]))
+            streams.append(_Stream(topic, info.msgtype, info.connections, a[keep, 0], a[keep, 1], stamps[keep],
+                                   header_stamps=not (len(a) and (a[:, 2] == 0).all())))
         return streams[0], streams[1]
 
     def _calibration(self, info, topic: str, width: int, height: int):
@@ -589,7 +592,11 @@ class RosbagDataset(Dataset):
         if self._maps is not None:
             image = cv2.remap(image, *self._maps, cv2.INTER_LINEAR)
             depth = cv2.remap(depth, *self._maps, cv2.INTER_NEAREST)
-        return Frame(i, float(self.stamps[i]), image, depth=depth, source=source)
+        # the depth image's own stamp (the tracker moves the depth by the motion in between:
+        # odometry.depth_time_compensation); not when either topic's stamps are receive times
+        extras = {"depth_stamp": float(self._depth.stamps[self._di[i]] / 1e9)} \
+            if self._color.header_stamps and self._depth.header_stamps else {}
+        return Frame(i, float(self.stamps[i]), image, depth=depth, source=source, extras=extras)
 
     def close(self) -> None:
         """Close the bag (frames can no longer be read). Also done when the dataset is
