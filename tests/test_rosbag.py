@@ -166,6 +166,18 @@ BAGS = {  # name: (storage, colour, depth, ground truth)
 }
 
 
+def _write_bags(ds, writers: list[BagWriter]) -> None:
+    """Every frame of `ds` and its ground-truth poses into each bag of `writers`, then close them."""
+    for frame in ds:
+        for w in writers:
+            w.add_frame(frame, ds.calibration)
+    for stamp, T in zip(ds.ground_truth.stamps, ds.ground_truth.poses):
+        for w in writers:
+            w.add_pose(stamp, T)
+    for w in writers:
+        w.close()
+
+
 @pytest.fixture(scope="module")
 def kitchen(data_dir, tmp_path_factory):
     """The first FRAMES frames of 7-Scenes redkitchen: the folder dataset, its offline run
@@ -173,15 +185,7 @@ def kitchen(data_dir, tmp_path_factory):
     path = require(data_dir / "7scenes_redkitchen")
     ds = open_dataset(path, max_frames=FRAMES)
     root = tmp_path_factory.mktemp("bags")
-    writers = {name: BagWriter(root / name, *spec[:3], pose=spec[3]) for name, spec in BAGS.items()}
-    for frame in ds:
-        for w in writers.values():
-            w.add_frame(frame, ds.calibration)
-    for stamp, T in zip(ds.ground_truth.stamps, ds.ground_truth.poses):
-        for w in writers.values():
-            w.add_pose(stamp, T)
-    for w in writers.values():
-        w.close()
+    _write_bags(ds, [BagWriter(root / name, *spec[:3], pose=spec[3]) for name, spec in BAGS.items()])
     out = run_dataset(ds, slam_config(), root / "folder_run", progress=False)
     return path, ds, out, evaluate(ds.ground_truth, out.trajectory), {n: root / n for n in BAGS}
 
@@ -278,19 +282,12 @@ def test_fr1_desk_as_a_bag_with_its_distortion_tracks_as_the_folder(data_dir, tm
     depth, within 2 mm ATE with millimetre depth)."""
     ds = open_dataset(require(data_dir / "rgbd_dataset_freiburg1_desk"), max_frames=FR1_FRAMES)
     assert ds.calibration.camera.distortion == FR1_D
-    writers = {depth: BagWriter(tmp_path / depth, "sqlite3", color="rgb8", depth=depth) for depth in ("32FC1", "16UC1")}
-    for frame in ds:
-        for w in writers.values():
-            w.add_frame(frame, ds.calibration)
-    for stamp, T in zip(ds.ground_truth.stamps, ds.ground_truth.poses):
-        for w in writers.values():
-            w.add_pose(stamp, T)
-    for w in writers.values():
-        w.close()
+    depths = ("32FC1", "16UC1")
+    _write_bags(ds, [BagWriter(tmp_path / depth, "sqlite3", color="rgb8", depth=depth) for depth in depths])
     folder = run_dataset(ds, slam_config(), progress=False)
     ate = evaluate(ds.ground_truth, folder.trajectory).ate_rmse
     assert folder.summary.tracked == FR1_FRAMES and ate < 0.04  # measured 1.93 cm
-    for depth in writers:
+    for depth in depths:
         bag = open_dataset(tmp_path / depth)
         assert bag.calibration.camera == ds.calibration.camera  # K and D
         assert np.array_equal(bag.frame(60).image, ds.frame(60).image)  # raw: depth stays on its pixels
