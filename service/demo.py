@@ -39,20 +39,27 @@ class ServiceProcess:
     """`mnemoslam serve` in a child process with its own ports and database."""
 
     def __init__(self, db: Path, config: dict | None = None, log_path: Path | None = None):
+        self.db, self.overrides = Path(db).resolve(), config or {}
+        self.dir = Path(tempfile.mkdtemp(prefix="mnemoslam-svc-"))
+        self.config_path = self.dir / "service.yaml"
+        self.log_path = log_path or self.dir / "service.log"
+        self.proc: subprocess.Popen | None = None
+        self._pick_ports()
+
+    def _pick_ports(self) -> None:
+        """Free ports for Zenoh and the API, written into the child's config file."""
         self.zenoh_port, self.http_port = free_port(), free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
         # the database's absolute path: the child runs in the checkout, not in the caller's folder
-        cfg = {"zenoh": {"listen": [self.endpoint]}, "api": {"port": self.http_port},
-               "storage": {"path": str(Path(db).resolve())}}
-        cfg = merge_overrides(cfg, config or {})  # nested: {"loop": {"enabled": False}}, top-level keys too
-        self.dir = Path(tempfile.mkdtemp(prefix="mnemoslam-svc-"))
-        self.config_path = self.dir / "service.yaml"
+        cfg = {"zenoh": {"listen": [self.endpoint]}, "api": {"port": self.http_port}, "storage": {"path": str(self.db)}}
+        cfg = merge_overrides(cfg, self.overrides)  # nested: {"loop": {"enabled": False}}, top-level keys too
         self.config_path.write_text(yaml.safe_dump(cfg))
-        self.log_path = log_path or self.dir / "service.log"
         self.api = PlannerClient(f"http://127.0.0.1:{self.http_port}")
-        self.proc: subprocess.Popen | None = None
 
-    def start(self, timeout: float = 60.0) -> "ServiceProcess":
+    def start(self, timeout: float = 60.0, attempts: int = 3) -> "ServiceProcess":
+        """Start `serve` and wait until /health answers. A port that another process took
+        between `free_port` and the child's bind ("Address already in use") is picked again,
+        up to `attempts` times; any other early exit raises with the log's last lines."""
         root = Path(__file__).resolve().parents[1]
         env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
         self._log = open(self.log_path, "w")
@@ -62,7 +69,12 @@ class ServiceProcess:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"service exited with {self.proc.returncode}; log: {self.log_path}")
+                self._log.close()
+                tail = "\n".join(Path(self.log_path).read_text(errors="replace").splitlines()[-5:])
+                if attempts > 1 and "in use" in tail.lower():
+                    self._pick_ports()
+                    return self.start(timeout, attempts - 1)
+                raise RuntimeError(f"service exited with {self.proc.returncode}; log: {self.log_path}:\n{tail}")
             try:
                 if self.api.health()["status"] == "ok":
                     return self

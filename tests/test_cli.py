@@ -206,6 +206,36 @@ def test_service_process_takes_nested_and_top_level_keys(tmp_path):
     assert cfg["zenoh"]["listen"] == [svc.endpoint] and cfg["api"]["port"] == svc.http_port
 
 
+def test_service_process_picks_other_ports_when_its_port_was_taken(tmp_path):
+    """The API port `free_port` picked is taken by another process before the child binds it:
+    the child exits ("address already in use"), and `start` picks other ports and starts it."""
+    import socket
+
+    import yaml
+
+    from mnemoslam.service.demo import ServiceProcess
+
+    svc = ServiceProcess(tmp_path / "m.db", service_config())
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        cfg = yaml.safe_load(svc.config_path.read_text())
+        cfg["api"]["port"] = svc.http_port = port  # as if another process had taken it meanwhile
+        svc.config_path.write_text(yaml.safe_dump(cfg))
+        svc.start()
+        try:
+            assert svc.http_port != port and svc.api.health()["status"] == "ok"
+        finally:
+            svc.stop()
+    with pytest.raises(RuntimeError, match="exited with 2"):  # no attempt left: the log's reason is raised
+        with socket.socket() as taken:
+            taken.bind(("127.0.0.1", 0))
+            taken.listen()
+            other = ServiceProcess(tmp_path / "n.db", service_config({"api": {"port": taken.getsockname()[1]}}))
+            other.start(attempts=1)
+
+
 def test_demo_log_scan_reports_errors(tmp_path):
     from mnemoslam.service.demo import log_errors, log_report
 
