@@ -21,15 +21,6 @@ def data_dir() -> Path:
     return root
 
 
-def slam_config(overrides: dict | None = None):
-    """The default configuration (plus `overrides`) with semantics off: the real-data SLAM
-    tests check tracking and the map, and with the model found the default (`semantics.source:
-    auto`) would segment each of their keyframes (~0.3 s) for nothing they assert."""
-    from mnemoslam.service.config import load_config, merge_overrides
-
-    return load_config(overrides=merge_overrides({"semantics": {"enabled": False}}, overrides or {}))
-
-
 def service_config(overrides: dict | None = None) -> dict:
     """The config overrides of a service a test starts (`ServiceProcess`) with semantics off, for
     the tests about tracking, storage, admission or the API: with the model found, the default
@@ -40,6 +31,16 @@ def service_config(overrides: dict | None = None) -> dict:
     from mnemoslam.service.config import merge_overrides
 
     return merge_overrides({"semantics": {"enabled": False}}, overrides or {})
+
+
+def slam_config(overrides: dict | None = None):
+    """The default configuration (plus `overrides`) with semantics off (`service_config`'s
+    overrides): the real-data SLAM tests check tracking and the map, and with the model found the
+    default (`semantics.source: auto`) would segment each of their keyframes (~0.3 s) for nothing
+    they assert."""
+    from mnemoslam.service.config import load_config
+
+    return load_config(overrides=service_config(overrides))
 
 
 def require(path: Path) -> Path:

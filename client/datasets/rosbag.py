@@ -437,7 +437,8 @@ class RosbagDataset(Dataset):
         for topic in (color_topic, depth_topic):
             a = np.array(rows[topic], dtype=np.int64).reshape(-1, 3)
             stamps = a[:, 2]
-            if len(a) and (stamps == 0).all():
+            unset = bool(len(a) and (stamps == 0).all())
+            if unset:
                 log.warning("%s: %s has unset header stamps; using the bag's receive times", self.path, topic)
                 stamps = a[:, 0]
             order = np.argsort(stamps, kind="stable")
@@ -447,7 +448,7 @@ class RosbagDataset(Dataset):
                             len(a) - len(keep))
             info = topics[topic]
             streams.append(_Stream(topic, info.msgtype, info.connections, a[keep, 0], a[keep, 1], stamps[keep],
-                                   header_stamps=not (len(a) and (a[:, 2] == 0).all())))
+                                   header_stamps=not unset))
         return streams[0], streams[1]
 
     def _calibration(self, info, topic: str, width: int, height: int):
