@@ -45,7 +45,7 @@ def _cmd_run(args) -> int:
                      f"{100 * g['groundtruth_occupied_agree']:.1f} %, free {100 * g['groundtruth_free_agree']:.1f} %)")
         print(line)
     trajectory, which = out.trajectory, ""
-    if out.summary.localization:  # the poses in the map's frame (before: the run's own frame)
+    if getattr(out.summary, "localization", False):  # the poses in the map's frame (before: its own frame)
         from mnemoslam.client.kernel.trajectory import Trajectory
 
         since = out.summary.relocalized_stamp if out.summary.relocalized_stamp is not None else float("inf")

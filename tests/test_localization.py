@@ -73,6 +73,7 @@ def _errors(stamps, poses, to_truth) -> np.ndarray:
     return np.linalg.norm(est[:, :3, 3] - gt.poses[k, :3, 3], axis=1)
 
 
+@pytest.mark.slow  # (walk_a mapped once for the module: ~30 s; each test 10-25 s)
 def test_run_localizes_against_the_map_without_writing_it(walk_a_map, tmp_path):
     """`run walk_b --db A.db --set memory.incremental=false`: the map file's bytes are the same,
     B relocalizes in map 0 after it entered A's stretch (not at its start: it starts in a frame
@@ -103,13 +104,12 @@ def test_run_localizes_against_the_map_without_writing_it(walk_a_map, tmp_path):
     assert np.allclose(t.poses[0], np.eye(4), atol=1e-6)
 
 
-def test_run_localization_needs_an_existing_map(tmp_path):
-    from mnemoslam.client.kernel.frames import DatasetError
+def test_run_localization_needs_an_existing_map(tmp_path, capsys):
     from mnemoslam.service.cli import main
 
-    with pytest.raises(DatasetError, match="needs a map"):
-        main(["run", "synthetic:walk_b?rate=5", "--frames", "0:3", "--db", str(tmp_path / "none.db"),
-              "--out", str(tmp_path / "o"), "-q", "--set", "memory.incremental=false"])
+    assert main(["run", "synthetic:walk_b?rate=5", "--frames", "0:3", "--db", str(tmp_path / "none.db"),
+                 "--out", str(tmp_path / "o"), "-q", "--set", "memory.incremental=false"]) != 0
+    assert "needs a map to localize in" in capsys.readouterr().err
     assert not (tmp_path / "none.db").exists()
 
 
@@ -126,6 +126,7 @@ def _poses_of(z, robot):
     return got, z.declare_subscriber(protocol.KeySpace().pose(robot), on)
 
 
+@pytest.mark.slow  # (walk_a mapped once for the module: ~30 s; each test 10-25 s)
 def test_service_localization_only_publishes_map_frame_poses_and_leaves_the_map_untouched(walk_a_map, tmp_path):
     """A real `serve` (memory.incremental: false) on walk_a's map, walk_b streamed through Zenoh:
     the pose messages say their frame (null = B's own, then map 0 once relocalized: one
@@ -154,7 +155,8 @@ def test_service_localization_only_publishes_map_frame_poses_and_leaves_the_map_
             from mnemoslam.client.datasets.subrange import frame_range
 
             ds = frame_range(ds, B_FRAMES)
-            stats = stream_dataset(ds, "B", ZenohSettings(connect=[svc.endpoint]), rate=None, progress=False,
+            # at the camera's pace (5 frames/s): the map update behind tracking keeps up, as on a robot
+            stats = stream_dataset(ds, "B", ZenohSettings(connect=[svc.endpoint]), rate=RATE, progress=False,
                                    wait_for_subscriber=10.0)
             r = svc.wait_processed("B", stats.frames)
             time.sleep(1.0)
@@ -201,6 +203,7 @@ def _rows(db) -> dict:
                 "words": store.count_words(), "objects": store.count_objects()}
 
 
+@pytest.mark.slow  # (walk_a mapped once for the module: ~30 s; each test 10-25 s)
 def test_a_robot_asks_for_localization_in_a_mapping_service(walk_a_map, tmp_path):
     """A mapping service (the default config), walk_b streamed with `mnemoslam stream
     --localize`: B is localizing over REST, relocalizes in map 0 (its position then in A's
@@ -216,7 +219,7 @@ def test_a_robot_asks_for_localization_in_a_mapping_service(walk_a_map, tmp_path
     try:
         start, end = B_LOCALIZE
         assert main(["stream", f"synthetic:walk_b?rate={RATE:g}", "--frames", f"{start}:{end}", "--robot", "B",
-                     "--localize", "--connect", svc.endpoint, "-q"]) == 0
+                     "--localize", "--rate", f"{RATE:g}", "--connect", svc.endpoint, "-q"]) == 0
         r = svc.wait_processed("B", end - start)
         r = svc.wait_mapped("B")
         r = svc.api.robot("B")
