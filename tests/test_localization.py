@@ -184,8 +184,8 @@ def test_service_localization_only_publishes_map_frame_poses_and_leaves_the_map_
     poses.sort(key=lambda m: m.seq)
     assert len(poses) == stats.frames and all(m.has_map for m in poses)
     assert poses[0].map is None and np.allclose(poses[0].pose, np.eye(4), atol=1e-6)  # its own frame first
-    first = next(i for i, m in enumerate(poses) if m.map is not None)
-    assert first > 5, first
+    first = next((i for i, m in enumerate(poses) if m.map is not None), None)
+    assert first is not None and first > 5, first  # (never in the map's frame: None)
     after = [m for m in poses[first:] if m.pose is not None]
     in_map = [m for m in after if m.map == 0]
     assert len(after) >= 30 and len(in_map) >= 0.9 * len(after), (len(in_map), len(after))
@@ -208,7 +208,10 @@ def test_a_robot_asks_for_localization_in_a_mapping_service(walk_a_map, tmp_path
     """A mapping service (the default config), walk_b streamed with `mnemoslam stream
     --localize`: B is localizing over REST, relocalizes in map 0 (its position then in A's
     frame), and the map gains no session, keyframe, link, word or object (a robot that maps
-    adds all of those)."""
+    adds all of those). A robot that maps there next says its poses are in its own session's
+    map (the pose messages' `map`)."""
+    from mnemoslam.client.streamer import stream_dataset
+    from mnemoslam.client.transport import ZenohSettings, open_session
     from mnemoslam.service.cli import main
     from mnemoslam.service.demo import ServiceProcess
 
@@ -224,10 +227,25 @@ def test_a_robot_asks_for_localization_in_a_mapping_service(walk_a_map, tmp_path
         r = svc.wait_mapped("B")
         r = svc.api.robot("B")
         assert (r["mode"], r["session_id"], r["localized"], r["map"]) == ("localization", None, True, 0), r
-        assert svc.api.sessions()[-1]["robot"] != "B"
+        assert _rows(db) == before  # (a keyframe is committed before it is reported: B's would be there)
+        z = open_session(ZenohSettings(connect=[svc.endpoint]))
+        poses, sub = _poses_of(z, "M")
+        try:
+            ds = open_dataset(f"synthetic:walk_a?rate={RATE:g}")
+            from mnemoslam.client.datasets.subrange import frame_range
+
+            stats = stream_dataset(frame_range(ds, (0, 6)), "M", ZenohSettings(connect=[svc.endpoint]), rate=None,
+                                   progress=False, wait_for_subscriber=10.0)
+            m = svc.wait_processed("M", stats.frames)
+            time.sleep(0.5)
+        finally:
+            sub.undeclare()
+            z.close()
+        own = next(s for s in svc.api.sessions() if s["robot"] == "M")
+        assert m["mode"] == "mapping" and own["map_id"] == 1
+        assert len(poses) == stats.frames and {(p.has_map, p.map) for p in poses} == {(True, 1)}
     finally:
         assert svc.stop() == 0
-    assert _rows(db) == before
     gt = open_dataset(f"synthetic:walk_b?rate={RATE:g}").ground_truth
     k = int(np.searchsorted(gt.stamps, r["last_stamp"] - 1e-6))
     assert np.linalg.norm((to_truth @ np.r_[r["position"], 1.0])[:3] - gt.poses[k, :3, 3]) < 0.02
