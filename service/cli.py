@@ -137,7 +137,8 @@ def serve_banner(config, rest_port: int | None) -> str:
         ros = f"ROS 2 robots {robots or 'none'}; "
     return (f"mnemoslam serve: {rest}; Zenoh {z.mode} listen {', '.join(z.listen) or 'none'}, "
             f"connect {', '.join(z.connect) or 'none'}, prefix {z.prefix}; {ros}"
-            f"database {Path(config.storage.path).resolve()}")
+            f"database {Path(config.storage.path).resolve()}"
+            + (" (read-only: localization only, memory.incremental false)" if not config.memory.incremental else ""))
 
 
 def _cmd_serve(args) -> int:

@@ -278,6 +278,8 @@ class SlamService:
                     s.reject("calibration_changed")
                 if s.classes != classes:
                     s.reject("classes_changed")
+                if s.localize != bool(localize):  # (its mode stays until its slot is freed)
+                    s.reject("localize_changed")
                 return s
             if len(self.sessions) >= self.config.service.max_robots:
                 self.rejected["too_many_robots"] += 1
