@@ -290,3 +290,14 @@ def test_camera_info_localize_and_the_pose_messages_frame_stay_backward_compatib
     own = protocol.decode_pose(protocol.encode_pose("r1", 3, 1.0, "ok", np.eye(4), map=None))
     assert own.has_map and own.map is None
     assert protocol.decode_pose(protocol.encode_pose("r1", 3, 1.0, "ok", np.eye(4), map=7)).map == 7
+
+
+def test_a_ros_robot_can_ask_for_localization_too():
+    from mnemoslam.service.config import ConfigError, RosConfig
+    from mnemoslam.service.ros import parse_robots
+
+    entry = {"robot": "r", "color": "c", "depth": "d", "info": "i"}
+    assert not parse_robots(RosConfig(robots=[entry]))[0].localize
+    assert parse_robots(RosConfig(robots=[{**entry, "localize": True}]))[0].localize
+    with pytest.raises(ConfigError, match="localize"):
+        parse_robots(RosConfig(robots=[{**entry, "localize": "yes"}]))
