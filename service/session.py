@@ -47,6 +47,7 @@ class SessionStats:
     processing_ms: float = 0.0  # exponential mean of the pipeline time per frame
     fps: float = 0.0  # processed frames per second over the last few seconds
     position: tuple | None = None  # map-frame camera position of the last tracked frame (REST: where the robot is)
+    pose: tuple | None = None  # ... and its whole pose (16 numbers, row-major 4×4 camera-to-map)
     # its latest keyframe in the map (localization only: the map's keyframe its keyframes are linked
     # to, None while it is not relocalized)
     node_id: int | None = None
@@ -274,6 +275,7 @@ class RobotSession:
         s.processing_ms = ms if s.processed == 1 else 0.9 * s.processing_ms + 0.1 * ms
         if result.pose is not None:
             s.position = tuple(float(v) for v in result.pose[:3, 3])
+            s.pose = tuple(round(float(v), 9) for v in result.pose.reshape(-1))
         if self.mode == "localization":  # (its keyframes are not the map's: the map keyframe it is linked to)
             if result.tracked or result.anchor is not None:
                 s.node_id = None if result.anchor is None else int(result.anchor)
@@ -301,6 +303,7 @@ class RobotSession:
             "fps": round(s.fps, 2), "processing_ms": round(s.processing_ms, 2), "last_stamp": s.last_stamp,
             "session_id": self.session_id,
             "position": None if s.position is None else list(s.position), "node_id": s.node_id,
+            "pose": None if s.pose is None else list(s.pose),
             # the map update (loop closure, graph) runs behind tracking: keyframes it has done,
             # and those still waiting (0 = the map served over REST includes every keyframe)
             "keyframes_mapped": mapped,

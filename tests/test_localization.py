@@ -195,6 +195,7 @@ def test_service_localization_only_publishes_map_frame_poses_and_leaves_the_map_
     assert len(reloc) == 1 and reloc[0]["map"] == 0 and reloc[0]["stamp"] == pytest.approx(poses[first].stamp)
     # the live pose over REST is the last one published
     assert np.allclose(r["position"], poses[-1].pose[:3, 3], atol=1e-6)
+    assert np.allclose(np.reshape(r["pose"], (4, 4)), poses[-1].pose, atol=1e-6)
 
 
 def _rows(db) -> dict:

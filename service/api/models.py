@@ -55,6 +55,8 @@ class RobotStatus(Open):
     last_stamp: float | None
     session_id: int | None
     position: list[float] | None = Field(None, description="map-frame position of its last tracked frame")
+    pose: list[float] | None = Field(None, description="its last tracked frame's camera pose (row-major 4x4, "
+                                     "camera-to-map, OpenCV axes) in the frame `map` names")
     node_id: int | None = Field(None, description="its latest keyframe")
     keyframes_mapped: int
     map_backlog: int
