@@ -168,9 +168,14 @@ def test_service_localization_only_publishes_map_frame_poses_and_leaves_the_map_
         assert r["localized"] and r["map"] == 0, r
         assert svc.api.get("/robots")[0]["map"] == 0
         assert len(svc.api.sessions()) == 1  # walk_a's only: B has none
-        # writes are refused: the map is open read-only
+        # reads that make something (the grid's local grids from stored depth) keep it in RAM
         import urllib.error
         import urllib.request
+
+        for path in ("/maps", "/maps/0/grid", "/stats", "/metrics", "/viewer"):
+            with urllib.request.urlopen(f"http://127.0.0.1:{svc.http_port}{path}", timeout=60) as answer:
+                assert answer.status == 200, path
+        # writes are refused: the map is open read-only
 
         req = urllib.request.Request(f"http://127.0.0.1:{svc.http_port}/nodes/1/label", method="POST",
                                      data=b'{"label": "x"}', headers={"Authorization": "Bearer t",
