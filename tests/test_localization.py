@@ -25,7 +25,7 @@ from mnemoslam.storage import MapStore
 from conftest import service_config
 
 RATE = 5.0  # frames/s of each walk
-B_FRAMES = (40, 150)  # walk_b's frames streamed: B starts 2 m off A's path and relocalizes in A's stretch
+B_FRAMES = (40, 130)  # walk_b's frames streamed: B starts 2 m off A's path and relocalizes in A's stretch (frame 74)
 B_LOCALIZE = (90, 130)  # a shorter range for the per-robot test (B relocalizes soon after it starts)
 
 
@@ -48,10 +48,12 @@ def _run(*argv) -> str:
 
 @pytest.fixture(scope="module")
 def walk_a_map(tmp_path_factory):
-    """walk_a mapped by `run --db` (5 frames/s): (the map file, A's map frame -> the scene)."""
+    """walk_a's first 90 frames (its part B's frames below walk by: its frames 46-81 lie within
+    0.5 m of B's 90-149) mapped by `run --db` at 5 frames/s: (the map file, A's map frame -> the
+    scene)."""
     root = tmp_path_factory.mktemp("walk_a")
     db = root / "map.db"
-    _run(f"synthetic:walk_a?rate={RATE:g}", "--db", str(db), "--out", str(root / "a"))
+    _run(f"synthetic:walk_a?rate={RATE:g}", "--frames", "0:90", "--db", str(db), "--out", str(root / "a"))
     ta, ga = read_tum(root / "a" / "trajectory.tum"), read_tum(root / "a" / "groundtruth.tum")
     assert ta.stamps[0] == ga.stamps[0]
     return db, ga.poses[0] @ invert(ta.poses[0])
