@@ -31,9 +31,9 @@ import numpy as np
 
 from mnemoslam.client.kernel.frames import Calibration, Frame, PinholeCamera
 from mnemoslam.client.kernel.geometry import invert
-from mnemoslam.storage import LinkType, MapUpdateStore
+from mnemoslam.storage import LinkRecord, LinkType, MapUpdateStore, NodeRecord
 
-from .config import Config, LoopConfig, MemoryConfig
+from .config import LoopConfig, MemoryConfig
 from .mapping.graph import PoseGraph
 from .mapping.mapper import Mapper
 from .mapping.merge_links import MergeLinks
@@ -55,7 +55,7 @@ class TransientKeyframes:
 
     session_id = None  # no database session
 
-    def __init__(self, calibration: Calibration | None = None, config: Config | None = None):
+    def __init__(self) -> None:
         self._next = TRANSIENT_BASE
         self.last_node: int | None = None
         self.last_pose: np.ndarray | None = None
@@ -106,17 +106,17 @@ class TransientMap:
     def calibration(self, session_id: int) -> Calibration:
         return self.store.calibration(session_id)
 
-    def get_node(self, node_id: int):
+    def get_node(self, node_id: int) -> NodeRecord | None:
         return None if transient(node_id) else self.store.get_node(node_id)
 
-    def get_nodes(self, node_ids: Iterable[int]):
+    def get_nodes(self, node_ids: Iterable[int]) -> list[NodeRecord]:
         return self.store.get_nodes([n for n in node_ids if not transient(n)])
 
     def node_ids(self, ended: bool | None = None, merged: bool | None = False) -> np.ndarray:
         return self.store.node_ids(ended=ended, merged=merged)
 
     def nodes(self, session_id: int | None = None, robot: str | None = None, bbox=None,
-              limit: int | None = 100, offset: int = 0, merged: bool | None = None):
+              limit: int | None = 100, offset: int = 0, merged: bool | None = None) -> list[NodeRecord]:
         return self.store.nodes(session_id=session_id, robot=robot, bbox=bbox, limit=limit, offset=offset,
                                 merged=merged)
 
@@ -124,23 +124,24 @@ class TransientMap:
                        end_reason: str | None = None) -> dict[int, list[int]]:
         return self.store.unmapped_nodes(session_ids=session_ids, end_reason=end_reason)
 
-    def load_features(self, node_id: int):
+    def load_features(self, node_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         return self.store.load_features(node_id)  # (UnknownIdError for a forgotten keyframe: not retrieved)
 
-    def load_features_many(self, node_ids: Iterable[int]):
+    def load_features_many(self, node_ids: Iterable[int]) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                             np.ndarray | None]]:
         return self.store.load_features_many([n for n in node_ids if not transient(n)])
 
-    def load_images(self, node_id: int):
+    def load_images(self, node_id: int) -> tuple[bytes | None, bytes | None]:
         return (None, None) if transient(node_id) else self.store.load_images(node_id)
 
     def links(self, session_id: int | None = None, node_ids: Iterable[int] | None = None,
-              type: int | None = None):
+              type: int | None = None) -> list[LinkRecord]:
         return self.store.links(session_id=session_id, node_ids=node_ids, type=type)
 
     def link_pairs(self, types: Iterable[int] | None = None) -> np.ndarray:
         return self.store.link_pairs(types)
 
-    def load_words(self, word_ids: Iterable[int] | None = None):
+    def load_words(self, word_ids: Iterable[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
         return self.store.load_words(word_ids)
 
     def load_vocabulary_state(self) -> dict[str, np.ndarray]:

@@ -309,3 +309,34 @@ def test_a_ros_robot_can_ask_for_localization_too():
     assert parse_robots(RosConfig(robots=[{**entry, "localize": True}]))[0].localize
     with pytest.raises(ConfigError, match="localize"):
         parse_robots(RosConfig(robots=[{**entry, "localize": "yes"}]))
+
+
+def test_the_transient_map_is_a_map_update_store_that_writes_nothing(tmp_path):
+    """TransientMap has every MapUpdateStore method with MapStore's signature (the map update
+    calls it as its store); its writes leave the file as it was, links stay in RAM."""
+    import inspect
+
+    from mnemoslam.client.kernel.frames import Calibration, PinholeCamera
+    from mnemoslam.service.localization import TRANSIENT_BASE, TransientMap
+    from mnemoslam.storage import LinkType, MapUpdateStore
+
+    names = [n for n in dir(MapUpdateStore) if not n.startswith("_") and callable(getattr(MapUpdateStore, n))]
+    assert len(names) >= 15
+    for n in names:
+        assert inspect.signature(getattr(TransientMap, n)) == inspect.signature(getattr(MapStore, n)), n
+    db = tmp_path / "m.db"
+    with MapStore(db) as store:
+        store.begin_session("r", Calibration(PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)))
+    before = _sha(db)
+    with MapStore(db, readonly=True) as store:
+        t = TransientMap(store)
+        assert isinstance(t, MapUpdateStore)
+        k = TRANSIENT_BASE + 3
+        t.add_link(1, k, LinkType.GLOBAL_CLOSURE, np.eye(4), np.eye(6))
+        t.update_poses({k: np.eye(4)})
+        t.set_statistics(k, {"x": 1})
+        t.save_node_words(k, np.arange(3))
+        assert t.take_map_links() == [(1, k)] and t.take_map_links() == []
+        assert t.get_node(k) is None and t.load_images(k) == (None, None) and len(t.made) == 1
+        assert [lk[:2] for lk in t.prune({k})] == [] and t.made == []
+    assert _sha(db) == before
