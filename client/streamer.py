@@ -83,7 +83,7 @@ class CameraStreamer:
     def __init__(self, session, robot: str, calibration: Calibration, keyspace: KeySpace | None = None, *,
                  color: str = "jpeg", depth: str = "png", depth_scale: float | None = None,
                  kind: str | None = None, jpeg_quality: int = 90, labels: str | None = None,
-                 classes: tuple[str, ...] | list[str] | None = None):
+                 classes: tuple[str, ...] | list[str] | None = None, localize: bool = False):
         import zenoh
 
         self.session = session
@@ -105,7 +105,8 @@ class CameraStreamer:
         self.depth_scale = float(depth_scale if depth_scale is not None else calibration.depth_scale)
         self.calibration = calibration
         self.classes = None if labels is None else tuple(classes if classes is not None else DEFAULT_CLASSES)
-        self.info = encode_info(robot, calibration, self.kind, classes=self.classes)
+        self.localize = bool(localize)  # ask for localization only (camera info `localize`)
+        self.info = encode_info(robot, calibration, self.kind, classes=self.classes, localize=self.localize)
         self.frames_sent = 0
         self.bytes_sent = 0
         self._closed = False
@@ -337,7 +338,7 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
                    kind: str | None = None, session=None, window: int = 4, adapt: bool = False,
                    answer_timeout: float = 2.0, labels: bool = False,
                    classes: tuple[str, ...] | list[str] | None = None, require_subscriber: bool = False,
-                   on_wait=None) -> StreamStats:
+                   on_wait=None, localize: bool = False) -> StreamStats:
     """Stream every frame of `dataset` (any `Dataset`, incl. `CaptureSource`) as `robot`.
 
     Opens a session with `settings` (default `ZenohSettings.client()`), unless an open
@@ -370,6 +371,9 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
     both lossless) and the class table `classes` (default: the dataset's ``class_names`` if it
     has them, else `DEFAULT_CLASSES`) in the camera info. A dataset whose first frame carries no
     labels is a ValueError before any frame is sent.
+
+    `localize` asks the service for localization only for this robot (camera info `localize`):
+    it relocalizes in the stored map and writes nothing to it.
     """
     if rate is not None and not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
         raise ValueError(f"rate must be a positive number of frames per second, got {rate!r}")
@@ -403,7 +407,7 @@ def stream_dataset(dataset, robot: str, settings: ZenohSettings | None = None, *
         if labels and classes is None:
             classes = getattr(dataset, "class_names", None)
         streamer = CameraStreamer(session, robot, dataset.calibration, keyspace, color=color, depth=depth, kind=kind,
-                                  labels=depth if labels else None, classes=classes)
+                                  labels=depth if labels else None, classes=classes, localize=localize)
         try:
             if wait_for_subscriber > 0 and not streamer.wait_for_subscriber(wait_for_subscriber, on_wait):
                 if require_subscriber:
@@ -531,6 +535,11 @@ def add_stream_arguments(parser):
                              "semantics.source (auto) uses them instead of its model; labels travel lossless like the "
                              "depth (--depth-encoding). "
                              "An error for sources without labels (real datasets, --camera)")
+    parser.add_argument("--localize", action="store_true",
+                        help="localization only for this robot: the service relocalizes it in its stored map and "
+                             "publishes its poses in the map's frame once it has, writing nothing to the map "
+                             "(camera info `localize`; the service's memory.incremental: false does it for every "
+                             "robot)")
     parser.add_argument("--connect", action="append", metavar="ENDPOINT",
                         help=f"zenoh endpoint of the service, repeatable (default {DEFAULT_ENDPOINT})")
     parser.add_argument("--mode", choices=list(MODES), default="peer", help="zenoh session mode (default peer)")
@@ -644,7 +653,7 @@ def stream_main(args) -> int:
                                on_wait=say_waiting if wait > 5.0 else None,
                                window=max(1, int(getattr(args, "window", 4))),
                                adapt=bool(getattr(args, "adapt", False)),
-                               labels=labels)
+                               labels=labels, localize=bool(getattr(args, "localize", False)))
     finally:
         close = getattr(dataset, "release", None)
         if close is not None:

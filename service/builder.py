@@ -63,14 +63,27 @@ def with_distortion(calibration: Calibration, distortion: list[float] | None) ->
 def build_pipeline(store: MapStore, robot: str, calibration: Calibration, config: Config, *,
                    mapping: MappingProcess | None = None, background: bool = False,
                    on_event: Callable[[str, dict], None] | None = None,
-                   semantics: tuple[SemanticWorker | None, str | None] | None = None) -> Pipeline:
+                   semantics: tuple[SemanticWorker | None, str | None] | None = None,
+                   incremental: bool = True) -> Pipeline:
     """A new session of `robot` in the map `store`: its keyframe writer (a session in the database), its
     map update when `config.loop.enabled` (in `mapping`'s child process when given, else a
     Mapper on its own thread with `background`, else inline) reporting to `on_event(kind,
     data)`, its semantic worker (`semantics`: the map's shared (worker, why off) from
     `build_semantics`, which the caller closes; else one of its own, see `build_semantics`,
-    that the pipeline closes), and the pipeline over them. End it with `Pipeline.close()`."""
+    that the pipeline closes), and the pipeline over them. End it with `Pipeline.close()`.
+
+    Localization only (`incremental` false, or `memory.incremental` false): nothing of the
+    robot is written to the map (`service.localization`): no session, its keyframes kept in
+    RAM (`TransientKeyframes`), its map update a `Localizer` (on its own thread with
+    `background`, never in `mapping`'s child), no semantics."""
     calibration = with_distortion(calibration, config.features.distortion)
+    if not (incremental and config.memory.incremental):
+        from .localization import Localizer, TransientKeyframes
+
+        localizer = Localizer(calibration.camera, config.loop, store, on_event=on_event, background=background,
+                              memory=config.memory) if config.loop.enabled else None
+        return Pipeline(calibration, config, TransientKeyframes(), localizer, None,
+                        "localization only: nothing is written to the map", robot=robot, owns_semantics=False)
     writer = KeyframeWriter(store, robot, calibration, config)
     mapper = None
     if config.loop.enabled:

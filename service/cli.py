@@ -44,20 +44,27 @@ def _cmd_run(args) -> int:
             line += (f", {100 * g['groundtruth_agree']:.1f} % agree with the scene's floor plan (occupied "
                      f"{100 * g['groundtruth_occupied_agree']:.1f} %, free {100 * g['groundtruth_free_agree']:.1f} %)")
         print(line)
-    if dataset.ground_truth is not None and len(out.trajectory) >= 3:
+    trajectory, which = out.trajectory, ""
+    if getattr(out.summary, "localization", False):  # the poses in the map's frame (before: its own frame)
+        from mnemoslam.client.kernel.trajectory import Trajectory
+
+        since = out.summary.relocalized_stamp if out.summary.relocalized_stamp is not None else float("inf")
+        sel = trajectory.stamps >= since - 1e-9
+        trajectory, which = Trajectory(trajectory.stamps[sel], trajectory.poses[sel]), " in the map's frame"
+    if dataset.ground_truth is not None and len(trajectory) >= 3:
         from .evaluation import evaluate
 
         try:
-            r = evaluate(dataset.ground_truth, out.trajectory, align="se3")
-            print(f"ATE RMSE {r.ate_rmse * 100:.2f} cm over {r.matched} poses "
+            r = evaluate(dataset.ground_truth, trajectory, align="se3")
+            print(f"ATE RMSE {r.ate_rmse * 100:.2f} cm over {r.matched} poses{which} "
                   f"({r.ate_percent_of_path:.2f}% of {r.path_length:.2f} m)")
             if r.path_length >= 0.1:  # a metric sensor's scale error shows here (on a short path the scale is noise)
-                s = evaluate(dataset.ground_truth, out.trajectory, align="sim3")
+                s = evaluate(dataset.ground_truth, trajectory, align="sim3")
                 print(f"ATE RMSE {s.ate_rmse * 100:.2f} cm aligned with scale (Sim(3)): the ground truth is "
                       f"{s.scale:.4f}x the trajectory's size")
         except ValueError as e:
             print(f"no ATE: {e}")
-        if args.out and config.loop.enabled:
+        if args.out and config.loop.enabled and config.memory.incremental:  # (localization: no links of its own)
             from .evaluation import evaluate_map_loops
 
             print(evaluate_map_loops(dataset.ground_truth, Path(args.db) if args.db else Path(args.out) / "map.db",
@@ -130,7 +137,8 @@ def serve_banner(config, rest_port: int | None) -> str:
         ros = f"ROS 2 robots {robots or 'none'}; "
     return (f"mnemoslam serve: {rest}; Zenoh {z.mode} listen {', '.join(z.listen) or 'none'}, "
             f"connect {', '.join(z.connect) or 'none'}, prefix {z.prefix}; {ros}"
-            f"database {Path(config.storage.path).resolve()}")
+            f"database {Path(config.storage.path).resolve()}"
+            + (" (read-only: localization only, memory.incremental false)" if not config.memory.incremental else ""))
 
 
 def _cmd_serve(args) -> int:

@@ -164,6 +164,8 @@ class LoopConfig:
 
 @dataclass
 class MemoryConfig:
+    incremental: bool = True  # false: localization only (RTAB-Map's Mem/IncrementalMemory): robots are tracked and relocalize in the stored map by appearance, their poses go out in its frame once relocalized, and nothing is written to the map (the database is opened read-only; a camera asks the same for one robot with `localize` in its camera info, `mnemoslam stream --localize`)
+    localization_nodes: int = 30  # keyframes a localizing robot keeps in RAM (linked to the map's nodes, optimised with those fixed; older ones are forgotten, RGBD/MaxOdomCacheSize-like)
     stm_size: int = 10  # short-term memory: the last keyframes, not loop candidates (Mem/STMSize) ...
     max_wm_nodes: int = 0  # working memory (loop candidates in RAM) above this many nodes: the excess goes to long-term memory, the database only (Rtabmap/MemoryThr); 0 = unlimited
     time_threshold_ms: float = 0.0  # the map update's time budget (Rtabmap/TimeThr): an update over it lowers WM's limit in proportion (at most a tenth at once), updates under 0.8x it raise the limit back by one node each, up to max_wm_nodes; 0 = no budget
@@ -271,7 +273,7 @@ class SemanticsConfig:
 @dataclass
 class RosConfig:
     enabled: bool = False  # accept ROS 2 camera topics bridged to Zenoh (zenoh-bridge-ros2dds / rmw_zenoh: CDR Image, CompressedImage, CameraInfo) for the robots below (service/ros.py)
-    robots: list = field(default_factory=list)  # one mapping per robot: {robot: r1, color: KEY, depth: KEY, info: KEY, pose: KEY, intrinsics: k}; KEY = the topic's Zenoh key (the bridge's: the topic without its leading '/'); depth registered to colour; pose (PoseStamped out) and intrinsics (k, or p for image_rect topics) optional
+    robots: list = field(default_factory=list)  # one mapping per robot: {robot: r1, color: KEY, depth: KEY, info: KEY, pose: KEY, intrinsics: k}; KEY = the topic's Zenoh key (the bridge's: the topic without its leading '/'); depth registered to colour; pose (PoseStamped out), intrinsics (k, or p for image_rect topics) and localize (true: localization only for that robot) optional
     frame_id: str = "map"  # header.frame_id of the PoseStamped poses published on a robot's pose key
     sync_tolerance: float = 0.015  # s; a colour and a depth image pair when their header stamps differ by at most this (the nearest)
     sync_window: float = 0.5  # s; an unpaired image waits for its partner until its own stream is this far past it (the other stream's callbacks may lag), then is dropped (counted unpaired)

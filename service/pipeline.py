@@ -37,6 +37,9 @@ class FrameResult:
     features: int = 0
     timings: dict = field(default_factory=dict)  # ms per step
     odometry_pose: np.ndarray | None = None  # the odometry's pose (before the map correction in `pose`)
+    # localization only: the map's keyframe the robot's keyframes are linked to when the pose was
+    # made (its pose is in that map's frame), None while it is not relocalized (its own frame)
+    anchor: int | None = None
 
     @property
     def tracked(self) -> bool:
@@ -66,6 +69,12 @@ class Pipeline:
     def session_id(self) -> int | None:
         """The map database's session of this pipeline (None for odometry alone)."""
         return self.writer.session_id if self.writer is not None else None
+
+    @property
+    def localizing(self) -> bool:
+        """Localization only: nothing of this session is written to the map (no database
+        session; `FrameResult.anchor` says when its poses are in a map's frame)."""
+        return self.writer is not None and self.writer.session_id is None
 
     @property
     def map_progress(self) -> tuple[int, int]:
@@ -98,6 +107,7 @@ class Pipeline:
         t2 = time.perf_counter()
         keyframe = self.keyframes.decide(tracked)
         node_id = self._remember(frame, features, tracked) if keyframe else None
+        anchor = getattr(self.mapper, "anchor", None) if self.localizing else None
         pose = (self.mapper.to_map(tracked.pose) if self.mapper is not None and tracked.pose is not None
                 else tracked.pose)
         if node_id is not None:
@@ -107,6 +117,7 @@ class Pipeline:
             frame.index, frame.stamp, tracked.status, pose, keyframe, node_id, tracked.inliers,
             tracked.segment, len(features),
             {"features": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3, "memory": (t3 - t2) * 1e3}, tracked.pose,
+            anchor if tracked.pose is not None else None,
         )
 
     def _remember(self, frame: Frame, features, tracked) -> int | None:

@@ -66,7 +66,7 @@ from .config import ConfigError, RosConfig
 
 log = logging.getLogger("mnemoslam.ros")
 
-ROBOT_FIELDS = ("robot", "color", "depth", "info", "pose", "intrinsics")
+ROBOT_FIELDS = ("robot", "color", "depth", "info", "pose", "intrinsics", "localize")
 
 
 @dataclass(frozen=True)
@@ -77,6 +77,7 @@ class RosRobot:
     info: str
     pose: str | None = None
     intrinsics: str = "k"
+    localize: bool = False  # localization only for this robot (nothing of it written to the map)
 
 
 def _check_key(key, where: str, wildcards: bool = True) -> str:
@@ -123,11 +124,14 @@ def parse_robots(config: RosConfig) -> list[RosRobot]:
         intrinsics = entry.get("intrinsics", "k")
         if intrinsics not in ("k", "p"):
             raise ConfigError(f"{where}.intrinsics: expected k or p, got {intrinsics!r}")
+        localize = entry.get("localize", False)
+        if not isinstance(localize, bool):
+            raise ConfigError(f"{where}.localize: expected true or false, got {localize!r}")
         out.append(RosRobot(
             robot, _check_key(entry["color"], f"{where}.color"), _check_key(entry["depth"], f"{where}.depth"),
             _check_key(entry["info"], f"{where}.info"),
             None if entry.get("pose") is None else _check_key(entry["pose"], f"{where}.pose", wildcards=False),
-            intrinsics))
+            intrinsics, localize))
     return out
 
 
@@ -214,7 +218,7 @@ class RosIngest:
         except Exception as e:  # a bug here must not reach Zenoh's thread
             self.service.count_reject("internal", key, e)
             return
-        self.service.admit(st.robot.robot, cal, None)
+        self.service.admit(st.robot.robot, cal, None, localize=st.robot.localize)
 
     def _on_image(self, st: _Stream, sample, is_depth: bool) -> None:
         key = str(sample.key_expr)

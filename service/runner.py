@@ -55,6 +55,14 @@ class RunSummary:
     cross_links: int = 0  # links between the session's keyframes and other sessions' (all types)
     cross_links_by_type: dict | None = None  # {link type name: count}
     sessions_before: int = 0  # sessions the map database had before the run
+    # localization only (memory.incremental: false, with --db): nothing was written to the map; the
+    # frame (index, stamp) whose pose first went out in the map's frame, and how many tracked frames did
+    localization: bool = False
+    relocalized_index: int | None = None
+    relocalized_stamp: float | None = None
+    frames_in_map: int = 0
+    forgotten: int = 0  # keyframes the localizer forgot (it keeps the newest memory.localization_nodes)
+    held: int = 0  # ... and those its graph held at the end (at most twice that)
 
     def line(self) -> str:
         merged = f" ({self.merged} merged)" if self.merged else ""
@@ -65,6 +73,13 @@ class RunSummary:
 
     def map_line(self) -> str | None:
         """Where the session ended up in a map with older sessions (None for a run into a new map)."""
+        if self.localization:
+            if self.relocalized_index is None:
+                return ("localization only: never relocalized in the map (every pose in the run's own frame); "
+                        "nothing written to it")
+            return (f"localization only: relocalized in map {self.map} at frame {self.relocalized_index} (stamp "
+                    f"{self.relocalized_stamp:.3f} s); {self.frames_in_map} of {self.tracked} tracked frames in "
+                    f"the map's frame; nothing written to it")
         if self.session is None or not self.sessions_before:
             return None
         by_type = ", ".join(f"{n} {k}" for k, n in sorted((self.cross_links_by_type or {}).items()))
@@ -102,7 +117,10 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
     in that map database (made when absent: the run continues the map, and its trajectories are
     in the map's frame once the session joined it, `RunSummary.joined`) and, with grid.enabled, the map's occupancy
     grid and cloud (`grid.pgm`, `grid.yaml`, `cloud.ply`; synthetic: `groundtruth_grid.*`)
-    into `out_dir`; with semantics on also
+    into `out_dir`; with `memory.incremental` false (localization only; needs `db`) the map
+    is opened read-only and nothing is written to it: `trajectory.tum` holds the poses as
+    they went out, in the map's frame from the first relocalization on
+    (`RunSummary.relocalized_index`; before it in the run's own frame); with semantics on also
     `objects.json` (the fused objects at their final positions) and, for synthetic data,
     `groundtruth_objects.json` (the scene's objects and how many frames saw them)."""
     with contextlib.ExitStack() as stack:
@@ -112,6 +130,10 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             out_dir = Path(out_dir)
             out_dir.mkdir(parents=True, exist_ok=True)
             out_dir_db = out_dir
+        localize = not config.memory.incremental
+        if localize and (db is None or not Path(db).is_file()):
+            raise DatasetError("memory.incremental=false (localization only) needs a map to localize in: --db MAP.db"
+                               + ("" if db is None else f" ({db} does not exist)"))
         if db is None:
             db = out_dir_db / "map.db"
             for p in (db, db.with_name("map.db-wal"), db.with_name("map.db-shm")):
@@ -120,13 +142,15 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             db = Path(db)
             if not db.parent.is_dir():
                 raise DatasetError(f"--db {db}: the folder {db.parent} does not exist")
-        store = stack.enter_context(MapStore(db))
+        store = stack.enter_context(MapStore(db, readonly=localize))
         before = len(store.sessions())
         pipeline = build_pipeline(store, dataset.name, dataset.calibration, config)  # map update inline
         out = _run(dataset, pipeline, progress)
         pipeline.close()  # the graph's final poses to the database, the session ended
         mapper = pipeline.mapper
-        if mapper is not None:  # keyframes, and every frame through its keyframe, at their final poses
+        if localize:
+            _localized(store, pipeline, out, before)
+        elif mapper is not None:  # keyframes, and every frame through its keyframe, at their final poses
             final = mapper.keyframe_poses()
             ids = [r.node_id for r in out.results if r.node_id is not None]
             out.keyframes = Trajectory(np.array([r.stamp for r in out.results if r.node_id is not None]),
@@ -136,8 +160,9 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
             out.summary.loops = len(mapper.loops)
             out.summary.merged = mapper.merged
             out.summary.links_dropped = mapper.links_dropped
-        _session_map(store, pipeline.session_id, out, before)
-        if dataset.ground_truth is not None:  # every link of the map against the true relative poses
+        if not localize:
+            _session_map(store, pipeline.session_id, out, before)
+        if dataset.ground_truth is not None and not localize:  # every link of the map against the true relative poses
             out.links = evaluate_map_links(dataset.ground_truth, db, session_id=pipeline.session_id)
     if out_dir is not None:
         write_tum(out_dir / "trajectory.tum", out.trajectory)
@@ -148,7 +173,7 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
         if out.links is not None:
             out.links.write(out_dir)
         (out_dir / "summary.json").write_text(json.dumps(asdict(out.summary), indent=2) + "\n")
-        if mapper is not None:
+        if mapper is not None and not localize:
             with MapStore(db, create=False) as reader:  # every update's statistics (the mapper keeps the last ones)
                 write_updates(out_dir / "updates.csv", ((n, reader.statistics(n)) for n in ids))
         if pipeline.semantics is not None:
@@ -156,9 +181,27 @@ def run_dataset(dataset: Dataset, config: Config, out_dir: str | Path | None = N
                 write_objects(out_dir / "objects.json", reader.objects())
             if hasattr(dataset, "scene"):
                 write_groundtruth_objects(out_dir / "groundtruth_objects.json", dataset.scene, out.instance_frames)
-        if config.grid.enabled:
+        if config.grid.enabled and not localize:
             out.grid = write_run_grids(db, out_dir, config, dataset, out.keyframes)
     return out
+
+
+def _localized(store, pipeline: Pipeline, out: RunOutput, sessions_before: int) -> None:
+    """A localization run's summary: when its poses first went out in the map's frame, in which
+    map (storage.connectivity.MapIndex), how many did; `keyframes` as they went out."""
+    from mnemoslam.storage.connectivity import MapIndex
+
+    s = out.summary
+    s.localization, s.sessions_before = True, sessions_before
+    s.loops = len(pipeline.mapper.loops) if pipeline.mapper is not None else 0
+    s.forgotten = getattr(pipeline.mapper, "forgotten", 0)
+    s.held = getattr(pipeline.mapper, "held", 0)
+    first = next((r for r in out.results if r.anchor is not None), None)
+    s.frames_in_map = sum(r.anchor is not None for r in out.results)
+    if first is not None:
+        index = MapIndex()
+        index.refresh(store)
+        s.map, s.relocalized_index, s.relocalized_stamp = index.map_of(first.anchor), first.index, first.stamp
 
 
 def _session_map(store, session_id: int | None, out: RunOutput, sessions_before: int) -> None:

@@ -17,8 +17,11 @@ import threading
 import time
 from collections import Counter, deque
 
+import numpy as np
+
 from mnemoslam.client.kernel import protocol
 from mnemoslam.client.kernel.frames import Calibration, Frame
+from mnemoslam.client.kernel.geometry import invert
 from mnemoslam.client.transport import ZenohSettings, open_session, undeclare_all
 from mnemoslam.storage import MapStore, StoreError, link_name
 from mnemoslam.storage.connectivity import MapIndex, SessionJoin
@@ -48,6 +51,7 @@ class SlamService:
         # joins seen (and when), announced once their map update is written
         self._joins_pending: list[tuple[SessionJoin, float]] = []
         self._maps_lock = threading.Lock()
+        self._own_maps: dict[int, int | None] = {}  # session -> its own map id (pose messages' frame before it joined)
         self.mapping: MappingProcess | None = None  # every robot's map update (loop.process)
         # the map's semantic worker, shared by every robot (one object set), and why it is off
         self.semantics: tuple[SemanticWorker | None, str | None] = (None, "service not started")
@@ -74,12 +78,20 @@ class SlamService:
     # -- life cycle --------------------------------------------------------------------
     def start(self) -> "SlamService":
         z = self.config.zenoh
-        self.store = MapStore(self.config.storage.path)
-        # sessions a kill left open end "crashed"; their map backlog is done, before any writer starts
-        recover(self.config)
-        if self.config.loop.enabled and self.config.loop.process:
-            self.mapping = MappingProcess(self.config.storage.path, self.config.loop, self.config.memory)
-        self.semantics = build_semantics(self.store, self.config, background=True)
+        if self.localization_only:  # memory.incremental: false: the map file is opened read-only, nothing writes it
+            try:
+                self.store = MapStore(self.config.storage.path, readonly=True)
+            except StoreError as e:
+                raise StoreError(f"localization only (memory.incremental: false) needs a map to localize in: {e}") \
+                    from None
+            self.semantics = (None, "localization only (memory.incremental: false): nothing is written to the map")
+        else:
+            self.store = MapStore(self.config.storage.path)
+            # sessions a kill left open end "crashed"; their map backlog is done, before any writer starts
+            recover(self.config)
+            if self.config.loop.enabled and self.config.loop.process:
+                self.mapping = MappingProcess(self.config.storage.path, self.config.loop, self.config.memory)
+            self.semantics = build_semantics(self.store, self.config, background=True)
         if self.semantics[0] is not None:  # tracking first: the worker waits while a robot's tracking is busy
             self.semantics[0].tracking_busy = self.tracking_busy
         self.maps = MapIndex()
@@ -94,7 +106,8 @@ class SlamService:
             self.ros.start(self.zenoh)
         self._janitor = threading.Thread(target=self._expire_idle, name="robot-slots", daemon=True)
         self._janitor.start()
-        log.info("service started: listen=%s prefix=%s db=%s", z.listen, z.prefix, self.config.storage.path)
+        log.info("service started: listen=%s prefix=%s db=%s%s", z.listen, z.prefix, self.config.storage.path,
+                 " (localization only: read-only)" if self.localization_only else "")
         return self
 
     def stop(self) -> None:
@@ -121,6 +134,11 @@ class SlamService:
             self.store.close()
             self.store = None
         log.info("service stopped")
+
+    @property
+    def localization_only(self) -> bool:
+        """memory.incremental: false: every robot localizes, the map is opened read-only."""
+        return not self.config.memory.incremental
 
     def __enter__(self):
         return self.start()
@@ -226,7 +244,7 @@ class SlamService:
         except protocol.ProtocolError as e:
             self.count_reject("bad_info", key, e)
             return
-        self.admit(info.robot, info.calibration, info.classes)
+        self.admit(info.robot, info.calibration, info.classes, localize=info.localize)
 
     def count_reject(self, reason: str, key: str, err, payload=None) -> None:
         """Count a refused message; a frame on a robot's frame key is also announced on the
@@ -248,10 +266,11 @@ class SlamService:
             robot, "frame_rejected", reason=reason, seq=seq, detail=text[:300]))
 
     def admit(self, robot: str, calibration: Calibration,
-               classes: tuple[str, ...] | None = None) -> RobotSession | None:
+              classes: tuple[str, ...] | None = None, localize: bool = False) -> RobotSession | None:
         """The robot's session, made when its calibration arrives and a slot is free. A camera
         that restarts with another calibration or class table keeps its session (counted, not
-        applied)."""
+        applied). `localize`: the camera asked for localization only (nothing of the robot is
+        written to the map; every robot localizes with memory.incremental: false)."""
         with self._lock:
             s = self.sessions.get(robot)
             if s is not None:
@@ -259,6 +278,8 @@ class SlamService:
                     s.reject("calibration_changed")
                 if s.classes != classes:
                     s.reject("classes_changed")
+                if s.localize != bool(localize):  # (its mode stays until its slot is freed)
+                    s.reject("localize_changed")
                 return s
             if len(self.sessions) >= self.config.service.max_robots:
                 self.rejected["too_many_robots"] += 1
@@ -269,8 +290,8 @@ class SlamService:
                                          self.limits.max_height, size=(cam.width, cam.height),
                                          classes=len(classes if classes is not None else protocol.DEFAULT_CLASSES))
                 s = RobotSession(robot, self.config, calibration, limits,
-                                 lambda cal, r=robot: self._make_pipeline(r, cal), self._on_result, classes=classes,
-                                 on_event=self._event_publisher(robot))
+                                 lambda cal, r=robot, loc=localize: self._make_pipeline(r, cal, loc), self._on_result,
+                                 classes=classes, on_event=self._event_publisher(robot), localize=localize)
                 self._release_held(robot, s)  # before the slot is visible: frames stay in order
                 self.sessions[robot] = s
             if s is None:
@@ -280,8 +301,8 @@ class SlamService:
                 log.warning("robot=%s refused: all %d robot slots taken count=%d", robot,
                             self.config.service.max_robots, n)
             return None
-        log.info("robot admitted robot=%s camera=%dx%d kind=%s slots=%d/%d", robot, cam.width, cam.height,
-                 calibration.kind, len(self.sessions), self.config.service.max_robots)
+        log.info("robot admitted robot=%s camera=%dx%d kind=%s mode=%s slots=%d/%d", robot, cam.width, cam.height,
+                 calibration.kind, s.mode, len(self.sessions), self.config.service.max_robots)
         return s
 
     def _request_info(self, robot: str) -> None:
@@ -313,7 +334,7 @@ class SlamService:
                     self.count_reject("bad_info", self.keys.info(robot), e)
                     continue
                 if info.robot == robot:
-                    self.admit(robot, info.calibration, info.classes)
+                    self.admit(robot, info.calibration, info.classes, localize=info.localize)
                     return
                 self.count_reject("bad_info", self.keys.info(robot), f"camera info of {info.robot!r}")
         except Exception as e:  # the session closed while asking
@@ -397,21 +418,76 @@ class SlamService:
                 log.debug("relocalization check: %s", e)
         return out
 
-    def _make_pipeline(self, robot: str, calibration: Calibration) -> Pipeline:
+    def _make_pipeline(self, robot: str, calibration: Calibration, localize: bool = False) -> Pipeline:
         on_event = self._event_publisher(robot)
         pipeline = build_pipeline(self.store, robot, calibration, self.config, mapping=self.mapping,
-                                  background=True, on_event=on_event, semantics=self.semantics)
+                                  background=True, on_event=on_event, semantics=self.semantics,
+                                  incremental=not localize)
         on_event("session_started", {"session_id": pipeline.session_id})
-        log.info("session started robot=%s session=%d camera=%dx%d kind=%s", robot, pipeline.session_id,
-                 calibration.camera.width, calibration.camera.height, calibration.kind)
+        if pipeline.localizing:
+            log.info("localization started robot=%s camera=%dx%d kind=%s: nothing of it is written to the map",
+                     robot, calibration.camera.width, calibration.camera.height, calibration.kind)
+        else:
+            log.info("session started robot=%s session=%d camera=%dx%d kind=%s", robot, pipeline.session_id,
+                     calibration.camera.width, calibration.camera.height, calibration.kind)
         return pipeline
+
+    def frame_of(self, session: RobotSession, result: FrameResult) -> int | None:
+        """The map id whose frame a result's pose is in (the pose message's `map`): a mapping
+        robot's session's map (its own until it relocalizes in an older one); a localizing
+        robot's anchor's map, None before it relocalized (its own odometry frame)."""
+        pipeline = session.pipeline
+        if pipeline is None:
+            return None
+        if pipeline.localizing:
+            return None if result.anchor is None else self.maps.map_of(result.anchor)
+        sid = pipeline.session_id
+        if sid is None:
+            return None
+        j = self.maps.join(sid)
+        if j is not None:
+            return j.map
+        own = self._own_maps.get(sid)  # (a session the map index has not read yet: its own map)
+        if own is None and self.store is not None:
+            try:
+                rec = self.store.session(sid)
+            except StoreError:
+                rec = None
+            own = self._own_maps[sid] = None if rec is None else rec.map_id
+        return own
+
+    def _localized(self, session: RobotSession, frame: Frame, result: FrameResult, map_id: int | None) -> None:
+        """A localizing robot's frame changed (relocalized in a map, or lost it): logged, and a
+        `relocalized` event when it entered a map's frame (`T_map_session`: its own odometry
+        frame in the map's, `peer` the map keyframe it is linked to)."""
+        previous = session.map_frame
+        session.map_frame = map_id
+        if map_id == previous:
+            return
+        if map_id is None:
+            log.info("localization lost robot=%s map=%s stamp=%.3f: poses in its own frame until it relocalizes",
+                     session.robot, previous, frame.stamp)
+            return
+        T = result.pose @ invert(result.odometry_pose) if result.odometry_pose is not None else np.eye(4)
+        data = {"session_id": None, "map": map_id, "node_id": None, "stamp": frame.stamp, "peer": result.anchor,
+                "link": "loop", "T_map_session": [round(float(v), 9) for v in T.reshape(-1)], "seq": frame.index,
+                "localization": True}
+        log.info("relocalized robot=%s (localization only) map=%s seq=%d stamp=%.3f peer=%d "
+                 "T_map_session.t=[%.3f, %.3f, %.3f]", session.robot, map_id, frame.index, frame.stamp,
+                 result.anchor, *T[:3, 3])
+        self.publish(self.keys.events(session.robot), protocol.encode_event(session.robot, "relocalized", **data))
 
     def _on_result(self, session: RobotSession, frame: Frame, result: FrameResult) -> None:
         robot = session.robot
+        map_id = self.frame_of(session, result)
+        localizing = session.pipeline is not None and session.pipeline.localizing
+        if localizing and result.tracked:
+            self._localized(session, frame, result, map_id)
         self.publish(self.keys.pose(robot), protocol.encode_pose(
             robot, frame.index, frame.stamp, result.status, result.pose, bool(result.keyframe), result.segment,
-            result.node_id, queue_depth=session.queue_depth, dropped=session.stats.dropped_queue))
-        if result.node_id is not None:
+            None if localizing else result.node_id, queue_depth=session.queue_depth,
+            dropped=session.stats.dropped_queue, map=map_id))
+        if result.node_id is not None and not localizing:
             self.publish(self.keys.events(robot), protocol.encode_event(
                 robot, "keyframe_added", node_id=result.node_id, seq=frame.index, stamp=frame.stamp))
         if result.status == "lost" and session.stats.previous_status != "lost":

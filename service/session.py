@@ -47,7 +47,10 @@ class SessionStats:
     processing_ms: float = 0.0  # exponential mean of the pipeline time per frame
     fps: float = 0.0  # processed frames per second over the last few seconds
     position: tuple | None = None  # map-frame camera position of the last tracked frame (REST: where the robot is)
-    node_id: int | None = None  # its latest keyframe in the map
+    pose: tuple | None = None  # ... and its whole pose (16 numbers, row-major 4×4 camera-to-map)
+    # its latest keyframe in the map (localization only: the map's keyframe its keyframes are linked
+    # to, None while it is not relocalized)
+    node_id: int | None = None
     restarts: int = 0  # camera restarts (stamps back by more than service.restart_gap): sessions ended "restarted"
 
 
@@ -55,15 +58,20 @@ class RobotSession:
     """Owns the pipeline of one robot; `on_result(session, frame, result)` is called from
     the worker thread after every processed frame. `limits` bound its frame messages (their
     image size is the calibration's, their label ids the class table's). `classes`: the class
-    table of the camera info (None: the default, ADE20K-32)."""
+    table of the camera info (None: the default, ADE20K-32). `localize`: the camera asked for
+    localization only (camera info `localize`; the service's `memory.incremental: false` makes
+    every robot localize): `mode` is then "localization"."""
 
     def __init__(self, robot: str, config: Config, calibration: Calibration, limits: Limits,
                  make_pipeline: Callable[[Calibration], Pipeline],
                  on_result: Callable[["RobotSession", Frame, FrameResult], None],
                  classes: tuple[str, ...] | None = None,
-                 on_event: Callable[[str, dict], None] | None = None):
+                 on_event: Callable[[str, dict], None] | None = None, localize: bool = False):
         self.robot = robot
         self.config = config
+        self.localize = bool(localize)
+        self.mode = "localization" if localize or not config.memory.incremental else "mapping"
+        self.map_frame: int | None = None  # (localization) the map its poses went out in last; the service's
         self.calibration = calibration
         self.classes = classes
         self.limits = limits  # what its frame messages may be: the calibration's image size
@@ -267,7 +275,11 @@ class RobotSession:
         s.processing_ms = ms if s.processed == 1 else 0.9 * s.processing_ms + 0.1 * ms
         if result.pose is not None:
             s.position = tuple(float(v) for v in result.pose[:3, 3])
-        if result.node_id is not None:
+            s.pose = tuple(round(float(v), 9) for v in result.pose.reshape(-1))
+        if self.mode == "localization":  # (its keyframes are not the map's: the map keyframe it is linked to)
+            if result.tracked or result.anchor is not None:
+                s.node_id = None if result.anchor is None else int(result.anchor)
+        elif result.node_id is not None:
             s.node_id = int(result.node_id)
         now = time.monotonic()
         self._rate_window.append(now)
@@ -283,7 +295,7 @@ class RobotSession:
                 m, n = p if isinstance(p, tuple) else p.map_progress
                 mapped, submitted = mapped + m, submitted + n
         return {
-            "robot": self.robot, "state": self.state, "queue_depth": self.queue_depth,
+            "robot": self.robot, "mode": self.mode, "state": self.state, "queue_depth": self.queue_depth,
             "queue_mb": round(self._queued_bytes / 2**20, 1),
             "frames_received": s.received, "frames_labelled": s.labelled, "frames_processed": s.processed,
             "frames_dropped": s.dropped_queue,
@@ -291,6 +303,7 @@ class RobotSession:
             "fps": round(s.fps, 2), "processing_ms": round(s.processing_ms, 2), "last_stamp": s.last_stamp,
             "session_id": self.session_id,
             "position": None if s.position is None else list(s.position), "node_id": s.node_id,
+            "pose": None if s.pose is None else list(s.pose),
             # the map update (loop closure, graph) runs behind tracking: keyframes it has done,
             # and those still waiting (0 = the map served over REST includes every keyframe)
             "keyframes_mapped": mapped,

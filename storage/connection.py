@@ -47,7 +47,7 @@ class Connection:
     threading guarantees."""
 
     def __init__(self, path: str | Path, *, create: bool = True, busy_timeout: float = 10.0,
-                 migrations: tuple[schema.Migration, ...] = schema.MIGRATIONS):
+                 migrations: tuple[schema.Migration, ...] = schema.MIGRATIONS, readonly: bool = False):
         if str(path) in ("", ":memory:") or str(path).startswith("file:"):
             raise ValueError(f"MapStore needs a file path, got {str(path)!r}")
         self.path = Path(path)
@@ -56,6 +56,13 @@ class Connection:
         self.migrations = tuple(migrations)
         if self.path.is_dir():
             raise StoreError(f"{self.path} is a directory, not a database file")
+        #: opened read-only (localization, memory.incremental: false): every connection is
+        #: `mode=ro`, nothing is migrated, checkpointed or optimised, and a write is a StoreError,
+        #: so the database file's bytes stay as they were (SQLite may make empty -wal / -shm
+        #: files beside a WAL database: it needs them to read it)
+        self.readonly = bool(readonly)
+        if readonly:
+            create = False
         if not create and not self.path.exists():
             raise StoreError(f"no database at {self.path}")
         if create:
@@ -67,11 +74,15 @@ class Connection:
         self._commits = 0  # since the last checkpoint
         self._checkpoint_wake = threading.Event()
         self._checkpointer: threading.Thread | None = None
-        self._writer = self._connect("rwc" if create else "rw")
+        self._writer = self._connect("ro" if readonly else "rwc" if create else "rw")
         try:
-            self._configure_writer()
-            self._utils = sqlite_utils.Database(self._writer, execute_plugins=False)  # (the migrations')
-            self._migrate(create)
+            if readonly:
+                self._wal = False  # (no checkpointer: this connection writes nothing)
+                self._check_version()
+            else:
+                self._configure_writer()
+                self._utils = sqlite_utils.Database(self._writer, execute_plugins=False)  # (the migrations')
+                self._migrate(create)
             self.rtree = self._writer.execute(
                 "SELECT 1 FROM sqlite_master WHERE name = 'nodes_rtree'").fetchone() is not None
             if self.rtree and not schema.has_rtree(self._writer):
@@ -191,6 +202,8 @@ class Connection:
         back on any exception. sqlite3 errors come out as StoreError."""
         with self._lock:
             self._check_open()
+            if self.readonly:
+                raise StoreError(f"{what}: {self.path} is open read-only (localization: memory.incremental is false)")
             conn = self._writer
             try:
                 conn.execute("BEGIN IMMEDIATE")
@@ -216,7 +229,7 @@ class Connection:
         with self._pool_lock:
             conn = self._idle.pop() if self._idle else None
         if conn is None:
-            conn = self._connect("rw")
+            conn = self._connect("ro" if self.readonly else "rw")
             conn.execute("PRAGMA query_only = ON")
         try:
             if snapshot:
@@ -248,10 +261,11 @@ class Connection:
                 idle, self._idle = self._idle, []
             for c in idle:
                 c.close()
-            try:
-                self._writer.execute("PRAGMA optimize")
-            except sqlite3.Error:
-                pass
+            if not self.readonly:
+                try:
+                    self._writer.execute("PRAGMA optimize")
+                except sqlite3.Error:
+                    pass
             self._writer.close()
 
     @property
@@ -275,6 +289,22 @@ class Connection:
         """The schema version stored in the file."""
         with self.read() as c:
             return c.execute("PRAGMA user_version").fetchone()[0]
+
+    def _check_version(self) -> None:
+        """(read-only) The file must be a mnemoslam database of this code's schema version: a
+        read-only store migrates nothing."""
+        try:
+            version = self._writer.execute("PRAGMA user_version").fetchone()[0]
+        except sqlite3.DatabaseError as e:
+            raise StoreError(f"{self.path} is not a SQLite database ({e})") from e
+        if version > self.current_version:
+            raise StoreError(self._newer_message(version))
+        if version == 0:
+            raise StoreError(f"{self.path} is not a mnemoslam database (no schema)")
+        if version < self.current_version:
+            raise StoreError(f"{self.path} has schema version {version}; this mnemoslam writes "
+                             f"{self.current_version} and opens it read-only (localization) only once it "
+                             f"is migrated: open it once for mapping (e.g. `mnemoslam db info`)")
 
     def _migrate(self, create: bool) -> None:
         target = self.current_version

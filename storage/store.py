@@ -62,8 +62,10 @@ class MapStore:
     #: MIGRATIONS[i] upgrades schema version i to i + 1; the current version is their count.
     MIGRATIONS: tuple[schema.Migration, ...] = schema.MIGRATIONS
 
-    def __init__(self, path: str | Path, *, create: bool = True, busy_timeout: float = 10.0):
-        self.db = Connection(path, create=create, busy_timeout=busy_timeout, migrations=self.MIGRATIONS)
+    def __init__(self, path: str | Path, *, create: bool = True, busy_timeout: float = 10.0,
+                 readonly: bool = False):
+        self.db = Connection(path, create=create, busy_timeout=busy_timeout, migrations=self.MIGRATIONS,
+                             readonly=readonly)
         self._sessions = Sessions(self.db)
         self._nodes = Nodes(self.db)
         self._queries = Queries(self.db)
@@ -79,6 +81,12 @@ class MapStore:
     @property
     def closed(self) -> bool:
         return self.db.closed
+
+    @property
+    def readonly(self) -> bool:
+        """Opened read-only (`readonly=True`: localization): every write is a StoreError and
+        the file's bytes do not change."""
+        return self.db.readonly
 
     @property
     def current_version(self) -> int:

@@ -165,6 +165,13 @@ the default table `DEFAULT_CLASSES` (ADE20K-32, 32 names). Sent once with the ca
 with every frame; the service takes the table of the robot's first camera info (like the
 calibration) and hands it to the pipeline as ``frame.extras["label_names"]``.
 
+Optional ``"localize": true``: the robot asks for localization only (the service's
+``memory.incremental: false`` for this robot alone, RTAB-Map's ``Mem/IncrementalMemory``): it is
+tracked and relocalizes in the stored map, and nothing of it is written to the map (``bad_field``
+if not a JSON boolean). Absent or false: the service's mode (it maps unless it localizes only).
+Writers leave the field out unless it is true, so an older service reads the message as before
+(and maps).
+
 Pose message (JSON, on ``<prefix>/<robot>/pose``)
 =================================================
 ``{"version": 1, "robot", "seq", "stamp", "status", "pose", "keyframe", "segment", "node_id"}``:
@@ -177,7 +184,11 @@ expressed in (the service decides when a new one starts, e.g. after tracking was
 node_id the pose-graph node of the keyframe (integer >= 0) or null. Back-pressure, optional
 (absent = unknown): queue_depth, the robot's frames waiting in the service when the pose was
 sent, and dropped, how many of its frames the service has dropped so far because its queue was
-full (integers >= 0). A camera that sees dropped grow sends too fast for the service.
+full (integers >= 0). A camera that sees dropped grow sends too fast for the service. Frame,
+optional (absent = unknown: an older service): ``map``, the map id whose frame the pose is in (a
+mapping robot: its own session's map until it relocalizes in an older one, then that map's), or
+null while the pose is in a frame no map names (a localizing robot before it relocalized: its own
+odometry frame).
 
 Event message (JSON, on ``<prefix>/<robot>/events``)
 ====================================================
@@ -204,7 +215,12 @@ relocalized         the robot's session joined an older map (once per session, w
                     link), ``peer`` (the map's keyframe at that link), ``link`` (its type's
                     name), ``T_map_session`` (16 numbers, row-major 4×4: the session's own frame,
                     its first keyframe's camera, in the map's frame); poses published from then
-                    on are in that map's frame
+                    on are in that map's frame. A localizing robot (camera info ``localize``,
+                    or the service's ``memory.incremental: false``) has no session: its event
+                    has ``session_id`` null, ``localization`` true, ``seq`` and ``stamp`` of
+                    its first frame in the map's frame, ``node_id`` null, ``peer`` the map's
+                    keyframe its keyframes are linked to, ``T_map_session`` its odometry
+                    frame in the map's (once per relocalization: again after it lost it)
 session_ended       ``session_id``, ``reason``: "restarted" (the camera's stamps jumped back by
                     more than ``service.restart_gap``: a camera or clock restart; a
                     ``session_started`` of the new session follows), "idle" or "stopped"
@@ -850,6 +866,7 @@ class CameraInfo:
     kind: str  # "rgbd" | "stereo" | "mono"
     calibration: Calibration
     classes: tuple[str, ...] | None = None  # the class table of its label images; None: DEFAULT_CLASSES
+    localize: bool = False  # the robot asks for localization only (nothing of it written to the map)
 
     @property
     def class_count(self) -> int:
@@ -912,20 +929,28 @@ def _check_info(obj: dict, what: str = "camera info") -> CameraInfo:
         raise ProtocolError("bad_field", f"{what}: a stereo camera sends rectified images, without distortion")
     cal = Calibration(PinholeCamera(fx, fy, cx, cy, width, height, tuple(distortion)), baseline, depth_scale)
     classes = obj.get("classes")
-    return CameraInfo(robot, kind, cal, None if classes is None else check_classes(classes, what))
+    localize = obj.get("localize", False)
+    if localize is None:
+        localize = False
+    if not isinstance(localize, bool):
+        raise ProtocolError("bad_field", f"{what}: localize must be true or false, got {localize!r:.40}")
+    return CameraInfo(robot, kind, cal, None if classes is None else check_classes(classes, what), localize)
 
 
 def encode_info(robot: str, calibration: Calibration, kind: str | None = None,
-                classes: tuple[str, ...] | list[str] | None = None) -> bytes:
+                classes: tuple[str, ...] | list[str] | None = None, localize: bool = False) -> bytes:
     """The camera info message; `kind` defaults to `calibration.kind` ("stereo" with a
     baseline, else "rgbd"); pass "mono" for a camera without depth. `classes`: the class table
     (names indexed by class id) of the label images the camera sends; None leaves the field out
-    (the default table, `DEFAULT_CLASSES`)."""
+    (the default table, `DEFAULT_CLASSES`). `localize`: ask for localization only (the field is
+    sent only when true)."""
     kind = calibration.kind if kind is None else kind
     obj = {"version": JSON_VERSION, "robot": check_robot(robot), "kind": kind,
            **_calibration_fields(calibration, kind)}
     if classes is not None:
         obj["classes"] = list(check_classes(classes))
+    if localize:
+        obj["localize"] = True
     _check_info(json.loads(_dump(obj)))
     return _dump(obj)
 
@@ -954,6 +979,8 @@ class PoseMessage:
     node_id: int | None
     queue_depth: int | None = None  # frames of this robot waiting in the service when it was sent
     dropped: int | None = None  # frames of this robot the service dropped so far (queue full)
+    map: int | None = None  # the map id whose frame the pose is in; None: a frame no map names (or unknown)
+    has_map: bool = False  # the message said which frame (`map`; absent from an older service's)
 
 
 def _check_pose_matrix(pose: Any, what: str) -> np.ndarray | None:
@@ -980,8 +1007,9 @@ def _check_status(status: Any, what: str) -> str:
 
 def encode_pose(robot: str, seq: int, stamp: float, status: str, pose: np.ndarray | None, keyframe: bool = False,
                 segment: int = 0, node_id: int | None = None, queue_depth: int | None = None,
-                dropped: int | None = None) -> bytes:
-    """The pose message for frame `seq` of `robot` (see the module documentation)."""
+                dropped: int | None = None, map: Any = ...) -> bytes:
+    """The pose message for frame `seq` of `robot` (see the module documentation). `map`: the map
+    id whose frame the pose is in, None for a frame no map names; left out when not given."""
     what = "pose"
     obj = {"version": JSON_VERSION, "robot": check_robot(robot), "seq": _check_seq(seq),
            "stamp": _check_stamp(stamp), "status": _check_status(status, what)}
@@ -1000,6 +1028,11 @@ def encode_pose(robot: str, seq: int, stamp: float, status: str, pose: np.ndarra
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= int(v) <= _U64_MAX:
                 raise ProtocolError("bad_field", f"{what}: {name} must be None or an integer >= 0, got {v!r:.40}")
             obj[name] = int(v)
+    if map is not ...:
+        if map is not None and (isinstance(map, bool) or not isinstance(map, (int, np.integer))
+                                or not 0 <= int(map) <= _U64_MAX):
+            raise ProtocolError("bad_field", f"{what}: map must be None or an integer >= 0, got {map!r:.40}")
+        obj["map"] = None if map is None else int(map)
     return _dump(obj)
 
 
@@ -1016,10 +1049,10 @@ def decode_pose(data: Any, limits: Limits = DEFAULT_LIMITS) -> PoseMessage:
     if not isinstance(obj.get("keyframe"), bool):
         raise ProtocolError("bad_json", f"{what}: keyframe must be true or false")
     segment = _integer(obj, "segment", what, 0, 2**31 - 1)
-    node_id, queue_depth, dropped = (None if obj.get(k) is None else _integer(obj, k, what, 0, _U64_MAX)
-                                     for k in ("node_id", "queue_depth", "dropped"))
+    node_id, queue_depth, dropped, map_id = (None if obj.get(k) is None else _integer(obj, k, what, 0, _U64_MAX)
+                                             for k in ("node_id", "queue_depth", "dropped", "map"))
     return PoseMessage(obj["robot"], seq, stamp, status, pose, obj["keyframe"], segment, node_id, queue_depth,
-                       dropped)
+                       dropped, map_id, "map" in obj)
 
 
 @dataclass

@@ -64,8 +64,12 @@ async def get_service(request: Request) -> SlamService:
 
 
 async def require_token(request: Request, credentials: Credentials) -> None:
-    """Endpoints that change the map."""
+    """Endpoints that change the map: the token; 409 from a service that only localizes (its
+    map is open read-only)."""
     request.app.state.access.check(credentials)
+    if getattr(request.app.state.service, "localization_only", False):
+        raise HTTPException(409, "this service only localizes (memory.incremental: false): its map is open "
+                                 "read-only and nothing changes it")
 
 
 async def read_access(request: Request, credentials: Credentials) -> None:
@@ -137,12 +141,24 @@ class MapsHolder:
 
 def robots_with_maps(service, maps: MapsHolder) -> list[dict]:
     """The service's robots, each with `map`: the map its latest keyframe is in (its own
-    session's until its keyframes joined an older map; None without a keyframe)."""
+    session's until its keyframes joined an older map; None without a keyframe; a localizing
+    robot's: the map of the map keyframe its keyframes are linked to, None while it is not
+    relocalized), and `localized`: its poses are in an older map's frame (a mapping robot's
+    session joined one, a localizing robot relocalized)."""
     robots = service.robots()
     if service.store is None or not any(r.get("node_id") is not None for r in robots):
-        return [{**r, "map": None} for r in robots]
+        return [{**r, "map": None, "localized": False} for r in robots]
     index = maps.get(service.store)
-    return [{**r, "map": index.map_of(r["node_id"]) if r.get("node_id") is not None else None} for r in robots]
+    out = []
+    for r in robots:
+        m = index.map_of(r["node_id"]) if r.get("node_id") is not None else None
+        if r.get("mode") == "localization":
+            localized = m is not None
+        else:
+            j = index.join(r["session_id"]) if r.get("session_id") is not None else None
+            localized = bool(j is not None and j.joined)
+        out.append({**r, "map": m, "localized": localized})
+    return out
 
 
 # -- the object endpoints ----------------------------------------------------------------------

@@ -55,13 +55,21 @@ class RobotStatus(Open):
     last_stamp: float | None
     session_id: int | None
     position: list[float] | None = Field(None, description="map-frame position of its last tracked frame")
+    pose: list[float] | None = Field(None, description="its last tracked frame's camera pose (row-major 4x4, "
+                                     "camera-to-map, OpenCV axes) in the frame `map` names")
     node_id: int | None = Field(None, description="its latest keyframe")
     keyframes_mapped: int
     map_backlog: int
     restarts: int = Field(0, description="camera restarts (stamps back by more than service.restart_gap): its "
                           "session ended \"restarted\" and session_id is the new one's")
     map: int | None = Field(None, description="the map id of the oldest session that links join its latest keyframe "
-                            "to: its own session's until it relocalizes in an older map (null without a keyframe)")
+                            "to: its own session's until it relocalizes in an older map (null without a keyframe); "
+                            "a localizing robot's: the map it is relocalized in (null until it is)")
+    mode: str = Field("mapping", description="mapping | localization (nothing of the robot is written to the map: "
+                      "memory.incremental false, or its camera info's `localize`; no session_id then, and node_id "
+                      "is the map's keyframe its own keyframes are linked to)")
+    localized: bool = Field(False, description="its poses (position, the pose messages) are in an older map's frame: "
+                            "a mapping robot's session joined one, a localizing robot relocalized in `map`")
 
 
 class CalibrationOut(BaseModel):

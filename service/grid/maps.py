@@ -182,7 +182,8 @@ class MapGrids:
             records.append(rec)
             self._local[n] = StoredLocalGrid(rec)
             made.add(n)
-        self.store.save_local_grids(records)
+        if not getattr(self.store, "readonly", False):  # (a localization-only service's map is read-only: RAM only)
+            self.store.save_local_grids(records)
         log.info("made the local grids of %d stored keyframes in %.1f s", len(made), time.perf_counter() - t0)
         return made
 

@@ -334,6 +334,21 @@ class Memory:
         tiers.transferred(transferred)
         return transferred
 
+    def forget(self, nodes) -> None:
+        """Nodes leave this map update for good, nothing written (a localizing robot's oldest
+        keyframes, which were never stored): their features, dense views and words (those no
+        other node has) leave RAM; their ids stay in LTM's list, so nothing links to them anew
+        (retrieval finds no stored features for them)."""
+        nodes = [int(n) for n in nodes]
+        with self._vocabulary.lock:
+            for n in nodes:
+                self._vocabulary.remove_node(n)
+        for n in nodes:
+            self._features.pop(n, None)
+            self._views.pop(n, None)
+            self._places.pop(n, None)
+        self._tiers.transferred(nodes)
+
     def _ltm_near(self, node: int, pose: NodePoses) -> list[int]:
         """LTM nodes the map places where keyframe `node` is (within loop.proximity_radius,
         looking within proximity_angle of its way), nearest first: one R*Tree query of the
