@@ -106,6 +106,50 @@ def test_the_second_session_lies_in_the_first_ones_frame(two_walks):
         assert np.sqrt(np.mean(err ** 2)) < bound, (np.sqrt(np.mean(err ** 2)), bound)
 
 
+@pytest.fixture(scope="module")
+def walks_from_ltm(tmp_path_factory):
+    """walk_a's first 60 frames (25 keyframes), then walk_b's first 80 (it joins at frame 54),
+    with working memory bounded to 5 nodes (memory.max_wm_nodes): when B starts, all but A's
+    newest 5 nodes are in LTM, so it can only find A's living room there."""
+    from mnemoslam.client.datasets.subrange import frame_range
+
+    db = tmp_path_factory.mktemp("multisession_ltm") / "map.db"
+    config = slam_config({"memory": {"max_wm_nodes": 5}})
+    walks, stats = {}, {}
+    with MapStore(db) as store:
+        for name, frames in (("walk_a", "0:60"), ("walk_b", "0:80")):
+            full = open_dataset(f"synthetic:{name}", rate=RATE)
+            ds = frame_range(full, frames)
+            pipeline = build_pipeline(store, name, ds.calibration, config)
+            keyframes = [(r.node_id, r.index) for r in map(pipeline.process, ds) if r.node_id is not None]
+            pipeline.close()
+            walks[name] = (full.ground_truth, keyframes)
+        links = store.links()
+        stored = {tuple(r): i for i, r in enumerate(store.link_rows()[1].tolist())}
+        links.sort(key=lambda lk: stored.get((lk.from_id, lk.to_id, int(lk.type)), len(stored)))
+        stats = {n: store.statistics(n) for n, _ in walks["walk_b"][1]}
+    return walks, links, stats
+
+
+def test_the_second_session_finds_the_first_in_long_term_memory(walks_from_ltm):
+    walks, links, stats = walks_from_ltm
+    a_nodes = [n for n, _ in walks["walk_a"][1]]
+    b_first = walks["walk_b"][1][0][0]
+    assert stats[b_first]["memory"]["ltm"] >= len(a_nodes) - 6  # A's nodes but the newest 5 in LTM
+    truth = _truth(walks)
+    cross = [lk for lk in links if (lk.from_id in a_nodes) != (lk.to_id in a_nodes)]
+    assert len(cross) >= 2
+    for lk in cross:  # every link between the sessions is where the truth says
+        (ga, ia), (gb, ib) = truth[lk.from_id], truth[lk.to_id]
+        d = invert(invert(ga.poses[ia]) @ gb.poses[ib]) @ lk.transform
+        assert np.linalg.norm(d[:3, 3]) < 0.05 and np.degrees(rotation_angle(d[:3, :3])) < 3.0, \
+            (LinkType(lk.type).label, lk.from_id, lk.to_id, d[:3, 3])
+    # joined through A nodes that were in LTM (not the 5 newest, which start in WM), as soon as
+    # with the whole map in WM (measured -0.08 m of path after the overlap, the same keyframe)
+    assert not {lk.from_id for lk in cross[:2]} & set(a_nodes[-5:])
+    assert _overlap_to_join(walks, links) <= BOUND_JOIN_M
+
+
 # -- offline: `mnemoslam run DATASET --db MAP.db --out DIR` (issue 22 item 6) ---------------------
 
 def _run(*argv) -> str:
