@@ -333,7 +333,9 @@ class Mapper:
                 stats.matches, stats.inliers, stats.refined = v.matches, v.inliers, v.refined
                 stats.sigma = _rounded_sigma(v)
         if relocalizing:
+            t = time.perf_counter()
             self._relocalize(u, stats, hint)
+            stats.timings_ms["relocalization"] = (time.perf_counter() - t) * 1e3
         t4 = time.perf_counter()
         if self.config.proximity_by_space:
             self._close_nearby(u, candidates, stats, verified)
@@ -341,7 +343,7 @@ class Mapper:
         if self.config.proximity_by_time:
             self._link_path(u, candidates, stats)
         t6 = time.perf_counter()
-        stats.timings_ms = {"graph": (t1 - t0) * 1e3, "vocabulary": (t2 - t1) * 1e3,
+        stats.timings_ms = {**stats.timings_ms, "graph": (t1 - t0) * 1e3, "vocabulary": (t2 - t1) * 1e3,
                             "detection": (t3 - t2) * 1e3, "verification_optimization": (t4 - t3) * 1e3,
                             "proximity": (t5 - t4) * 1e3, "path": (t6 - t5) * 1e3}
         return hyp.best_id
