@@ -150,6 +150,28 @@ def test_the_second_session_finds_the_first_in_long_term_memory(walks_from_ltm):
     assert _overlap_to_join(walks, links) <= BOUND_JOIN_M
 
 
+def test_identical_posters_elsewhere_do_not_join_the_maps(tmp_path):
+    """`straight` looks at the hall's six identical posters that `loop` saw 7 m away (its frames
+    140-200, then straight's first 40): PnP verifies them (90-110 inliers) and two keyframes
+    agree on the wrong place, 3.2 m off; the dense check of the whole view refuses them
+    (without it they joined the maps at straight's frame 16)."""
+    from mnemoslam.client.datasets.subrange import frame_range
+
+    db = tmp_path / "map.db"
+    nodes = {}
+    with MapStore(db) as store:
+        for name, frames in (("loop", "140:200"), ("straight", "0:40")):
+            ds = frame_range(open_dataset(f"synthetic:{name}", rate=RATE), frames)
+            pipeline = build_pipeline(store, name, ds.calibration, slam_config())
+            nodes[name] = [r.node_id for r in map(pipeline.process, ds) if r.node_id is not None]
+            pipeline.close()
+        old = set(nodes["loop"])
+        assert not [lk for lk in store.links() if (lk.from_id in old) != (lk.to_id in old)]
+        decisions = [r["decision"] for n in nodes["straight"] for r in (store.statistics(n) or {}).get(
+            "relocalization", [])]
+    assert "rejected: not refined densely" in decisions and "joined" not in decisions, decisions
+
+
 # -- offline: `mnemoslam run DATASET --db MAP.db --out DIR` (issue 22 item 6) ---------------------
 
 def _run(*argv) -> str:
