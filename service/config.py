@@ -119,6 +119,22 @@ class LoopConfig:
     proximity_dense_min_overlap: float = 0.3  # share of the new keyframe's points that must be associated
     proximity_max_correction: float = 0.2  # m; the dense result may move the graph's relative pose this much ...
     proximity_max_rotation: float = 10.0  # deg; ... and turn it this much
+    # Relocalization (issue 22): a keyframe whose map has joined none of the map's older ones
+    # (a new session, before it joined) is searched for in them by appearance, as ORB-SLAM3's
+    # Atlas does every keyframe: tf-idf of its descriptors over the older maps' nodes, in
+    # working or long-term memory (their words read from the store), the best few verified
+    # by PnP and the link σ check. A single verified link never joins maps: two must agree on
+    # where the keyframe lies in the older map (two candidates of one keyframe, or links of
+    # keyframes within relocalize_window of each other). Appearance hypotheses into an older
+    # map go the same way.
+    relocalize: bool = True  # search the older maps by appearance for a keyframe whose map has not joined them (ORB-SLAM3's relocalization; RTAB-Map: RGBD/AggressiveLoopThr lowers the threshold instead)
+    relocalize_candidates: int = 2  # the best-scoring place's nodes verified per keyframe ...
+    relocalize_places: int = 2  # ... and the best node of the next places, up to this many places (a keyframe verified at two places that disagree gives no evidence: repeated textures)
+    relocalize_place_radius: float = 1.0  # m; candidates whose cameras are this close to a better one's are of its place
+    relocalize_min_inliers: int = 30  # PnP inliers a relocalization link needs (loop.min_inliers for loops)
+    relocalize_window: int = 3  # links of the last this many keyframes (of the same map) may agree with the new keyframe's
+    relocalize_agreement: float = 0.03  # m; two links agree when they place the keyframe within this of each other ...
+    relocalize_agreement_rotation: float = 2.0  # deg; ... and within this rotation
     refine_dense: bool = True  # refine RGB-D loop links by dense photometric + point-to-plane registration
     refine_min_overlap: float = 0.1  # share of the new keyframe's points the registration must associate
     refine_max_correction: float = 0.1  # m; a refinement that moves the PnP link more is not used ...

@@ -42,6 +42,7 @@ from .verification import Verification, refine, register_dense, verify
 
 log = logging.getLogger("mnemoslam.mapping")
 
+RELOCALIZATION_SCORED = 20  # the older maps' best-scoring nodes a relocalization groups into places
 STATISTICS_KEPT = 1000  # map updates whose LoopStatistics a Mapper keeps in RAM (RAM stays flat on long runs)
 
 
@@ -73,12 +74,26 @@ class LoopStatistics:
     sigma: list | None = None  # [m, deg] largest standard deviations of the link's estimate (two-view refinement)
     proximity: list = field(default_factory=list)  # [{node, decision, inliers, refined}] spatial candidates
     path: list = field(default_factory=list)  # [{node, decision, inliers, refined}] recent keyframes of its own path
+    # [{node, score, decision, inliers, sigma}] older maps' candidates of a keyframe whose map has not joined them
+    relocalization: list = field(default_factory=list)
     # {node, similarity, inliers, distance, rotation, decision}: the node it was or wasn't merged into
     rehearsal: dict = field(default_factory=dict)
     timings_ms: dict = field(default_factory=dict)
     memory: dict = field(default_factory=dict)  # after the update: stm, wm, ltm sizes, transferred/retrieved ids, words
     # {keyframes, points, observations, depth_scale, ms}: the local BA that refined its odometry link
     local_ba: dict = field(default_factory=dict)
+
+
+@dataclass
+class Evidence:
+    """A relocalization link verified but not added yet: keyframe `node` seen from the older
+    map's `candidate` (its verification `v`), and where that puts the keyframe's map in the
+    older one, `T_map_own` = candidate's map pose · T_candidate_node · (node's own pose)⁻¹."""
+
+    node: int
+    candidate: int
+    v: Verification
+    T_map_own: np.ndarray
 
 
 @dataclass
@@ -117,6 +132,8 @@ class Mapper:
         self.links_dropped = 0
         # the statistics of the last STATISTICS_KEPT updates (every update's are in the database)
         self.statistics: collections.OrderedDict[int, LoopStatistics] = collections.OrderedDict()
+        # relocalization links verified for the last keyframes (loop.relocalize_window), not added yet
+        self._evidence: collections.deque[list[Evidence]] = collections.deque(maxlen=max(config.relocalize_window, 1))
         self._queue: queue.Queue | None = None
         self.submitted = 0  # keyframe updates handed to the map update ...
         self.mapped = 0  # ... and done (the difference is the backlog)
@@ -303,12 +320,22 @@ class Mapper:
         stats.hypothesis, stats.posterior = hyp.best_id, float(hyp.posterior)
         stats.likelihood_top = [(int(i), float(s)) for i, s in hyp.likelihood[:5]]
         stats.decision = "none" if hyp.best_id is None else ("accepted" if hyp.accepted else f"rejected: {hyp.reason}")
-        if hyp.accepted:
+        relocalizing = self.config.relocalize and self.memory.relocalizing(u.node_id)
+        hint = None
+        if hyp.accepted and relocalizing and self.memory.in_older_map(hyp.best_id):
+            # into an older map this keyframe's has not joined: verified with the relocalization's
+            # candidates, never joined on one link
+            hint, stats.decision = hyp.best_id, "relocalization candidate"
+        elif hyp.accepted:
             assert hyp.best_id is not None  # an accepted hypothesis has a node
             stats.decision, v = self._close_loop(u, hyp.best_id, LinkType.GLOBAL_CLOSURE)
             if v is not None:
                 stats.matches, stats.inliers, stats.refined = v.matches, v.inliers, v.refined
                 stats.sigma = _rounded_sigma(v)
+        if relocalizing:
+            t = time.perf_counter()
+            self._relocalize(u, stats, hint)
+            stats.timings_ms["relocalization"] = (time.perf_counter() - t) * 1e3
         t4 = time.perf_counter()
         if self.config.proximity_by_space:
             self._close_nearby(u, candidates, stats, verified)
@@ -316,8 +343,10 @@ class Mapper:
         if self.config.proximity_by_time:
             self._link_path(u, candidates, stats)
         t6 = time.perf_counter()
-        stats.timings_ms = {"graph": (t1 - t0) * 1e3, "vocabulary": (t2 - t1) * 1e3,
-                            "detection": (t3 - t2) * 1e3, "verification_optimization": (t4 - t3) * 1e3,
+        relocalization = stats.timings_ms.get("relocalization", 0.0)  # (a step of its own)
+        stats.timings_ms = {**stats.timings_ms, "graph": (t1 - t0) * 1e3, "vocabulary": (t2 - t1) * 1e3,
+                            "detection": (t3 - t2) * 1e3,
+                            "verification_optimization": (t4 - t3) * 1e3 - relocalization,
                             "proximity": (t5 - t4) * 1e3, "path": (t6 - t5) * 1e3}
         return hyp.best_id
 
@@ -492,6 +521,127 @@ class Mapper:
             if decision == "accepted":
                 return
 
+    # -- relocalization ----------------------------------------------------------------------
+    def _relocalize(self, u: KeyframeUpdate, stats: LoopStatistics, hint: int | None = None) -> None:
+        """A keyframe whose map has joined none of the older maps (`Memory.relocalizing`):
+        the older maps' nodes that look most like it (`Memory.relocalization_candidates`, and
+        `hint`, an appearance hypothesis into one of them) are verified by PnP with
+        loop.relocalize_min_inliers and made accurate or dropped (`_accurate`), nodes in LTM
+        from their stored data without retrieving them. Each verified link is evidence of
+        where this map lies in the older one; the maps join (`_join`) only when two agree:
+        two candidates of this keyframe, or this keyframe's and one of the last
+        loop.relocalize_window keyframes' of its map, within loop.relocalize_agreement /
+        _rotation. One link, however well verified, can be a place that looks like another."""
+        c = self.config
+        found = self.memory.relocalization_candidates(u.features.descriptors, RELOCALIZATION_SCORED)
+        scores = {n: s for n, s, _ in found}
+        places: list[list[tuple[int, np.ndarray]]] = []  # the candidates by place, best first
+        for n, _, centre in found:
+            for place in places:
+                if np.linalg.norm(place[0][1] - centre) <= c.relocalize_place_radius:
+                    place.append((n, centre))
+                    break
+            else:
+                places.append([(n, centre)])
+        order = [n for n, _ in places[0][:c.relocalize_candidates]] if places else []
+        order += [p[0][0] for p in places[1:c.relocalize_places]]
+        if hint is not None and hint not in order:
+            order.insert(0, hint)
+        evidence: list[Evidence] = []
+        own = self.graph.pose(u.node_id)
+        stored = self.memory.stored_poses([n for n in order if n not in self.graph])
+        for candidate in order:
+            place = None if self.memory.tiers.in_ram(candidate) else self.memory.place(candidate)
+            if place is None and not self.memory.tiers.in_ram(candidate):
+                decision, v = "rejected: no features", None
+            else:
+                decision, v = self._register(u, candidate, place=place, min_inliers=c.relocalize_min_inliers)
+                dense = u.node_id in self.memory.views and (
+                    candidate in self.memory.views if place is None else place.view is not None)
+                if decision == "ok" and dense and not v.refined:
+                    # RGB-D: the two keyframes' whole depth and images must agree too, not only the
+                    # matched features (a repeated poster matches as well as the right one)
+                    decision = "rejected: not refined densely"
+                if decision == "ok":
+                    decision, v = self._accurate(u, candidate, v, None if place is None else place.features)
+            if decision == "ok":
+                assert v is not None and v.transform is not None  # verified
+                pose = self.graph.pose(candidate) if candidate in self.graph else stored.get(candidate)
+                if pose is None:
+                    decision = "rejected: no pose"
+                else:
+                    evidence.append(Evidence(u.node_id, candidate, v, pose @ v.transform @ invert(own)))
+                    decision = "verified"
+            stats.relocalization.append({"node": candidate, "score": round(scores.get(candidate, 0.0), 5),
+                                         "decision": decision, "inliers": 0 if v is None else v.inliers,
+                                         "sigma": _rounded_sigma(v), "refined": bool(v is not None and v.refined)})
+        if any(self._agree(a, b) is False for i, a in enumerate(evidence) for b in evidence[i + 1:]):
+            # the keyframe verified at two places of the older maps that disagree: a place that looks
+            # like another (repeated textures); none of its links is evidence
+            for r in stats.relocalization:
+                if r["decision"] == "verified":
+                    r["decision"] = "ambiguous"
+            evidence = []
+        earlier = [e for batch in self._evidence for e in batch
+                   if self.memory.same_map(u.node_id, [e.node]) and e.node in self.graph]
+        self._evidence.append(evidence)
+        pair = self._agreeing(evidence, earlier)
+        if pair is None:
+            return
+        if self._join(*pair):
+            for r in stats.relocalization:
+                if r["node"] in (pair[0].candidate, pair[1].candidate) and r["decision"] == "verified":
+                    r["decision"] = "joined"
+            self._evidence.clear()
+            self.memory.release_relocalization()
+        else:
+            for r in stats.relocalization:
+                if r["node"] == pair[0].candidate:
+                    r["decision"] = "rejected: graph"
+
+    def _agreeing(self, now: list[Evidence], earlier: list[Evidence]) -> tuple[Evidence, Evidence] | None:
+        """The first pair of relocalization links that agree: one of this keyframe's (`now`,
+        best first) with another of its own or one of the last keyframes' (`earlier`) to a
+        different older node: both put one of the two keyframes at the same place of the
+        older map (loop.relocalize_agreement / _rotation)."""
+        for i, a in enumerate(now):
+            for b in now[i + 1:] + earlier[::-1]:
+                if b.candidate != a.candidate and self._agree(a, b):
+                    return a, b
+        return None
+
+    def _agree(self, a: Evidence, b: Evidence) -> bool:
+        """Whether two relocalization links put a's keyframe at the same place of the older map
+        (within loop.relocalize_agreement / _rotation)."""
+        c = self.config
+        own = self.graph.pose(a.node)
+        d = invert(a.T_map_own @ own) @ (b.T_map_own @ own)
+        return bool(np.linalg.norm(d[:3, 3]) <= c.relocalize_agreement
+                    and np.degrees(rotation_angle(d[:3, :3])) <= c.relocalize_agreement_rotation)
+
+    def _join(self, first: Evidence, second: Evidence) -> bool:
+        """Join this map to the older one with two agreeing relocalization links: their older
+        nodes retrieved into WM (and the graph, at their stored poses), the new keyframe's link
+        added first (it places the map: the segment's loose prior gives way), then the other,
+        which the graph checks; if it refuses it, the first goes too and nothing is joined."""
+        self.retrieve([e.candidate for e in (first, second) if not self.memory.tiers.in_ram(e.candidate)])
+        if first.candidate not in self.graph or second.candidate not in self.graph:
+            return False
+        links = []
+        for e in (first, second):
+            assert e.v.transform is not None and e.v.information is not None  # verified
+            outcome = self.graph.add_loop(e.candidate, e.node, e.v.transform, e.v.information)
+            if not outcome.accepted:
+                for a, b, t in links:
+                    self.graph.remove_loop(a, b, t)
+                return False
+            links.append((e.candidate, e.node, e.v.transform))
+        for e in (first, second):
+            self._record_link(e.node, e.candidate, LinkType.GLOBAL_CLOSURE, e.v)
+        log.info("relocalized: keyframe %d joined the older map through %d and %d (keyframe %d)",
+                 first.node, first.candidate, second.candidate, second.node)
+        return True
+
     def _link_path(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics) -> None:
         """Proximity by time: register the new keyframe to recent keyframes of its own segment
         (those that are not loop candidates) that the graph places in view of it, the oldest
@@ -518,7 +668,7 @@ class Mapper:
                                "inliers": 0 if v is None else v.inliers, "refined": bool(v is not None and v.refined)})
 
     def _register(self, u: KeyframeUpdate, candidate: int, prior: np.ndarray | None = None,
-                  place=None) -> tuple[str, Verification]:
+                  place=None, min_inliers: int | None = None) -> tuple[str, Verification]:
         """Verify a candidate (PnP, then dense refinement). With a `prior` (T_candidate_new
         from the graph) a candidate PnP refuses is also registered densely from it. `place`:
         the candidate's data (`Memory.place`) when it is not in RAM. Returns ("ok" or
@@ -526,7 +676,7 @@ class Mapper:
         c = self.config
         cand = self.memory.features[candidate] if place is None else place.features
         v = verify(self.camera, u.features.keypoints, u.features.descriptors, cand.descriptors, cand.points,
-                   min_inliers=c.min_inliers)
+                   min_inliers=c.min_inliers if min_inliers is None else min_inliers)
         views = self.memory.views
         if place is not None:
             views = {u.node_id: views[u.node_id]} if u.node_id in views and place.view is not None else {}
@@ -545,7 +695,8 @@ class Mapper:
                        max_correction=(c.refine_max_correction, c.refine_max_rotation))
         return "ok", v
 
-    def _accurate(self, u: KeyframeUpdate, candidate: int, v: Verification) -> tuple[str, Verification]:
+    def _accurate(self, u: KeyframeUpdate, candidate: int, v: Verification,
+                  features: FrameFeatures | None = None) -> tuple[str, Verification]:
         """A loop / proximity link as accurate as both keyframes' features make it, or none:
         two-view reprojection refinement from the verified transform (`link_refinement`);
         the link is refused ("rejected: inaccurate …", counted in `links_dropped`) when its
@@ -561,7 +712,8 @@ class Mapper:
         if not c.link_refine or not v.inliers:
             return "ok", v
         assert v.transform is not None and v.information is not None  # accepted: both set
-        e = refine_link(self.camera, u.features, self.memory.features[candidate], v.transform,
+        e = refine_link(self.camera, u.features, self.memory.features[candidate] if features is None else features,
+                        v.transform,
                         depth_noise=c.link_depth_noise, min_inliers=c.min_inliers,
                         max_sigma=(c.link_max_sigma_translation, c.link_max_sigma_rotation))
         if not e.ok and c.link_refine_drop:
@@ -586,15 +738,19 @@ class Mapper:
         outcome = self.graph.add_loop(candidate, u.node_id, v.transform, v.information)
         if not outcome.accepted:
             return f"rejected: graph {outcome.reason}"
-        if kind != LinkType.LOCAL_TIME:
-            self.loops.append((candidate, u.node_id))
-            self.memory.loop_closed(candidate)
-            self.memory.link(u.node_id, candidate)
-        self.memory.save_link(candidate, u.node_id, kind, v.transform, v.information)
-        if kind != LinkType.LOCAL_TIME:
-            self.on_event("loop_closed", {"from": candidate, "to": u.node_id, "inliers": v.inliers,
-                                          "link": kind.label})
+        self._record_link(u.node_id, candidate, kind, v)
         return "accepted"
+
+    def _record_link(self, node: int, candidate: int, kind: LinkType, v: Verification) -> None:
+        """A link the graph accepted: memory, the database, a `loop_closed` event (not for path links)."""
+        assert v.transform is not None and v.information is not None  # accepted: both set
+        if kind != LinkType.LOCAL_TIME:
+            self.loops.append((candidate, node))
+            self.memory.loop_closed(candidate)
+            self.memory.link(node, candidate)
+        self.memory.save_link(candidate, node, kind, v.transform, v.information)
+        if kind != LinkType.LOCAL_TIME:
+            self.on_event("loop_closed", {"from": candidate, "to": node, "inliers": v.inliers, "link": kind.label})
 
     def _publish(self, stats: LoopStatistics) -> None:
         """Keep the update's statistics; write the poses the graph moved (and the new

@@ -113,6 +113,12 @@ class Memory:
         # the last few: consecutive keyframes of a revisit meet the same places
         self._places: collections.OrderedDict[int, Place] = collections.OrderedDict()
         self.places_read = 0  # LTM nodes read for rehearsal (not retrieved: they stay in LTM)
+        # the older maps' nodes (ended sessions' at start-up, `load_previous`): a keyframe whose
+        # map has joined none of them relocalizes against them (`relocalization_candidates`),
+        # through an index of their words read from the store when first needed
+        self._older = np.zeros(0, np.int64)
+        self._older_index: Vocabulary | None = None
+        self._older_centres: dict[int, np.ndarray] = {}
 
     # -- what the map update reads -----------------------------------------------------------
     @property
@@ -180,6 +186,50 @@ class Memory:
         by graph depth for the same reason)."""
         here = self._maps.find(node)
         return [n for n in nodes if self._maps.find(n) == here]
+
+    # -- relocalization against the older maps -----------------------------------------------
+    def in_older_map(self, node: int) -> bool:
+        """Whether links join `node` to a node of the older maps (those of the sessions that had
+        ended when this map update started): always for their own nodes; for this update's,
+        once its map joined one of them. (Union-find keeps a part's smallest id as its root, and
+        the older maps' ids are all below this update's own.)"""
+        return bool(len(self._older)) and self._maps.find(node) <= int(self._older[-1])
+
+    def relocalizing(self, node: int) -> bool:
+        """Whether keyframe `node` is to be searched for in the older maps: there are some, and
+        its map has joined none of them yet."""
+        return bool(len(self._older)) and not self.in_older_map(node)
+
+    def relocalization_candidates(self, descriptors: np.ndarray, k: int) -> list[tuple[int, float, np.ndarray]]:
+        """The `k` older maps' nodes that look most like a keyframe with these descriptors,
+        best first, (node, tf-idf score > 0, its camera centre in the map as stored): its
+        descriptors quantised in the older maps' words and the tf-idf likelihood over their
+        nodes, in working memory or long-term memory alike (ORB-SLAM3's Atlas searches every
+        map's keyframe database; RTAB-Map's likelihood only WM). The index (their words and
+        word ids, read from the store when first needed: the older maps do not change) is
+        dropped once this map update's map joined them (`release_relocalization`)."""
+        if not len(self._older) or k <= 0:
+            return []
+        if self._older_index is None:
+            assert self.store is not None  # older maps: the mapper has a store
+            self._older_index = Vocabulary.of_nodes(self.store, self._older.tolist(), nndr=self.loop_config.nndr_ratio)
+            self._older_centres = {r.id: r.pose[:3, 3].copy() for r in self.store.get_nodes(self._older.tolist())}
+        index = self._older_index
+        nodes = np.array(sorted(n for n in self._older.tolist() if n in index), np.int64)
+        scores = index.tfidf(index.query(descriptors), nodes)
+        best = np.argsort(-scores, kind="stable")[:k]
+        return [(int(nodes[i]), float(scores[i]), self._older_centres[int(nodes[i])])
+                for i in best.tolist() if scores[i] > 0]
+
+    def release_relocalization(self) -> None:
+        """The map joined an older one: the older maps' word index leaves RAM."""
+        self._older_index, self._older_centres = None, {}
+
+    def stored_poses(self, nodes) -> dict[int, np.ndarray]:
+        """The stored map poses of nodes ({id: 4×4}; the older maps' are their final ones)."""
+        if self.store is None:
+            return {}
+        return {r.id: r.pose for r in self.store.get_nodes(list(nodes))}
 
     def loop_closed(self, node: int) -> None:
         """A loop closure to `node` was accepted: it stays in WM, and the nodes that enter WM
@@ -422,6 +472,7 @@ class Memory:
         ids = store.node_ids(ended=True)
         if not len(ids):
             return {}
+        self._older = np.sort(np.asarray(ids, np.int64))
         k = self._tiers.max_wm_nodes
         first_wm = ids[-k:] if 0 < k < len(ids) else ids
         features = store.load_features_many(first_wm.tolist())

@@ -526,6 +526,22 @@ class Vocabulary:
         idx = np.repeat(np.arange(len(uw), dtype=np.int64), df)
         return uw, df, idx, np.asarray(nodes, np.int64), np.asarray(counts, np.int64)
 
+    def tfidf(self, word_ids, nodes: np.ndarray) -> np.ndarray:
+        """RTAB-Map's tf-idf likelihood of each of `nodes` (sorted ids) given a keyframe's
+        word ids: for every distinct word shared with node i, (n_wi / n_i) · log10(N / n_w)
+        (`LoopDetector.raw_likelihood`'s, over this vocabulary's indexed nodes)."""
+        s = np.zeros(len(nodes), np.float64)
+        uw, df, idx, found, counts = self.postings(word_ids)
+        if not len(nodes) or not len(found):
+            return s
+        pos = np.minimum(np.searchsorted(nodes, found), len(nodes) - 1)
+        ok = nodes[pos] == found
+        pos, idx, counts = pos[ok], idx[ok], counts[ok]
+        n_i = np.array([max(self.node_size(n), 1) for n in nodes.tolist()], np.float64)
+        idf = np.log10(max(self.n_nodes, 1) / np.maximum(df[idx], 1))
+        np.add.at(s, pos, counts / n_i[pos] * idf)
+        return s
+
     def word_nodes(self, word_id: int) -> dict[int, int]:
         return dict(self._postings.get(int(word_id), {}))
 
@@ -825,6 +841,22 @@ class Vocabulary:
                 v = cls.from_store(store, **params) if words else cls.empty_for(store, **params)
                 _SHARED[store] = v
             return v
+
+    @classmethod
+    def of_nodes(cls, store: WordStore, nodes, **params) -> Vocabulary:
+        """A vocabulary of some of a stored map's nodes only (e.g. the older maps' a new
+        session relocalizes against): their postings and the words they hold, nothing else
+        (`load_vocabulary_state` filtered), so that a query finds their words and no other."""
+        st = store.load_vocabulary_state()
+        keep = np.isin(st["post_node"], np.asarray(list(nodes), np.int64))
+        words = np.unique(st["post_word"][keep])
+        held = np.isin(st["word_ids"], words)
+        mine = np.isin(st["node_ids"], np.asarray(list(nodes), np.int64))
+        return cls.from_state({
+            "word_ids": st["word_ids"][held], "descriptors": st["descriptors"][held],
+            "post_word": st["post_word"][keep], "post_node": st["post_node"][keep],
+            "post_count": st["post_count"][keep], "node_ids": st["node_ids"][mine],
+            "node_nfeat": st["node_nfeat"][mine], "next_id": st["next_id"]}, **params)
 
     @classmethod
     def empty_for(cls, store: WordStore, **params) -> Vocabulary:
