@@ -322,7 +322,7 @@ class Mapper:
         stats.decision = "none" if hyp.best_id is None else ("accepted" if hyp.accepted else f"rejected: {hyp.reason}")
         relocalizing = self.config.relocalize and self.memory.relocalizing(u.node_id)
         hint = None
-        if hyp.accepted and relocalizing and self.memory.in_older_map(hyp.best_id):
+        if hyp.accepted and relocalizing and hyp.best_id is not None and self.memory.in_older_map(hyp.best_id):
             # into an older map this keyframe's has not joined: verified with the relocalization's
             # candidates, never joined on one link
             hint, stats.decision = hyp.best_id, "relocalization candidate"
@@ -537,9 +537,9 @@ class Mapper:
         scores = {n: s for n, s, _ in found}
         places: list[list[tuple[int, np.ndarray]]] = []  # the candidates by place, best first
         for n, _, centre in found:
-            for place in places:
-                if np.linalg.norm(place[0][1] - centre) <= c.relocalize_place_radius:
-                    place.append((n, centre))
+            for group in places:
+                if np.linalg.norm(group[0][1] - centre) <= c.relocalize_place_radius:
+                    group.append((n, centre))
                     break
             else:
                 places.append([(n, centre)])
@@ -627,7 +627,7 @@ class Mapper:
         self.retrieve([e.candidate for e in (first, second) if not self.memory.tiers.in_ram(e.candidate)])
         if first.candidate not in self.graph or second.candidate not in self.graph:
             return False
-        links = []
+        links: list[tuple[int, int, np.ndarray]] = []
         for e in (first, second):
             assert e.v.transform is not None and e.v.information is not None  # verified
             outcome = self.graph.add_loop(e.candidate, e.node, e.v.transform, e.v.information)
