@@ -189,7 +189,11 @@ def test_service_localization_only_publishes_map_frame_poses_and_leaves_the_map_
         assert svc.stop() == 0
     assert _sha(db) == before
     poses.sort(key=lambda m: m.seq)
-    assert len(poses) == stats.frames and all(m.has_map for m in poses)
+    # one pose message per frame tracked; a frame the service drops under load (counted) has none
+    assert len(poses) == r["frames_processed"] and r["frames_processed"] + r["frames_dropped"] == stats.frames, (
+        len(poses), r["frames_processed"], r["frames_dropped"], stats.frames)
+    assert r["frames_dropped"] <= 0.05 * stats.frames, r["frames_dropped"]
+    assert all(m.has_map for m in poses)
     assert poses[0].map is None and np.allclose(poses[0].pose, np.eye(4), atol=1e-6)  # its own frame first
     first = next((i for i, m in enumerate(poses) if m.map is not None), None)
     assert first is not None and first > 5, first  # (never in the map's frame: None)
