@@ -18,14 +18,16 @@ from conftest import FIGURE8, recorded_frames, run_tracked_once, synthetic
 
 
 def _run(out_dir, trajectory, enabled=True, dataset=None, rendered_once=False, **loop):
-    """A run with these loop settings; `rendered_once`: the session's frames (tests/conftest.py
-    `synthetic`) and the tracking the session's run of them recorded (`run_tracked_once`: these
-    runs differ from it in the map update only)."""
+    """A run with these loop settings and no occupancy grid (what these tests check is the map's
+    links and poses, which the grids never change; the session's runs make the grids of these
+    frames); `rendered_once`: the session's frames (tests/conftest.py `synthetic`) and the
+    tracking the session's run of them recorded (`run_tracked_once`: these runs differ from it
+    in the map update only)."""
     from mnemoslam.service.runner import run_dataset
 
     options = dataset or dict(rate=10, noise=True)
     ds = synthetic(trajectory, **options) if rendered_once else open_dataset(f"synthetic:{trajectory}", **options)
-    cfg = load_config(overrides={"loop": {"enabled": enabled, **loop}})
+    cfg = load_config(overrides={"loop": {"enabled": enabled, **loop}, "grid": {"enabled": False}})
     out = (run_tracked_once if rendered_once else run_dataset)(ds, cfg, out_dir, progress=False)
     return ds, out, cfg
 

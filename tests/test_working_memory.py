@@ -143,9 +143,10 @@ def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(t
     from conftest import FIGURE8, run_tracked_once, synthetic
 
     ds = synthetic("figure8", **FIGURE8, max_frames=260)  # rendered once for the session (conftest)
-    cfg = load_config(None, {"memory": {"max_wm_nodes": 20}})
-    # the tracking of the session's figure-8 run (conftest `figure8_run`), replayed when this
+    # no occupancy grid: the map update never reads it (the session's figure8_run makes these
+    # frames' grids); the tracking of that run (conftest `figure8_run`), replayed when this
     # module runs beside it: a bounded working memory changes the map update only
+    cfg = load_config(None, {"memory": {"max_wm_nodes": 20}, "grid": {"enabled": False}})
     out = run_tracked_once(ds, cfg, tmp_path, progress=False)
     rows = list(csv.DictReader(open(tmp_path / "updates.csv")))
     assert len(rows) == out.summary.keyframes
