@@ -381,16 +381,21 @@ def _check_slow_names():
 
 # With pytest-xdist's workers (`make test`: `-n 2 --dist loadfile`) each module runs on one worker,
 # so that its module-scoped fixtures run once, and the modules of a group in XDIST_GROUPS share a
-# worker: they check the same session-scoped runs (`loop_run`, `figure8_run`) or play the same
-# frames rendered once (`synthetic`), which a second worker would compute again. The groups and
-# modules in XDIST_FIRST start first, longest first (measured), so that no long one is left for
-# the end while the other worker idles; the rest follow in collection order.
+# worker: they check the same session-scoped runs (`loop_run`, `figure8_run`), replay the
+# tracking those runs recorded (`run_tracked_once`) or play the same frames rendered once
+# (`synthetic`), which a second worker would compute again ("walk-a": the walk_a frames played
+# three times, tracked once for test_rehearsal and test_memory_revisits, rendered once for
+# test_startup too). The groups and modules in XDIST_FIRST start first, longest first
+# (measured), so that no long one is left for the end while the other worker idles; the rest
+# follow in collection order.
 XDIST_GROUPS = {
     "test_loop_closure.py": "shared-runs", "test_synthetic_run.py": "shared-runs",
     "test_mapping_process.py": "shared-runs", "test_semantics.py": "shared-runs",
+    "test_working_memory.py": "shared-runs",
+    "test_rehearsal.py": "walk-a", "test_memory_revisits.py": "walk-a", "test_startup.py": "walk-a",
 }
 XDIST_FIRST = ["shared-runs", "test_recovery.py", "test_sequences.py", "test_service.py", "test_semantic_service.py",
-               "test_streamer.py", "test_viewer.py", "test_memory_crash.py", "test_cli.py"]
+               "walk-a", "test_viewer.py", "test_memory_crash.py", "test_cli.py"]
 
 
 def _xdist_group(path: Path) -> str:

@@ -19,8 +19,8 @@ from conftest import FIGURE8, recorded_frames, run_tracked_once, synthetic
 
 def _run(out_dir, trajectory, enabled=True, dataset=None, rendered_once=False, **loop):
     """A run with these loop settings and no occupancy grid (what these tests check is the map's
-    links and poses, which the grids never change; the session's runs make the grids of these
-    frames); `rendered_once`: the session's frames (tests/conftest.py `synthetic`) and the
+    links and poses, which the grids never change; the grids are tests/test_grid*.py's and the
+    session's runs make them); `rendered_once`: the session's frames (tests/conftest.py `synthetic`) and the
     tracking the session's run of them recorded (`run_tracked_once`: these runs differ from it
     in the map update only)."""
     from mnemoslam.service.runner import run_dataset
