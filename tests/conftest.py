@@ -1,3 +1,4 @@
+import copy
 import dataclasses
 import os
 from pathlib import Path
@@ -121,6 +122,142 @@ def synthetic(trajectory: str, **options) -> SyntheticDataset:
 
 
 # ------------------------------------------------------------------------------------------
+# Tracking played once, replayed by the runs that vary only what follows it
+
+_TRACKS: dict = {}  # (sequence, tracking config) -> (frames of the run that recorded it, records)
+
+
+def sequence_key(dataset) -> tuple | None:
+    """What frames a dataset plays, for `run_tracked_once`: the synthetic sequences rendered
+    once (`synthetic`, keyed as their frames; `max_frames` aside: a shorter run plays the first
+    frames of a longer one) and `Passes` over them; None for any other dataset."""
+    from mnemoslam.client.datasets.passes import Passes
+
+    if isinstance(dataset, RenderedOnce):
+        return ("synthetic", dataset.trajectory, dataset.path.duration, dataset.rate, dataset.camera, dataset.noise,
+                dataset.exposure, dataset.seed, getattr(dataset.person, "walk", None))
+    if isinstance(dataset, Passes):
+        inner = sequence_key(dataset.dataset)
+        return None if inner is None else ("passes", inner, len(dataset.dataset), dataset.passes)
+    return None
+
+
+def _light(features):
+    """A copy of a frame's features without its images (the extractor's `depth` and `grey` are
+    the frame's own: `_ReplayedTracking` takes them from the frame it replays), and which of
+    the two it had."""
+    kept = copy.deepcopy(dataclasses.replace(features, depth=None, grey=None))
+    return kept, (features.depth is not None, features.grey is not None)
+
+
+class _RecordedTracking:
+    """In place of a pipeline's extractor and odometry: runs them and keeps, per frame, a copy
+    of the features (without the images) and of the odometry's result."""
+
+    def __init__(self, pipeline, records: list):
+        self.extractor, self.odometry, self.records = pipeline.extractor, pipeline.odometry, records
+
+    @property
+    def disparity_offset(self):
+        return self.odometry.disparity_offset
+
+    def extract(self, frame):
+        self.features = self.extractor.extract(frame)
+        return self.features
+
+    def track(self, features, stamp, depth_stamp=None):
+        tracked = self.odometry.track(features, stamp, depth_stamp)
+        self.records.append((*_light(self.features), copy.deepcopy(tracked), stamp))
+        return tracked
+
+
+class _ReplayedTracking:
+    """In place of a pipeline's extractor and odometry: the recorded features (with the
+    frame's images, as the extractor gives them) and odometry results, in order; copies, so
+    that what the map update does to them stays in its run."""
+
+    disparity_offset = None  # (monocular / RGB-D sequences only: `sequence_key`)
+
+    def __init__(self, records: list):
+        self.records, self.next = records, 0
+
+    def extract(self, frame):
+        features, (depth, grey) = self.records[self.next][:2]
+        return dataclasses.replace(copy.deepcopy(features), depth=frame.depth if depth else None,
+                                   grey=frame.grey if grey else None)
+
+    def track(self, features, stamp, depth_stamp=None):
+        _, _, tracked, recorded = self.records[self.next]
+        assert stamp == recorded, f"replayed tracking: frame {self.next} at {stamp}, recorded at {recorded}"
+        self.next += 1
+        return copy.deepcopy(tracked)
+
+
+def _tracking_key(dataset, config, key: tuple | None = None) -> tuple | None:
+    key = key if key is not None else sequence_key(dataset)
+    if key is None:
+        return None
+    return key, repr((config.features, config.odometry, config.keyframe, config.stereo, config.seed))
+
+
+def recorded_frames(dataset, config, key: tuple | None = None) -> int:
+    """How many frames of `dataset`'s sequence have their tracking recorded with `config`'s
+    tracking configuration (`run_tracked_once` replays it for runs of at most that many)."""
+    done = _TRACKS.get(_tracking_key(dataset, config, key))
+    return 0 if done is None else done[0]
+
+
+def tracked_once(pipeline, dataset, config, key: tuple | None = None):
+    """Have `pipeline` (built for `dataset` with `config`) replay the tracking a previous run
+    of the same frames with the same tracking configuration recorded (`run_tracked_once`), or
+    record its own for the runs after it. Returns a function to call once the run has played
+    every frame of `dataset` (it keeps the record)."""
+    key = _tracking_key(dataset, config, key)
+    if key is None:
+        return lambda: None
+    done = _TRACKS.get(key)
+    if done is not None and done[0] >= len(dataset):
+        pipeline.extractor = pipeline.odometry = _ReplayedTracking(done[1])
+        return lambda: None
+    records: list = []
+    pipeline.extractor = pipeline.odometry = _RecordedTracking(pipeline, records)
+
+    def keep():
+        if len(records) and (done is None or done[0] < len(dataset)):
+            _TRACKS[key] = (len(dataset), records)
+    return keep
+
+
+def run_tracked_once(dataset, config, out_dir=None, key: tuple | None = None, **options):
+    """`run_dataset(dataset, config, out_dir, **options)` whose tracking (feature extraction and
+    odometry; the keyframe decisions follow from it) is played once per test session for the same frames and
+    tracking configuration (`features`, `odometry`, `keyframe`, `stereo`, `seed`), and replayed
+    by the runs after it: for runs that differ in the map update or semantics only, of the
+    sequences `sequence_key` knows or under an explicit `key` (a real sequence: its path).
+    Tracking never reads the map update, so the replayed frames are those it would track again
+    (tests/test_sequences.py checks the identity, bit for bit; tests/test_loop_closure.py's
+    `test_replayed_tracking_is_the_tracking` checks a replayed run against a fresh one); a
+    test about tracking itself runs `run_dataset`."""
+    from mnemoslam.service import runner
+
+    build, keep = runner.build_pipeline, []
+
+    def build_and_replay(store, robot, calibration, cfg, **kw):
+        pipeline = build(store, robot, calibration, cfg, **kw)
+        keep.append(tracked_once(pipeline, dataset, cfg, key))
+        return pipeline
+
+    runner.build_pipeline = build_and_replay
+    try:
+        out = runner.run_dataset(dataset, config, out_dir, **options)
+    finally:
+        runner.build_pipeline = build
+    for k in keep:
+        k()
+    return out
+
+
+# ------------------------------------------------------------------------------------------
 # Runs several test modules read
 
 LOOP_NOISY = dict(rate=10, noise=True)  # the synthetic loop (60 s) at 10 Hz with depth noise: 601 frames
@@ -134,14 +271,14 @@ def loop_run(tmp_path_factory):
     """The synthetic loop at 10 Hz with depth noise through the offline runner once per session,
     default configuration (loop closure on): `(dataset, RunOutput, config, out_dir)`.
     tests/test_loop_closure.py (loop closure) and tests/test_synthetic_run.py (tracking,
-    outputs) check the same run instead of each playing the loop again. Read-only."""
+    outputs) check the same run instead of each playing the loop again; its tracking is recorded
+    (`run_tracked_once`) for tests/test_semantics.py's run of the same frames. Read-only."""
     from mnemoslam.service.config import load_config
-    from mnemoslam.service.runner import run_dataset
 
     out_dir = tmp_path_factory.mktemp("loop_run")
     ds = synthetic("loop", **LOOP_NOISY)  # the frames tests/test_semantics.py's run plays too
     cfg = load_config()
-    return ds, run_dataset(ds, cfg, out_dir, progress=False), cfg, out_dir
+    return ds, run_tracked_once(ds, cfg, out_dir, progress=False), cfg, out_dir
 
 
 @pytest.fixture(scope="session")
@@ -149,14 +286,15 @@ def figure8_run(tmp_path_factory):
     """FIGURE8 through the offline runner once per session, default configuration (loop
     closure on, the map update inline in this process): `(dataset, RunOutput, config, out_dir)`.
     tests/test_loop_closure.py checks its loops, tests/test_mapping_process.py compares the
-    mapping process with it. Read-only."""
+    mapping process with it. Its tracking is recorded (`run_tracked_once`) for the other runs
+    of these frames that vary the map update (link refinement off, the mapping process, a
+    bounded working memory). Read-only."""
     from mnemoslam.service.config import load_config
-    from mnemoslam.service.runner import run_dataset
 
     out_dir = tmp_path_factory.mktemp("figure8_run")
     ds = synthetic("figure8", **FIGURE8)
     cfg = load_config()
-    return ds, run_dataset(ds, cfg, out_dir, progress=False), cfg, out_dir
+    return ds, run_tracked_once(ds, cfg, out_dir, progress=False), cfg, out_dir
 
 
 # ------------------------------------------------------------------------------------------
@@ -243,16 +381,21 @@ def _check_slow_names():
 
 # With pytest-xdist's workers (`make test`: `-n 2 --dist loadfile`) each module runs on one worker,
 # so that its module-scoped fixtures run once, and the modules of a group in XDIST_GROUPS share a
-# worker: they check the same session-scoped runs (`loop_run`, `figure8_run`) or play the same
-# frames rendered once (`synthetic`), which a second worker would compute again. The groups and
-# modules in XDIST_FIRST start first, longest first (measured), so that no long one is left for
-# the end while the other worker idles; the rest follow in collection order.
+# worker: they check the same session-scoped runs (`loop_run`, `figure8_run`), replay the
+# tracking those runs recorded (`run_tracked_once`) or play the same frames rendered once
+# (`synthetic`), which a second worker would compute again ("walk-a": the walk_a frames played
+# three times, tracked once for test_rehearsal and test_memory_revisits, rendered once for
+# test_startup too). The groups and modules in XDIST_FIRST start first, longest first
+# (measured), so that no long one is left for the end while the other worker idles; the rest
+# follow in collection order.
 XDIST_GROUPS = {
     "test_loop_closure.py": "shared-runs", "test_synthetic_run.py": "shared-runs",
     "test_mapping_process.py": "shared-runs", "test_semantics.py": "shared-runs",
+    "test_working_memory.py": "shared-runs",
+    "test_rehearsal.py": "walk-a", "test_memory_revisits.py": "walk-a", "test_startup.py": "walk-a",
 }
 XDIST_FIRST = ["shared-runs", "test_recovery.py", "test_sequences.py", "test_service.py", "test_semantic_service.py",
-               "test_streamer.py", "test_viewer.py", "test_memory_crash.py", "test_cli.py"]
+               "walk-a", "test_viewer.py", "test_memory_crash.py", "test_cli.py"]
 
 
 def _xdist_group(path: Path) -> str:

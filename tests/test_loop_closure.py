@@ -14,16 +14,21 @@ from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate, evaluate_map_loops
 from mnemoslam.storage import LinkType, MapStore
 
-from conftest import FIGURE8, synthetic
+from conftest import FIGURE8, recorded_frames, run_tracked_once, synthetic
 
 
 def _run(out_dir, trajectory, enabled=True, dataset=None, rendered_once=False, **loop):
+    """A run with these loop settings and no occupancy grid (what these tests check is the map's
+    links and poses, which the grids never change; the grids are tests/test_grid*.py's and the
+    session's runs make them); `rendered_once`: the session's frames (tests/conftest.py `synthetic`) and the
+    tracking the session's run of them recorded (`run_tracked_once`: these runs differ from it
+    in the map update only)."""
     from mnemoslam.service.runner import run_dataset
 
     options = dataset or dict(rate=10, noise=True)
     ds = synthetic(trajectory, **options) if rendered_once else open_dataset(f"synthetic:{trajectory}", **options)
-    cfg = load_config(overrides={"loop": {"enabled": enabled, **loop}})
-    out = run_dataset(ds, cfg, out_dir, progress=False)
+    cfg = load_config(overrides={"loop": {"enabled": enabled, **loop}, "grid": {"enabled": False}})
+    out = (run_tracked_once if rendered_once else run_dataset)(ds, cfg, out_dir, progress=False)
     return ds, out, cfg
 
 
@@ -122,6 +127,32 @@ def test_link_refinement_never_makes_the_map_worse(figure8_run, tmp_path):
     ate_off = evaluate(ds.ground_truth, off.keyframes).ate_rmse
     ate_odometry = evaluate(ds.ground_truth, odometry_keyframes(out)).ate_rmse
     assert ate < ate_odometry and ate <= 1.02 * ate_off, (ate, ate_off, ate_odometry)
+
+
+def test_replayed_tracking_is_the_tracking(figure8_run, tmp_path):
+    """The runs here and in other modules that replay the session's tracking of a sequence
+    (tests/conftest.py `run_tracked_once`) get what they would get tracking again: the first 40
+    frames of the figure-8 (keyframes, path links, their map update) tracked afresh, and replayed
+    from `figure8_run`'s record, give the same trajectories and map, bit for bit."""
+    import hashlib
+
+    from mnemoslam.service.runner import run_dataset
+
+    ds = synthetic("figure8", **FIGURE8, max_frames=40)
+    cfg = load_config()
+    assert recorded_frames(ds, cfg) >= len(ds)  # figure8_run's record: the second run replays it
+    maps = {}
+    for name, run in (("fresh", run_dataset), ("replayed", run_tracked_once)):
+        out = run(ds, cfg, tmp_path / name, progress=False)
+        with MapStore(tmp_path / name / "map.db", create=False) as store:
+            nodes = [(n.id, n.stamp, n.pose.tobytes()) for n in store.nodes(limit=None, merged=None)]
+            links = sorted((lk.from_id, lk.to_id, int(lk.type), lk.transform.tobytes(), lk.information.tobytes())
+                           for lk in store.links())
+        files = {f: hashlib.sha256((tmp_path / name / f).read_bytes()).hexdigest()
+                 for f in ("trajectory.tum", "trajectory_online.tum", "keyframes.tum")}
+        maps[name] = (out.summary.keyframes, nodes, links, files)
+    assert maps["fresh"][0] >= 10 and any(lk[2] == LinkType.LOCAL_TIME for lk in maps["fresh"][2])
+    assert maps["replayed"] == maps["fresh"]
 
 
 def test_repeated_texture_walk_makes_no_false_link(tmp_path):

@@ -17,7 +17,7 @@ from mnemoslam.service.memory.keyframes import KeyframeWriter
 from mnemoslam.service.pipeline import Pipeline
 from mnemoslam.storage import LinkType, MapStore
 
-from conftest import FIGURE8, synthetic
+from conftest import FIGURE8, synthetic, tracked_once
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,9 @@ def mapped(tmp_path_factory, figure8_run):
     """The figure-8 (tests/conftest.py FIGURE8: the second lap revisits the first, loops from
     ~frame 280) tracked here, its map update in the mapping process, as in the service. The
     in-process mapper it is compared with is the session's offline run of the same frames
-    (`figure8_run`: the same tracking, so the same keyframes and updates, mapped inline)."""
+    (`figure8_run`: the same tracking, so the same keyframes and updates, mapped inline). The
+    tracking here is that run's, replayed (tests/conftest.py `tracked_once`): what is compared
+    is the map update in the child against the inline one."""
     ds = synthetic("figure8", **FIGURE8)  # rendered once for the session (tests/conftest.py)
     # every keyframe goes to the child with its images however far behind it falls (frames are fed
     # as fast as tracking goes): the comparison with the inline run needs them all
@@ -38,6 +40,7 @@ def mapped(tmp_path_factory, figure8_run):
         proxy = mp.mapper("r1", ds.calibration.camera, lambda kind, data: events.append((kind, data)))
         memory = KeyframeWriter(store, "r1", ds.calibration, cfg)
         pipeline = Pipeline(ds.calibration, cfg, memory, proxy)
+        tracked_once(pipeline, ds, cfg)
         results = [pipeline.process(ds.frame(i)) for i in range(len(ds))]
         assert proxy.close(timeout=600)
         correction = proxy.correction

@@ -8,10 +8,9 @@ import pytest
 from mnemoslam.client.datasets.passes import Passes
 from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate
-from mnemoslam.service.runner import run_dataset
 from mnemoslam.storage import MapStore
 
-from conftest import synthetic
+from conftest import run_tracked_once, synthetic
 
 PASSES = 3
 MAX_WM = 20
@@ -26,7 +25,7 @@ def bounded(tmp_path_factory):
     ds = Passes(base, PASSES)
     out_dir = tmp_path_factory.mktemp("revisits")
     cfg = load_config(None, {"memory": {"max_wm_nodes": MAX_WM}, "semantics": {"enabled": False}})
-    out = run_dataset(ds, cfg, out_dir, progress=False)
+    out = run_tracked_once(ds, cfg, out_dir, progress=False)  # tracking recorded once (conftest)
     rows = list(csv.DictReader(open(out_dir / "updates.csv")))
     first_pass_end = ds.stamps[len(base) - 1]
     with MapStore(out_dir / "map.db") as store:

@@ -9,10 +9,9 @@ from mnemoslam.client.datasets.passes import Passes
 from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.service.mapping.mapper import Mapper
-from mnemoslam.service.runner import run_dataset
 from mnemoslam.storage import LinkType, MapStore, UnknownIdError
 
-from conftest import synthetic
+from conftest import run_tracked_once, synthetic
 
 PASSES = 3
 
@@ -26,7 +25,7 @@ def walked(tmp_path_factory):
     ds = Passes(base, PASSES)
     out_dir = tmp_path_factory.mktemp("rehearsal")
     cfg = load_config(None, {"memory": {"rehearsal": True}})
-    out = run_dataset(ds, cfg, out_dir, progress=False)
+    out = run_tracked_once(ds, cfg, out_dir, progress=False)  # tracking recorded once (conftest)
     rows = list(csv.DictReader(open(out_dir / "updates.csv")))
     first_pass_end = ds.stamps[len(base) - 1]
     return {"ds": ds, "out": out, "dir": out_dir, "cfg": cfg, "rows": rows,

@@ -30,7 +30,7 @@ from mnemoslam.service.semantics.segmentation import (
 )
 from mnemoslam.storage import MapStore
 
-from conftest import RenderedOnce, require, require_model
+from conftest import RenderedOnce, require, require_model, run_tracked_once
 
 DOOR = 15
 # 601 frames; the loop sees door_1..3 whole (figure-8 sees door_3 half, behind a corner)
@@ -57,12 +57,15 @@ class _Recording(RenderedOnce):
 
 @pytest.fixture(scope="module")
 def camera_run(tmp_path_factory):
-    """The synthetic loop with the camera's labels, a small working memory (anchors go to LTM)."""
+    """The synthetic loop with the camera's labels, a small working memory (anchors go to LTM).
+    Its tracking is the session's `loop_run`'s (the same frames and tracking configuration,
+    recorded once: tests/conftest.py `run_tracked_once`); no occupancy grid (the objects are
+    fused from labels and depth, never from the grids; `loop_run` makes these frames' grids)."""
     out_dir = tmp_path_factory.mktemp("semantics")
     ds = _Recording("loop", **LOOP)
-    cfg = load_config(None, CAMERA)
+    cfg = load_config(None, {**CAMERA, "grid": {"enabled": False}})
     assert cfg.semantics.stride == S
-    out = run_dataset(ds, cfg, out_dir, progress=False)
+    out = run_tracked_once(ds, cfg, out_dir, progress=False)
     return ds, out, out_dir
 
 

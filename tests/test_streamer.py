@@ -23,6 +23,8 @@ from mnemoslam.client.kernel.protocol import (
     decode_frame,
     decode_info,
     decode_info_message,
+    encode_pose,
+    peek_seq,
     quantize_depth,
 )
 from mnemoslam.client.streamer import CameraStreamer, add_stream_arguments, stream_dataset, stream_main
@@ -40,7 +42,11 @@ def endpoint(port: int) -> str:
 
 
 class Collector:
-    """A service-like session listening on a free port, subscribed to all frames and infos."""
+    """A service-like session listening on a free port, subscribed to all frames and infos,
+    which answers each frame with a pose message (no pose) as the service does: the camera's
+    flow control (`stream_dataset` with `rate=None` keeps at most `window` frames unanswered)
+    then goes on at once, where a collector that never answered made it wait `answer_timeout`
+    (2 s) for every frame beyond the window (20 frames: ~34 s of the suite's time)."""
 
     def __init__(self, prefix: str):
         self.port = free_port()
@@ -50,14 +56,18 @@ class Collector:
         self.infos: list[tuple[str, bytes]] = []
         self.lock = threading.Lock()
         self._subs = [
-            self.session.declare_subscriber(self.keyspace.frames_wildcard(), self._on(self.frames)),
+            self.session.declare_subscriber(self.keyspace.frames_wildcard(), self._on(self.frames, answer=True)),
             self.session.declare_subscriber(self.keyspace.info_wildcard(), self._on(self.infos)),
         ]
 
-    def _on(self, store):
+    def _on(self, store, answer: bool = False):
         def callback(sample):
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
             with self.lock:
-                store.append((str(sample.key_expr), sample.payload.to_bytes()))
+                store.append((key, payload))
+            seq, robot = peek_seq(payload), self.keyspace.robot_of(key)
+            if answer and seq is not None and robot is not None:
+                self.session.put(self.keyspace.pose(robot), encode_pose(robot, seq, 0.0, "ok", None))
         return callback
 
     @property

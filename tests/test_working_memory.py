@@ -138,14 +138,16 @@ def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(t
 
     from mnemoslam.service.config import load_config
     from mnemoslam.service.evaluation import evaluate
-    from mnemoslam.service.runner import run_dataset
     from mnemoslam.storage import MapStore
 
-    from conftest import FIGURE8, synthetic
+    from conftest import FIGURE8, run_tracked_once, synthetic
 
     ds = synthetic("figure8", **FIGURE8, max_frames=260)  # rendered once for the session (conftest)
-    cfg = load_config(None, {"memory": {"max_wm_nodes": 20}})
-    out = run_dataset(ds, cfg, tmp_path, progress=False)
+    # no occupancy grid: the map update never reads it (the session's figure8_run makes these
+    # frames' grids); the tracking of that run (conftest `figure8_run`), replayed when this
+    # module runs beside it: a bounded working memory changes the map update only
+    cfg = load_config(None, {"memory": {"max_wm_nodes": 20}, "grid": {"enabled": False}})
+    out = run_tracked_once(ds, cfg, tmp_path, progress=False)
     rows = list(csv.DictReader(open(tmp_path / "updates.csv")))
     assert len(rows) == out.summary.keyframes
     assert max(int(r["wm"]) for r in rows) <= 20

@@ -534,9 +534,14 @@ class SyntheticScene:
         inside = np.zeros(len(P), bool)
         for lo, hi in list(ROOMS.values()) + list(DOORWAYS.values()):
             inside |= np.all((P >= lo) & (P <= hi), 1)
+        # each object's box tested on the points inside whose x lies within it (sorted by x)
+        idx = np.flatnonzero(inside)
+        idx = idx[np.argsort(P[idx, 0], kind="stable")]
+        xs = P[idx, 0]
         for o in self.objects:
             lo, hi = np.subtract(o.bbox_min, margin), np.add(o.bbox_max, margin)
-            inside &= ~np.all((P >= lo) & (P <= hi), 1)
+            near = idx[np.searchsorted(xs, lo[0], "left"):np.searchsorted(xs, hi[0], "right")]
+            inside[near[np.all((P[near] >= lo) & (P[near] <= hi), 1)]] = False
         return inside
 
 

@@ -4,7 +4,9 @@ registration (`service.mapping.verification`) refines links with: `DenseView`, a
 stored images when it is first needed."""
 from __future__ import annotations
 
+import collections
 import logging
+import threading
 
 import cv2
 import numpy as np
@@ -18,11 +20,24 @@ from .keyframes import decode_images
 log = logging.getLogger("mnemoslam.memory")
 
 
+LEVELS_KEPT = 16  # dense views (per process) whose registration pyramid stays built: the last ones registered
+
+
 class DenseView:
     """What dense registration needs of a keyframe, kept small: its depth and grey image
     reduced `factor` times (a 640×480 frame keeps 160×120, ~150 kB instead of 1.5 MB).
     The reduced images give exactly the coarse pyramid levels `icp.depth_pyramid` builds
-    from the full ones (depth sampled every `factor` pixels, grey by Gaussian pyramid)."""
+    from the full ones (depth sampled every `factor` pixels, grey by Gaussian pyramid).
+
+    `levels()` builds the pyramid once and keeps it while the view is among the LEVELS_KEPT
+    views of the process registered last (~2 MB each at 160×120 with what registration derives
+    from them): a map update registers its keyframe with several candidates (its path, the
+    nearest keyframes, a loop), and the recent path's keyframes are candidates again in the next
+    updates, so that each pyramid was built ~4 times. Registration only reads the levels (their
+    derived arrays are memoised on them), so a kept pyramid is the one building it again gives."""
+
+    _recent: collections.OrderedDict[int, DenseView] = collections.OrderedDict()
+    _recent_lock = threading.Lock()
 
     def __init__(self, depth: np.ndarray, grey: np.ndarray, camera: PinholeCamera, factor: int = 4):
         if factor & (factor - 1) or factor > min(icp.STEPS):
@@ -41,9 +56,25 @@ class DenseView:
                                     camera.distortion)  # (normalized coefficients: any image scale)
         self.steps = tuple(s // factor for s in icp.STEPS)
         self.factor = factor
+        self._levels: list | None = None
 
     def levels(self) -> list:
-        return icp.depth_pyramid(self.depth, self.camera, self.steps, grey=self.grey)
+        """The registration pyramid of the view (`icp.depth_pyramid`), kept while the view is
+        among the LEVELS_KEPT registered last."""
+        recent = DenseView._recent
+        with DenseView._recent_lock:
+            levels = self._levels
+            if levels is not None:
+                recent.move_to_end(id(self))
+                return levels
+        levels = icp.depth_pyramid(self.depth, self.camera, self.steps, grey=self.grey)
+        with DenseView._recent_lock:
+            if self._levels is None:
+                self._levels = levels
+                recent[id(self)] = self
+                while len(recent) > LEVELS_KEPT:
+                    recent.popitem(last=False)[1]._levels = None
+            return self._levels
 
 
 class StoredViews(dict):
