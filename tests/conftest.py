@@ -44,6 +44,22 @@ def slam_config(overrides: dict | None = None):
     return load_config(overrides=service_config(overrides))
 
 
+def run_cli(*argv) -> str:
+    """`mnemoslam run ARGV` in this process with semantics and the occupancy grid off (the
+    multi-session and localization tests check poses and links), its standard output; exit
+    code 0 asserted."""
+    import contextlib
+    import io
+
+    from mnemoslam.service.cli import main
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main(["run", *argv, "-q", "--set", "semantics.enabled=false", "--set", "grid.enabled=false"])
+    assert code == 0, buf.getvalue()
+    return buf.getvalue()
+
+
 def require(path: Path) -> Path:
     """A sequence inside the data folder, skipped (or failed in CI) when missing."""
     if not path.exists():

@@ -22,6 +22,7 @@ from mnemoslam.client.kernel.geometry import invert
 from mnemoslam.client.kernel.trajectory import read_tum
 from mnemoslam.storage import MapStore
 
+from conftest import run_cli as _run
 from conftest import service_config
 
 RATE = 5.0  # frames/s of each walk
@@ -31,19 +32,6 @@ B_LOCALIZE = (90, 130)  # a shorter range for the per-robot test (B relocalizes 
 
 def _sha(path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def _run(*argv) -> str:
-    import contextlib
-    import io
-
-    from mnemoslam.service.cli import main
-
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        code = main(["run", *argv, "-q", "--set", "semantics.enabled=false", "--set", "grid.enabled=false"])
-    assert code == 0, buf.getvalue()
-    return buf.getvalue()
 
 
 @pytest.fixture(scope="module")

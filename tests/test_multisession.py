@@ -16,6 +16,7 @@ from mnemoslam.client.kernel.geometry import invert, rotation_angle
 from mnemoslam.service.builder import build_pipeline
 from mnemoslam.storage import LinkType, MapStore
 
+from conftest import run_cli as _run
 from conftest import slam_config
 
 RATE = 5.0  # frames/s of each walk (36 and 38 s)
@@ -173,20 +174,6 @@ def test_identical_posters_elsewhere_do_not_join_the_maps(tmp_path):
 
 
 # -- offline: `mnemoslam run DATASET --db MAP.db --out DIR` (issue 22 item 6) ---------------------
-
-def _run(*argv) -> str:
-    """`mnemoslam run ARGV` (semantics and grid off), its standard output; exit code 0 asserted."""
-    import contextlib
-    import io
-
-    from mnemoslam.service.cli import main
-
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        code = main(["run", *argv, "-q", "--set", "semantics.enabled=false", "--set", "grid.enabled=false"])
-    assert code == 0, buf.getvalue()
-    return buf.getvalue()
-
 
 def _summary(folder):
     import json
