@@ -279,8 +279,11 @@ class RosIngest:
                 st.stamps[stamp] = pair.ns
                 while len(st.stamps) > 4096:
                     st.stamps.popitem(last=False)
+        # the depth image's own stamp, as the rosbag player gives it: the tracker moves the depth
+        # to the colour image's time (odometry.depth_time_compensation)
+        extras = {"depth_stamp": ros_cdr.seconds(ros_cdr.stamp_ns(pair.depth))}
         return pair.seq, Frame(index=pair.seq, stamp=stamp, image=image, depth=depth,
-                               source=f"{session.robot}#{pair.seq}")
+                               source=f"{session.robot}#{pair.seq}", extras=extras)
 
     # -- worker threads --------------------------------------------------------------------
     def on_result(self, robot: str, frame: Frame, pose) -> None:

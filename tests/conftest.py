@@ -374,6 +374,7 @@ SLOW: dict[str, str | set[str]] = {
     "test_loop_detection.py": {"test_revisit_accepted_and_no_false_accepts"},
     "test_ros2.py": {"test_ros_robots_map_exactly_as_the_native_robot"},
     "test_grid_real.py": {"test_desk_grid_up_is_the_accelerometers_and_agrees_with_the_floor"},
+    "test_depth_time.py": {"test_streamed_tum_frames_bring_their_depth_stamp_and_accelerometer"},
     "test_rosbag.py": {"test_bag_frames_are_the_folder_frames", "test_run_cli_on_rosbag2_sqlite3_gives_the_folder_ate",
                        "test_run_on_mcap_and_ros1_bags_gives_the_folder_ate",
                        "test_stream_bag_through_the_service_maps_like_the_folder_run",

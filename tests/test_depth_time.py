@@ -154,3 +154,48 @@ def test_tum_fr1_desk_fast_turn_odometry(data_dir):
     # against 4.24 without
     assert ate_on < ate_off, (ate_on, ate_off)
     assert ate_on < 0.05, ate_on
+
+
+@pytest.mark.data
+def test_streamed_tum_frames_bring_their_depth_stamp_and_accelerometer(data_dir, tmp_path):
+    """`mnemoslam stream` of fr1/desk's fast turn (frames 130-189) into the real service: the
+    frame messages carry each depth image's own stamp and the accelerometer reading (protocol
+    sensor fields), so the service tracks the frames exactly as the offline run of the same
+    frames does, depth moved to the colour time, and takes the grid's up from the
+    accelerometer. Without the depth stamp the same frames track up to 5 cm elsewhere
+    (offline with odometry.depth_time_compensation off, measured 2026-11-27: keyframes 7 mm
+    apart from the second on), so a service that lost it fails the 1 mm bound."""
+    from mnemoslam.client.datasets.subrange import frame_range
+    from mnemoslam.service.cli import main
+    from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
+    from mnemoslam.storage import MapStore
+
+    from conftest import service_config
+
+    path = require(data_dir / "rgbd_dataset_freiburg1_desk")
+    ds = frame_range(open_dataset(path), (130, 190))
+    offline = run_dataset(ds, slam_config(), tmp_path / "offline", progress=False)
+    svc = ServiceProcess(tmp_path / "map.db",
+                         service_config({"service": {"queue_size": 10000, "idle_timeout": 3600.0}})).start()
+    try:
+        assert main(["stream", str(path), "--frames", "130:190", "--robot", "desk", "--connect", svc.endpoint,
+                     "--encoding", "png", "--depth-encoding", "png", "--wait", "10", "-q"]) == 0
+        robot = svc.wait_processed("desk", len(ds))
+        assert robot["frames_processed"] == len(ds) and robot["frames_dropped"] == 0
+        svc.wait_mapped("desk", timeout=120)
+        streamed = keyframe_trajectory(svc.api, svc.session_of("desk"))
+    finally:
+        svc.stop()
+    n = len(offline.keyframes)
+    assert len(streamed) == n
+    np.testing.assert_allclose(streamed.stamps, offline.keyframes.stamps, atol=1e-6)
+    assert np.abs(streamed.positions - offline.keyframes.positions).max() < 1e-3
+    # the grid's up as offline: the floor's until the session has 15 accelerometer readings
+    # (grid.local.ACCEL_MIN_READINGS), then theirs (17 keyframes here)
+    ups = []
+    for db in (tmp_path / "map.db", tmp_path / "offline" / "map.db"):
+        with MapStore(db) as s:
+            grids = s.local_grids(r.id for r in s.nodes(limit=None))
+            ups.append([grids[k].up_source for k in sorted(grids)])
+    assert ups[0] == ups[1] and len(ups[0]) == n, ups
+    assert "accelerometer" in ups[0], ups

@@ -198,7 +198,7 @@ def test_crafted_messages_have_their_reason():
     grey = np.arange(12, dtype=np.uint8).reshape(3, 4)
     assert decode_frame(_craft()).kind == "mono"  # the baseline is valid
     assert decode_frame(_craft(extra=b"\x00" * 5)).kind == "mono"  # extension bytes are skipped
-    assert decode_frame(_craft(flags=0xFFFF)).kind == "mono"  # flags are ignored
+    assert decode_frame(_craft(flags=0xFFFC)).kind == "mono"  # reserved flags bits are ignored
     png16 = _png(np.zeros((3, 4), np.uint16))
     cases = {
         "too_large": [(_craft(w=40, h=40), Limits(max_message_bytes=1000))],
@@ -751,3 +751,64 @@ def test_info_class_table():
             with pytest.raises(ProtocolError):
                 encode_info("bot", CAL, classes=classes)
     assert decode_info_message(json.dumps(dict(base, classes=None)).encode()).classes is None  # null = absent
+
+
+# ------------------------------------------------------------------------------------------
+# sensor fields: the depth image's stamp and the accelerometer (flags bits 0 and 1)
+
+def test_sensor_fields_round_trip_and_layout():
+    """A frame's depth stamp and accelerometer reading travel exactly in the header's
+    extension bytes, in flags-bit order after the version's fields, in both versions; a frame
+    without them is byte for byte as before; a reader that ignores flags (an older one) skips
+    them and still decodes the images."""
+    f = _rgbd()
+    plain = encode_frame(f, "ab", 5, color="raw", depth="raw")
+    f.extras.update(depth_stamp=1.2371, accel=np.array([0.31, -9.62, 1.75]))
+    msg = encode_frame(f, "ab", 5, color="raw", depth="raw")
+    fields = FIXED.unpack_from(msg, 0)
+    assert fields[1] == 1 and fields[3] == 0b11 and fields[2] == 49 + 8 + 24  # header_len covers them
+    assert struct.unpack_from("<d3d", msg, 49) == (1.2371, 0.31, -9.62, 1.75)
+    assert msg[49 + 32:] == plain[49:]  # then the payloads, unchanged
+    w = decode_frame(msg)
+    assert w.frame.extras["depth_stamp"] == 1.2371
+    np.testing.assert_array_equal(w.frame.extras["accel"], [0.31, -9.62, 1.75])
+    np.testing.assert_array_equal(w.frame.depth, decode_frame(plain).frame.depth)
+    older = bytearray(msg)
+    struct.pack_into("<H", older, 8, 0)  # what a reader that ignores flags sees
+    assert decode_frame(bytes(older)).frame.extras == {} and decode_frame(bytes(older)).seq == 5
+    # each alone, and after a version 2 message's label fields
+    only_accel = dict(f.extras)
+    del only_accel["depth_stamp"]
+    g = Frame(index=3, stamp=1.25, image=f.image, depth=f.depth, extras=only_accel)
+    m = encode_frame(g, "ab", 5, color="raw", depth="raw")
+    assert FIXED.unpack_from(m, 0)[3] == 0b10 and set(decode_frame(m).frame.extras) == {"accel"}
+    g.extras = {"depth_stamp": 3.5, "labels": np.zeros((48, 64), np.uint8)}
+    m = encode_frame(g, "ab", 5, color="raw", depth="raw", labels="raw")
+    w = decode_frame(m)
+    assert w.version == 2 and w.frame.extras["depth_stamp"] == 3.5 and w.frame.extras["labels"].shape == (48, 64)
+    # the depth stamp belongs to depth: a mono message of the same frame has none
+    assert "depth_stamp" not in decode_frame(encode_frame(g, "ab", 5, color="raw", kind="mono")).frame.extras
+
+
+def test_malformed_sensor_fields_have_their_reason():
+    stamp = struct.pack("<d", 2.0)
+    accel = struct.pack("<3d", 0.0, -9.8, 0.0)
+    rgbd = dict(kind=0, senc=1, p2=bytes(24))
+    assert decode_frame(_craft(flags=1, extra=stamp, **rgbd)).frame.extras == {"depth_stamp": 2.0}
+    assert decode_frame(_craft(flags=2, extra=accel)).frame.extras["accel"].tolist() == [0.0, -9.8, 0.0]
+    assert _reason(_craft(flags=1, extra=stamp[:4], **rgbd)) == "bad_header"  # header too short for it
+    assert _reason(_craft(flags=3, extra=stamp, **rgbd)) == "bad_header"
+    assert _reason(_craft(flags=1, extra=stamp)) == "bad_header"  # a depth stamp without depth
+    for bad in (float("nan"), float("inf"), -1.0):
+        assert _reason(_craft(flags=1, extra=struct.pack("<d", bad), **rgbd)) == "bad_stamp"
+    for bad in ((float("nan"), 0, 0), (0, float("inf"), 0), (2000.0, 0, 0)):
+        assert _reason(_craft(flags=2, extra=struct.pack("<3d", *bad))) == "bad_header"
+    # what cannot be sent
+    f = _rgbd()
+    for extras, reason in (({"depth_stamp": float("nan")}, "bad_stamp"), ({"depth_stamp": "x"}, "bad_stamp"),
+                           ({"accel": [1.0, 2.0]}, "bad_frame"), ({"accel": [0, 0, float("nan")]}, "bad_frame"),
+                           ({"accel": [0, 0, 5000.0]}, "bad_frame")):
+        f.extras = extras
+        with pytest.raises(ProtocolError) as e:
+            encode_frame(f, "r", 1, color="raw", depth="raw")
+        assert e.value.reason == reason, extras

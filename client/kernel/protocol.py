@@ -28,6 +28,23 @@ unchanged unless it sends labels (which an older service refuses as ``bad_versio
 messages stay at ``"version": 1`` (`JSON_VERSION`); the camera info's class table is an
 optional field older readers ignore. `PROTOCOL_VERSION` (2) is the newest frame version.
 
+Sensor fields (any version) ride in the header's extension bytes, announced by `flags` bits,
+so a reader that predates them skips them (it ignores flags and skips up to header_len) and a
+frame without them is byte for byte what writers sent before they existed:
+
+- bit 0 (`FLAG_DEPTH_STAMP`), rgbd only: ``depth_stamp`` f64, the capture time of the depth
+  image in seconds (a Kinect stamps depth and colour apart; the tracker moves the depth to the
+  colour image's time with it: ``frame.extras["depth_stamp"]``); finite, >= 0, else
+  ``bad_stamp``;
+- bit 1 (`FLAG_ACCEL`): ``accel`` 3 x f64, an accelerometer reading at the frame's time in the
+  camera's axes (x right, y down, z forward; the specific force in m/s^2, +g along up when
+  still: ``frame.extras["accel"]``, which the occupancy grid takes its up direction from);
+  finite and at most `MAX_ACCEL` in magnitude, else ``bad_header``.
+
+They follow the version's last field (v1: at 47 + n, v2: at 53 + n) in bit order, each only
+when its bit is set; header_len covers them. Other bits are reserved: writers send 0, readers
+ignore them (a later field comes after these, so the offsets above stay valid).
+
 Frame message (binary, all integers little-endian)
 ==================================================
 ======  ====  ==================  =============================================================
@@ -39,7 +56,8 @@ offset  size  field               meaning
                                   v1, 53 + n in v2). Readers skip bytes between the last
                                   field of the message's version and header_len (room for
                                   later additions); 47 + n (v2: 53 + n) <= header_len <= 1024
-8       2     flags     u16       reserved: v1 writers send 0, v1 readers ignore
+8       2     flags     u16       which sensor fields follow (see "Sensor fields"); 0 for
+                                  none. Unknown bits are ignored
 10      8     seq       u64       per-robot frame counter, increasing by 1 from 0 on each
                                   (re)start of the camera
 18      8     stamp     f64       capture time in seconds (the source's clock); finite, >= 0
@@ -63,8 +81,9 @@ offset  size  field               meaning
                                   (uint16, for class tables of more than 256 classes); 0 when
                                   label_enc is none
 49+n    4     label_len u32       (v2 only) byte length of payload 3 (0 when label_enc is none)
-47+n    ...                       v1: (optional extension bytes up to header_len)
-53+n    ...                       v2: (optional extension bytes up to header_len)
+47+n    ...                       v1: the sensor fields the flags announce, then
+                                  (optional extension bytes up to header_len)
+53+n    ...                       v2: the same
 header_len    color_len bytes     payload 1: the (left) image
 ...           second_len bytes    payload 2: depth or right image
 ...           label_len bytes     payload 3 (v2): the label image
@@ -121,11 +140,12 @@ bad_version       version is not in FRAME_VERSIONS (JSON: "version" is not 1)
 bad_header        header_len out of range, unknown kind / encoding / channel count,
                   kind and encodings inconsistent, bad depth_scale; label encoding
                   unknown, label_bytes not 1 or 2 (wrong label dtype), or label
-                  bytes without a label encoding
+                  bytes without a label encoding; a depth stamp in a frame without
+                  depth; an accelerometer field not finite or beyond MAX_ACCEL
 bad_size          width / height 0 or above the limits, raw payload length != W*H*C
                   (raw labels: != W*H*label_bytes), empty compressed payload
 bad_robot         robot id not utf-8 or not matching the robot pattern
-bad_stamp         stamp NaN, infinite or negative
+bad_stamp         stamp (or depth_stamp) NaN, infinite or negative
 bad_seq           seq not an integer in 0..2**64-1 (encoding / JSON)
 decode_failed     PNG / JPEG payload is corrupt, of the wrong format or bit depth (a
                   label PNG whose bit depth disagrees with label_bytes)
@@ -135,7 +155,8 @@ size_mismatch     image dimensions in the PNG / JPEG header, or of the decoded i
 bad_labels        a label id >= the number of classes in the camera's class table
                   (`Limits.classes`, when the receiver sets it)
 bad_frame         (encoding only) the Frame cannot be sent: wrong dtype / shape (also
-                  of its labels), or labels asked for and frame.extras has none
+                  of its labels), or labels asked for and frame.extras has none, or
+                  its extras' accel is not 3 finite numbers within MAX_ACCEL
 bad_json          JSON message not utf-8 JSON object, or a field of the wrong type
 bad_field         JSON field out of range (non-finite or non-positive focal length...)
 bad_kind          unknown camera kind or event kind
@@ -280,6 +301,10 @@ _STATUS_PATTERN = re.compile(r"[a-z_]{1,32}")
 _FIXED = struct.Struct("<4sHHHQdBBBHHBfB")
 _LENGTHS = struct.Struct("<II")
 _LABEL_FIELDS = struct.Struct("<BBI")  # v2: label_enc, label_bytes, label_len (after the lengths)
+FLAG_DEPTH_STAMP, FLAG_ACCEL = 1, 2  # flags bits: the sensor fields that follow the version's fields
+_DEPTH_STAMP = struct.Struct("<d")
+_ACCEL = struct.Struct("<ddd")
+MAX_ACCEL = 1000.0  # m/s²: an accelerometer reading beyond this is not one
 FIXED_HEADER_BYTES = _FIXED.size  # 39
 MAX_HEADER_BYTES = 1024
 MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1e-3, 1e9  # raw depth units per metre accepted for rgbd frames
@@ -576,12 +601,13 @@ def encode_frame(frame: Frame, robot: str, seq: int, *, depth_scale: float = 100
                 params += [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
             p2 = _imencode(".png", second, params)
 
+    flags, sensors = _sensor_fields(frame, kind)
     rb = robot.encode("utf-8")
-    header_len = FIXED_HEADER_BYTES + len(rb) + _LENGTHS.size
+    header_len = FIXED_HEADER_BYTES + len(rb) + _LENGTHS.size + len(sensors)
     if labels == "none":  # version 1: byte for byte what writers sent before labels existed
-        head = _FIXED.pack(MAGIC, 1, header_len, 0, seq, stamp, KINDS[kind],
+        head = _FIXED.pack(MAGIC, 1, header_len, flags, seq, stamp, KINDS[kind],
                            COLOR_ENCODINGS[color], SECOND_ENCODINGS[second_name], w, h, channels, scale, len(rb))
-        return b"".join((head, rb, _LENGTHS.pack(len(p1), len(p2)), p1, p2))
+        return b"".join((head, rb, _LENGTHS.pack(len(p1), len(p2)), sensors, p1, p2))
     if "labels" not in frame.extras:
         raise ProtocolError("bad_frame", f"{frame.source or 'frame'}: no labels to send (frame.extras['labels'])")
     lab = label_image(frame.extras["labels"], h, w)
@@ -592,10 +618,37 @@ def encode_frame(frame: Frame, robot: str, seq: int, *, depth_scale: float = 100
 
         p3 = _imencode(".png", lab, [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)])
     header_len += _LABEL_FIELDS.size
-    head = _FIXED.pack(MAGIC, 2, header_len, 0, seq, stamp, KINDS[kind],
+    head = _FIXED.pack(MAGIC, 2, header_len, flags, seq, stamp, KINDS[kind],
                        COLOR_ENCODINGS[color], SECOND_ENCODINGS[second_name], w, h, channels, scale, len(rb))
     return b"".join((head, rb, _LENGTHS.pack(len(p1), len(p2)),
-                     _LABEL_FIELDS.pack(LABEL_ENCODINGS[labels], lab.itemsize, len(p3)), p1, p2, p3))
+                     _LABEL_FIELDS.pack(LABEL_ENCODINGS[labels], lab.itemsize, len(p3)), sensors, p1, p2, p3))
+
+
+def _sensor_fields(frame: Frame, kind: str) -> tuple[int, bytes]:
+    """(flags, the sensor fields' bytes) of a frame's ``extras["depth_stamp"]`` (rgbd only)
+    and ``extras["accel"]``; (0, b"") for a frame without them."""
+    flags, out = 0, []
+    ds = frame.extras.get("depth_stamp")
+    if ds is not None and kind == "rgbd":
+        try:
+            ds = float(ds)
+        except (TypeError, ValueError):
+            raise ProtocolError("bad_stamp", f"depth_stamp {ds!r} is not a number") from None
+        if not (math.isfinite(ds) and ds >= 0):
+            raise ProtocolError("bad_stamp", f"depth_stamp {ds!r}")
+        flags |= FLAG_DEPTH_STAMP
+        out.append(_DEPTH_STAMP.pack(ds))
+    a = frame.extras.get("accel")
+    if a is not None:
+        try:
+            v = np.asarray(a, np.float64).reshape(3)
+        except (TypeError, ValueError):
+            raise ProtocolError("bad_frame", f"accel must be 3 numbers, got {a!r}") from None
+        if not (np.all(np.isfinite(v)) and float(np.linalg.norm(v)) <= MAX_ACCEL):
+            raise ProtocolError("bad_frame", f"accel {v.tolist()} is not an accelerometer reading")
+        flags |= FLAG_ACCEL
+        out.append(_ACCEL.pack(*v.tolist()))
+    return flags, b"".join(out)
 
 
 def png_header(data: memoryview, what: str) -> tuple[int, int, int, int]:
@@ -707,9 +760,11 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS,
                                            f"{', '.join(map(str, FRAME_VERSIONS))}")
     if n < FIXED_HEADER_BYTES:
         raise ProtocolError("truncated", f"{n} bytes < fixed header {FIXED_HEADER_BYTES}")
-    (_, _, header_len, _flags, seq, stamp, kind, cenc, senc, w, h, channels, scale,
+    (_, _, header_len, flags, seq, stamp, kind, cenc, senc, w, h, channels, scale,
      rlen) = _FIXED.unpack_from(data, 0)
-    min_header = FIXED_HEADER_BYTES + rlen + _LENGTHS.size + (_LABEL_FIELDS.size if version >= 2 else 0)
+    fields_end = FIXED_HEADER_BYTES + rlen + _LENGTHS.size + (_LABEL_FIELDS.size if version >= 2 else 0)
+    min_header = (fields_end + (_DEPTH_STAMP.size if flags & FLAG_DEPTH_STAMP else 0)
+                  + (_ACCEL.size if flags & FLAG_ACCEL else 0))
     if not min_header <= header_len <= MAX_HEADER_BYTES:
         raise ProtocolError("bad_header", f"header_len {header_len} outside {min_header}..{MAX_HEADER_BYTES}")
     if n < header_len:
@@ -753,6 +808,21 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS,
                                              f"{limits.size[0]}×{limits.size[1]}")
     if not math.isfinite(stamp) or stamp < 0:
         raise ProtocolError("bad_stamp", f"stamp {stamp!r}")
+    sensors: dict[str, Any] = {}
+    at = fields_end
+    if flags & FLAG_DEPTH_STAMP:
+        (depth_stamp,) = _DEPTH_STAMP.unpack_from(data, at)
+        at += _DEPTH_STAMP.size
+        if kname != "rgbd":
+            raise ProtocolError("bad_header", f"a depth stamp in a {kname} frame")
+        if not math.isfinite(depth_stamp) or depth_stamp < 0:
+            raise ProtocolError("bad_stamp", f"depth_stamp {depth_stamp!r}")
+        sensors["depth_stamp"] = float(depth_stamp)
+    if flags & FLAG_ACCEL:
+        accel = np.array(_ACCEL.unpack_from(data, at), np.float64)
+        if not (np.all(np.isfinite(accel)) and float(np.linalg.norm(accel)) <= MAX_ACCEL):
+            raise ProtocolError("bad_header", f"accel {accel.tolist()} is not an accelerometer reading")
+        sensors["accel"] = accel
     second_bytes_per_pixel = 2 if kname == "rgbd" else 1
     if cenc == 0 and clen != w * h * channels:
         raise ProtocolError("bad_size", f"raw image is {clen} bytes, expected {w}×{h}×{channels}")
@@ -779,7 +849,8 @@ def decode_frame(payload: Any, limits: Limits = DEFAULT_LIMITS,
         depth = dequantize_depth(_decode_image(p2, _SECOND_NAMES[senc], "depth", w, h, 1, 16), scale)
     elif kname == "stereo":
         right = _decode_image(p2, _SECOND_NAMES[senc], "right image", w, h, 1, 8)
-    frame = Frame(index=seq, stamp=stamp, image=image, depth=depth, right=right, source=f"{robot}#{seq}")
+    frame = Frame(index=seq, stamp=stamp, image=image, depth=depth, right=right, source=f"{robot}#{seq}",
+                  extras=sensors)
     if lenc:
         labels = _decode_image(p3, _LABEL_NAMES[lenc], "labels", w, h, 1, 8 * lbytes)
         if limits.classes is not None and labels.size and int(labels.max()) >= limits.classes:
