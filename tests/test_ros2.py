@@ -261,7 +261,12 @@ def test_ros_robots_map_exactly_as_the_native_robot(tmp_path):
     ds = open_dataset("synthetic:loop", max_frames=FRAMES)
     # stamps whole nanoseconds (a ROS stamp is sec + nanosec), the same for every robot
     stamps_ns = [1_700_000_000 * 10**9 + int(round(float(t) * 1e9)) for t in ds.stamps[:FRAMES]]
-    frames = [dataclasses.replace(ds.frame(i), stamp=ns / 1e9, extras={}) for i, ns in enumerate(stamps_ns)]
+    # every depth image taken 1 ms after its colour image: its stamp travels in the depth message's
+    # header (ROS) and in the frame message's sensor fields (native), and each robot's tracker
+    # moves the depth by the motion over that millisecond, the same way
+    depth_ns = [ns + 1_000_000 for ns in stamps_ns]
+    frames = [dataclasses.replace(ds.frame(i), stamp=ns / 1e9, extras={"depth_stamp": depth_ns[i] / 1e9})
+              for i, ns in enumerate(stamps_ns)]
     # loop closure and rehearsal off: they would link the three robots' identical keyframes in the one map.
     # sync_queue FRAMES: the frames are sent unpaced, and the thread that completes a pair decodes it, so
     # one stream's callbacks can run many images behind the other's (10 seen; the default keeps 8)
@@ -286,20 +291,20 @@ def test_ros_robots_map_exactly_as_the_native_robot(tmp_path):
         def put(key, payload):
             pubs[key].put(payload)
 
-        def raw(i):  # rgb8 + 16UC1 millimetres; depth stamped 1 ms after the colour, sent first every other frame
+        def raw(i):  # rgb8 + 16UC1 millimetres; depth (stamped 1 ms after the colour) sent first every other frame
             ns = stamps_ns[i]
             c = (RAW["color"], ros_cdr.encode_image(frames[i].image, "rgb8", ns))
-            d = (RAW["depth"], ros_cdr.encode_image(frames[i].depth, "16UC1", ns + 1_000_000))
+            d = (RAW["depth"], ros_cdr.encode_image(frames[i].depth, "16UC1", depth_ns[i]))
             put(RAW["info"], info[ns])
             for key, payload in ((d, c) if i % 2 else (c, d)):
                 put(key, payload)
 
-        def compressed(i):  # PNG colour, compressedDepth PNG, the same stamp
+        def compressed(i):  # PNG colour, compressedDepth PNG
             ns = stamps_ns[i]
             if i >= 2:  # (frames 0 and 1 beat the robot's first camera info: held, then mapped)
                 put(CMP["info"], info[ns])
             put(CMP["color"], ros_cdr.encode_compressed(frames[i].image, ns, "png"))
-            put(CMP["depth"], ros_cdr.encode_compressed_depth(frames[i].depth, ns))
+            put(CMP["depth"], ros_cdr.encode_compressed_depth(frames[i].depth, depth_ns[i]))
 
         for i in range(FRAMES):
             raw(i)
