@@ -17,7 +17,8 @@ DATASET --db MAP.db` does (`service.runner.run_dataset(..., db=)`), and prints p
   (the synthetic scene's; one sequence cut in two);
 - `A`, `B`: each session's own ATE (se3-aligned, cm).
 
-Cases: walk_a → walk_b and the reverse (synthetic, `--rate` Hz, default 5), and the negative
+Cases: walk_a → walk_b and the reverse (synthetic, `--rate` Hz, default 5), a third session
+(walk_a → walk_b → loop: a row for each later session, B against A = the first), and the negative
 controls loop → straight (synthetic, no place in common: zero cross links expected) and KITTI
 snippet a → b (when the data is there); with `--real` also TUM fr1/desk frames 0:300 then 300:
 and 7-Scenes redkitchen 0:500 then 500:1000 (one sequence in two sessions, the second
@@ -55,7 +56,9 @@ def cases(rate: float, real: bool = False) -> dict[str, tuple[str, str]]:
     s = f"?rate={rate:g}"
     out = {"walk_a->walk_b": (f"synthetic:walk_a{s}", f"synthetic:walk_b{s}"),
            "walk_b->walk_a": (f"synthetic:walk_b{s}", f"synthetic:walk_a{s}"),
-           "loop->straight": (f"synthetic:loop{s}", f"synthetic:straight{s}")}
+           "loop->straight": (f"synthetic:loop{s}", f"synthetic:straight{s}"),
+           # a third session into the map of two (the loop crosses the walks' rooms)
+           "walk_a->walk_b->loop": (f"synthetic:walk_a{s}", f"synthetic:walk_b{s}", f"synthetic:loop{s}")}
     kitti = _data() / "kitti_odometry_snippets" / "sequences"
     if (kitti / "a").is_dir() and (kitti / "b").is_dir():
         out["kitti a->b"] = (str(kitti / "a"), str(kitti / "b"))
@@ -80,13 +83,19 @@ def _poses_at(gt, stamps):
     return ig, ie
 
 
-def run_case(a_spec: str, b_spec: str, config, folder: Path) -> dict:
+def run_case(specs: tuple[str, ...], config, folder: Path) -> list[dict]:
+    """Each session of `specs` in turn into one map; a row per session after the first (see
+    `_row`), that session as B and the first as A."""
     db = folder / "map.db"
-    runs = {}
-    for name, spec in (("a", a_spec), ("b", b_spec)):
+    runs = []
+    for i, spec in enumerate(specs):
         ds = _open(spec)
-        runs[name] = (ds, run_dataset(ds, config, folder / name, progress=False, db=db))
-    (da, ra), (db_, rb) = runs["a"], runs["b"]
+        runs.append((ds, run_dataset(ds, config, folder / f"s{i}", progress=False, db=db)))
+    return [_row(runs[0], runs[i], db, i) for i in range(1, len(runs))]
+
+
+def _row(first, later, db: Path, index: int) -> dict:
+    (da, ra), (db_, rb) = first, later
     s = rb.summary
     row = {"joined": s.joined, "frame": s.joined_index, "stamp": s.joined_stamp, "cross": s.cross_links,
            "by_type": s.cross_links_by_type or {}}
@@ -117,14 +126,15 @@ def run_case(a_spec: str, b_spec: str, config, folder: Path) -> dict:
     # the cross links against the truth
     errors = []
     with MapStore(db, create=False) as store:
-        sa, sb = [x.id for x in store.sessions()][:2]
+        ids = [x.id for x in store.sessions()]
+        sa, sb = ids[0], ids[index]
         stamp = {}
         for sid, gt in ((sa, ga), (sb, gb)):
             nodes = store.nodes(session_id=sid, limit=None, merged=None)
             ig, ie = _poses_at(gt, np.array([n.stamp for n in nodes]))
             stamp.update({nodes[j].id: gt.poses[i] for i, j in zip(ig, ie)})
         mine = {n.id for n in store.nodes(session_id=sb, limit=None, merged=None)}
-        for lk in store.links(session_id=sb):
+        for lk in store.links(session_id=sb):  # its links to the first session's nodes
             if (lk.from_id in mine) == (lk.to_id in mine) or lk.from_id not in stamp or lk.to_id not in stamp:
                 continue
             d = invert(invert(stamp[lk.from_id]) @ stamp[lk.to_id]) @ lk.transform
@@ -143,29 +153,34 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     config = load_config(overrides=merge_overrides({"semantics": {"enabled": False}, "grid": {"enabled": False}},
                                                    parse_sets(args.set)))
-    for name, (a, b) in cases(args.rate, args.real).items():
+    for name, specs in cases(args.rate, args.real).items():
         if args.only and name not in args.only:
             continue
         with tempfile.TemporaryDirectory(prefix="bench-multisession-") as tmp:
-            r = run_case(a, b, config, Path(tmp))
-        when = (f"joined at frame {r['frame']} ({r['stamp']:.2f} s), "
-                + (f"{r['after_overlap_m']:.2f} m of path after entering the overlap (at {r['overlap_stamp']:.2f} s)"
-                   if r.get("after_overlap_m") is not None else "no overlap by the ground truth")
-                if r["joined"] else "did not join")
-        print(f"{name:16s} {when}")
-        by_type = ", ".join(f"{n} {k}" for k, n in sorted(r["by_type"].items()))
-        if r["errors"]:
-            cm = np.array([e[1] for e in r["errors"]]) * 100
-            deg = np.array([e[2] for e in r["errors"]])
-            print(f"{'':16s} cross links {r['cross']} ({by_type}; {len(cm)} with ground truth at both ends): "
-                  f"median {np.median(cm):.2f} cm / "
-                  f"{np.median(deg):.2f} deg, worst {cm.max():.2f} cm / {deg.max():.2f} deg")
-        else:
-            print(f"{'':16s} cross links {r['cross']}" + (f" ({by_type})" if by_type else ""))
-        in_a = (f"B in A's frame {r['b_in_a'] * 100:.2f} cm RMSE (A's se3 alignment: "
-                f"{r['b_in_a_aligned'] * 100:.2f} cm); " if r["joined"] else "")
-        print(f"{'':16s} {in_a}own ATE A {r['ate_a'] * 100:.2f} cm, B {r['ate_b'] * 100:.2f} cm", flush=True)
+            rows = run_case(specs, config, Path(tmp))
+        for i, r in enumerate(rows, 1):
+            _print(name if len(rows) == 1 else f"{name} [{i}]", r)
     return 0
+
+
+def _print(name: str, r: dict) -> None:
+    when = (f"joined at frame {r['frame']} ({r['stamp']:.2f} s), "
+            + (f"{r['after_overlap_m']:.2f} m of path after entering the overlap (at {r['overlap_stamp']:.2f} s)"
+               if r.get("after_overlap_m") is not None else "no overlap by the ground truth")
+            if r["joined"] else "did not join")
+    print(f"{name:16s} {when}")
+    by_type = ", ".join(f"{n} {k}" for k, n in sorted(r["by_type"].items()))
+    if r["errors"]:
+        cm = np.array([e[1] for e in r["errors"]]) * 100
+        deg = np.array([e[2] for e in r["errors"]])
+        print(f"{'':16s} cross links {r['cross']} ({by_type}; {len(cm)} with ground truth at both ends): "
+              f"median {np.median(cm):.2f} cm / "
+              f"{np.median(deg):.2f} deg, worst {cm.max():.2f} cm / {deg.max():.2f} deg")
+    else:
+        print(f"{'':16s} cross links {r['cross']}" + (f" ({by_type})" if by_type else ""))
+    in_a = (f"B in A's frame {r['b_in_a'] * 100:.2f} cm RMSE (A's se3 alignment: "
+            f"{r['b_in_a_aligned'] * 100:.2f} cm); " if r["joined"] else "")
+    print(f"{'':16s} {in_a}own ATE A {r['ate_a'] * 100:.2f} cm, B {r['ate_b'] * 100:.2f} cm", flush=True)
 
 
 if __name__ == "__main__":

@@ -233,6 +233,33 @@ def test_run_db_adds_a_session_that_joins_the_map_and_writes_it_in_the_maps_fram
     assert np.abs(kb.poses[:, :3, 3] - tb.poses[k, :3, 3]).max() < 1e-6
 
 
+def test_a_third_session_joins_the_map_of_two(cli_walks, tmp_path):
+    """`synthetic:loop` (its first 15 s) into the map walk_a and walk_b made: it joins the one
+    map by appearance (its start is walk_b's living room) and lies in A's frame like the
+    other two (measured 2026-11-27: joined at frame 0, 0.24 cm RMSE in A's frame, bench
+    `walk_a->walk_b->loop`)."""
+    import shutil
+
+    root, db, _ = cli_walks
+    shutil.copy(db, tmp_path / "map.db")
+    _run(f"synthetic:loop?rate={RATE:g}", "--frames", "0:75", "--db", str(tmp_path / "map.db"),
+         "--out", str(root / "loop"))
+    c = _summary(root / "loop")
+    assert (c["session"], c["sessions_before"], c["joined"], c["map"]) == (3, 2, True, 0)
+    assert c["cross_links"] >= 2
+    from mnemoslam.storage.connectivity import MapIndex
+
+    index = MapIndex()
+    with MapStore(tmp_path / "map.db", create=False) as store:  # one map of the three sessions (/maps)
+        index.refresh(store)
+        assert [s.id for s in store.sessions()] == [1, 2, 3]
+    maps = index.maps()
+    assert list(maps) == [0] and maps[0]["sessions"] == [1, 2, 3], maps
+    est, truth = _in_a_frame(root, "loop")
+    rmse = np.sqrt(np.mean(np.sum((est[:, :3, 3] - truth[:, :3, 3]) ** 2, axis=1)))
+    assert rmse < 0.009, rmse
+
+
 def test_run_without_db_replaces_its_own_map(tmp_path):
     out = tmp_path / "run"
     for _ in range(2):
