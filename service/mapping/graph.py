@@ -208,7 +208,7 @@ class PoseGraph:
     # -- building -------------------------------------------------------------------------
 
     def add_node(self, node_id: int, pose, odom_from: int | None = None, transform=None,
-                 information=None) -> np.ndarray:
+                 information=None, loose: bool = False) -> np.ndarray:
         """Add keyframe ``node_id`` and return its pose in the graph (the estimate).
 
         ``pose``: camera-to-world 4×4 from odometry. With ``odom_from`` (a node already in the
@@ -216,7 +216,9 @@ class PoseGraph:
         derived from the two odometry poses) and ``information`` (6×6, rotation first; default
         0.5°/1 cm); the new node starts at estimate(odom_from)·T, so it follows corrections. With
         ``odom_from=None`` the node starts a segment: a tight prior at ``pose`` for the first node
-        of the graph, a very loose one for a later segment (a loop link places it).
+        of the graph, a very loose one for a later segment (a loop link places it) and, with
+        ``loose``, for the first node too (a map that may join another's frame: the other
+        anchors it then).
         """
         nid = int(node_id)
         pose = _as_pose(pose, "pose")
@@ -228,7 +230,7 @@ class PoseGraph:
             if odom_from is None:
                 if transform is not None or information is not None:
                     raise ValueError("transform/information need odom_from")
-                sigmas = FIRST_PRIOR_SIGMAS if not self._nodes else SEGMENT_PRIOR_SIGMAS
+                sigmas = FIRST_PRIOR_SIGMAS if not self._nodes and not loose else SEGMENT_PRIOR_SIGMAS
                 graph.add(gtsam.PriorFactorPose3(nid, to_pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
                 new_prior = (pose.copy(), sigmas, self._n_factors)
                 new_link = None
