@@ -235,6 +235,10 @@ def test_the_older_robot_finding_the_newer_ones_keyframes_joins_the_newer_map(tm
     assert joins[2].joined and not joins[1].joined and joins[2].map == joins[1].map, joins
     gt_b, gt_a = walks["walk_b"][0].ground_truth, walks["walk_a"][0].ground_truth
     n0, i0 = kfs["walk_b"][0]
+    # walk_b's frame did not move (its first keyframe is its frame's origin); walk_a's did: its
+    # first keyframe now lies where walk_a started in walk_b's frame (> 2 m away)
+    assert np.allclose(poses[n0], np.eye(4), atol=1e-4), poses[n0]
+    assert np.linalg.norm(poses[kfs["walk_a"][0][0]][:3, 3]) > 2.0
     to_truth = gt_b.poses[i0] @ invert(poses[n0])
     for name, gt in (("walk_b", gt_b), ("walk_a", gt_a)):
         err = np.array([np.linalg.norm((to_truth @ poses[n])[:3, 3] - gt.poses[i, :3, 3]) for n, i in kfs[name]])

@@ -29,7 +29,7 @@ from mnemoslam.client.kernel.geometry import invert, nearby, rotation_angle
 from mnemoslam.storage import LinkType, MapUpdateStore
 
 from ..config import LoopConfig, MemoryConfig
-from ..memory.manager import Memory, series_information
+from ..memory.manager import Memory, Place, series_information
 from ..memory.vocabulary import Vocabulary
 from ..tracking.features import FrameFeatures
 from ..tracking.matching import match_descriptors
@@ -610,6 +610,8 @@ class Mapper:
                     decision = "rejected: not refined densely"
                 if decision == "ok":
                     decision, v = self._accurate(u, candidate, v, None if place is None else place.features)
+                if decision == "ok" and peer is not None and place is not None:
+                    decision = self._verified_back(u, candidate, place, peer)
             if decision == "ok":
                 assert v is not None and v.transform is not None  # verified
                 pose: np.ndarray | None = peer.pose(candidate) if peer is not None else \
@@ -654,10 +656,15 @@ class Mapper:
         """The first pair of relocalization links that agree: one of this keyframe's (`now`,
         best first) with another of its own or one of the last keyframes' (`earlier`) to a
         different older node: both put one of the two keyframes at the same place of the
-        older map (loop.relocalize_agreement / _rotation)."""
+        older map (loop.relocalize_agreement / _rotation). Into a peer's map (another robot
+        mapping now) the two links must come from two different keyframes of this map: the
+        search runs both ways there, against a map that grows, and one keyframe of `loop`
+        facing the hall's identical posters verified two keyframes of `straight` 7 m away,
+        both ways and in agreement (the posters' negative control with both mapping at once)."""
         for i, a in enumerate(now):
             for b in now[i + 1:] + earlier[::-1]:
-                if b.candidate != a.candidate and b.peer is a.peer and self._agree(a, b):
+                if b.candidate != a.candidate and b.peer is a.peer and (a.peer is None or a.node != b.node) \
+                        and self._agree(a, b):
                     return a, b
         return None
 
@@ -740,6 +747,26 @@ class Mapper:
                  "from its keyframes %d and %d: this map joined it", first.candidate, second.candidate,
                  first.node, second.node)
         return True
+
+    def _verified_back(self, u: KeyframeUpdate, candidate: int, place: Place, peer: Mapper) -> str:
+        """A live candidate verified the other way too: the peer's keyframe registered to this
+        one (PnP, and for RGB-D the dense refinement must succeed), as the peer's map update
+        would verify it. Registration is not symmetric: the dense check from one side passed
+        a poster 7 m away that the other side refuses (the posters' negative control with
+        both robots mapping at once). Returns "ok" or "rejected: back …"."""
+        c = self.config
+        f = place.features
+        v = verify(peer.camera, f.keypoints, f.descriptors, u.features.descriptors, u.features.points,
+                   min_inliers=c.relocalize_min_inliers)
+        if not v.accepted:
+            return f"rejected: back verification {v.reason}"
+        mine = self.memory.views.get(u.node_id)
+        if place.view is not None and mine is not None:
+            v = refine(v, place.view, mine, min_overlap=c.refine_min_overlap,
+                       max_correction=(c.refine_max_correction, c.refine_max_rotation))
+            if not v.refined:
+                return "rejected: back not refined densely"
+        return "ok"
 
     def _live_candidates(self, words: np.ndarray, peers: list[Mapper],
                          live: dict[int, Mapper]) -> list[tuple[int, float, np.ndarray]]:
