@@ -509,7 +509,8 @@ def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(t
             rmse[r] = float(np.sqrt(np.mean(err ** 2)))
         print("live join at B's frame", k_join, "RMSE in A's frame (cm):",
               {r: round(v * 100, 2) for r, v in rmse.items()})
-        assert rmse["A"] < 0.02 and rmse["B"] < 0.02, rmse  # the issue's 2 cm
+        # the issue asks for 2 cm; measured 0.13 / 0.12 cm (in-process, interleaved: 0.19 / 0.23)
+        assert rmse["A"] < 0.006 and rmse["B"] < 0.006, rmse
         # objects: B's fused into A's where both saw the same things
         objects = api.objects(limit=1000)["objects"]
         assert len({o["label"] for o in objects}) >= 2, objects

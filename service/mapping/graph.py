@@ -197,6 +197,7 @@ class PoseGraph:
         self._raw: dict[int, np.ndarray] = {}  # pose given to add_node (odometry frame)
         self._links: list[_Link] = []  # active links (odometry + accepted loops)
         self._priors: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # node -> (pose, sigmas, idx)
+        self._first: int | None = None  # the first node `add_node` gave the tight prior (the graph's frame)
         self._n_factors = 0  # factor slots used in iSAM2 (removed slots are not reused)
         self._cache: dict[int, np.ndarray] | None = None  # full estimate, None = stale
         # what readers see: replaced (never mutated in place, arrays read-only) after every
@@ -208,7 +209,7 @@ class PoseGraph:
     # -- building -------------------------------------------------------------------------
 
     def add_node(self, node_id: int, pose, odom_from: int | None = None, transform=None,
-                 information=None, loose: bool = False) -> np.ndarray:
+                 information=None) -> np.ndarray:
         """Add keyframe ``node_id`` and return its pose in the graph (the estimate).
 
         ``pose``: camera-to-world 4×4 from odometry. With ``odom_from`` (a node already in the
@@ -216,9 +217,7 @@ class PoseGraph:
         derived from the two odometry poses) and ``information`` (6×6, rotation first; default
         0.5°/1 cm); the new node starts at estimate(odom_from)·T, so it follows corrections. With
         ``odom_from=None`` the node starts a segment: a tight prior at ``pose`` for the first node
-        of the graph, a very loose one for a later segment (a loop link places it) and, with
-        ``loose``, for the first node too (a map that may join another's frame: the other
-        anchors it then).
+        of the graph, a very loose one for a later segment (a loop link places it).
         """
         nid = int(node_id)
         pose = _as_pose(pose, "pose")
@@ -230,7 +229,9 @@ class PoseGraph:
             if odom_from is None:
                 if transform is not None or information is not None:
                     raise ValueError("transform/information need odom_from")
-                sigmas = FIRST_PRIOR_SIGMAS if not self._nodes and not loose else SEGMENT_PRIOR_SIGMAS
+                sigmas = FIRST_PRIOR_SIGMAS if not self._nodes else SEGMENT_PRIOR_SIGMAS
+                if not self._nodes:
+                    self._first = nid
                 graph.add(gtsam.PriorFactorPose3(nid, to_pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
                 new_prior = (pose.copy(), sigmas, self._n_factors)
                 new_link = None
@@ -353,6 +354,26 @@ class PoseGraph:
                 snap.update({nid: _ro(p.copy()) for nid, p in poses.items()})
                 self._snap = snap
             self._published.update({nid: p.copy() for nid, p in poses.items()})
+
+    def loosen_first(self) -> bool:
+        """The graph's first node (`add_node`'s, with the tight first prior that fixes the
+        graph's frame) gets the loose segment prior instead, at the same pose: the graph may
+        now be placed by links to anchored nodes (another map joined: `mapping.live`). With
+        that one prior the optimum does not move. Returns whether a prior was loosened."""
+        with self._lock:
+            nid = self._first
+            if nid is None or nid not in self._priors:
+                return False
+            pose, _, idx = self._priors[nid]
+            graph = gtsam.NonlinearFactorGraph()
+            loose = gtsam.noiseModel.Diagonal.Sigmas(SEGMENT_PRIOR_SIGMAS)
+            graph.add(gtsam.PriorFactorPose3(nid, to_pose3(pose), loose))
+            self._isam.update(graph, gtsam.Values(), [idx])
+            self._priors[nid] = (pose.copy(), SEGMENT_PRIOR_SIGMAS, self._n_factors)
+            self._n_factors += 1
+            self._first = None
+            self._cache = None
+            return True
 
     def _loop_noise(self, info: np.ndarray, kernel: str) -> gtsam.noiseModel.Base:
         noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Information(info)

@@ -68,11 +68,6 @@ class LiveMaps:
         with self._lock:
             return self._group.get(id(a)) == self._group.get(id(b))
 
-    def others(self, mapper: Mapper) -> bool:
-        """Whether another mapper is registered (`mapper`'s map may come to join another's)."""
-        with self._lock:
-            return any(m is not mapper for m in self._mappers)
-
     def peers(self, mapper: Mapper) -> list[Mapper]:
         """The other mappers whose maps `mapper`'s may join: not joined to it yet, with
         keyframes. (Either may find the two links; the newer map, the one with the larger

@@ -329,10 +329,7 @@ class Mapper:
         appearance, by space and along its path (`verified`: a link rehearsal verified but did
         not merge). Returns the best loop hypothesis (for retrieval)."""
         t0 = time.perf_counter()
-        # while another robot maps this store too, even the first node gets the loose segment
-        # prior: this map may join the other's frame, which then anchors it (`mapping.live`)
-        loose = self._live is not None and not len(self.graph) and self._live.others(self)
-        self.graph.add_node(u.node_id, u.odom_pose, u.odom_from, u.transform, u.information, loose=loose)
+        self.graph.add_node(u.node_id, u.odom_pose, u.odom_from, u.transform, u.information)
         self.memory.add(u)
         t1 = time.perf_counter()
         words = self.memory.add_words(u.node_id, u.features.descriptors)  # + its new words, one commit
@@ -690,6 +687,7 @@ class Mapper:
             return peer._joined_by(self, first, second)  # the newer map joins: the peer's
         if peer is not None:
             self._adopt(peer, [first.candidate, second.candidate])
+            self.graph.loosen_first()  # this map's frame gives way to the peer's
         else:
             self.retrieve([e.candidate for e in (first, second) if not self.memory.tiers.in_ram(e.candidate)])
         if first.candidate not in self.graph or second.candidate not in self.graph:
@@ -725,6 +723,7 @@ class Mapper:
         self._adopt(host, [first.node, second.node])
         if first.node not in self.graph or second.node not in self.graph:
             return False
+        self.graph.loosen_first()  # this map's frame gives way to the host's
         links: list[tuple[int, int, np.ndarray]] = []
         for e in (first, second):
             assert e.v.transform is not None and e.v.information is not None  # verified
