@@ -436,10 +436,11 @@ def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(t
     """`serve`; robots A and B stream walk_a and walk_b at the same time (their first 80 frames,
     5 frames/s, both as fast as the service takes them, with the camera's labels). Each robot's
     map update closes loops only to its own keyframes and to ended sessions' unless the map
-    updates running at once search each other (`mapping.live`): then B's map joins A's once B
-    walks A's stretch, by two agreeing verified links (never before B is near A's path). One
-    `relocalized` event, for B; /maps one map with both sessions; both trajectories over REST in
-    A's frame; B's objects merged into A's (no two same-label objects within 0.4 m)."""
+    updates running at once search each other (`mapping.live`): then the newer map (that of the
+    robot the service admitted second) joins the older once both walk the shared stretch, by two
+    agreeing verified links. One `relocalized` event, for the newer; /maps one map with both
+    sessions; both trajectories over REST in the older map's frame; the objects of both merged
+    (no two same-label objects within 0.4 m)."""
     import threading
     import time
 
@@ -482,32 +483,38 @@ def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(t
         for s in subs:
             s.undeclare()
         z.close()
-        sa, sb = svc.session_of("A"), svc.session_of("B")
+        sessions = {r: svc.session_of(r) for r in walks}
+        # the robot whose first keyframe came first has the older map (a map is named by its oldest
+        # node's session): the other's joins it; /sessions says which kept its own map
+        listed = {s["id"]: s for s in api.get("/sessions")}
+        kept = [r for r in walks if listed[sessions[r]]["map"] == listed[sessions[r]]["map_id"]]
+        assert len(kept) == 1, listed
+        old, new = kept[0], next(r for r in walks if r != kept[0])
+        assert listed[sessions[new]]["joined"] and listed[sessions[new]]["map"] == listed[sessions[old]]["map_id"]
         reloc = [e for e in events if e.kind == "relocalized"]
-        assert len(reloc) == 1 and reloc[0].robot == "B", [(e.robot, e.kind) for e in events]
+        assert len(reloc) == 1 and reloc[0].robot == new, [(e.robot, e.kind) for e in events]
         e = reloc[0]
         maps = api.get("/maps")
-        assert len(maps) == 1 and maps[0]["sessions"] == sorted([sa, sb]), maps
-        assert e["session_id"] == sb and e["map"] == maps[0]["id"]
+        assert len(maps) == 1 and maps[0]["sessions"] == sorted(sessions.values()), maps
+        assert e["session_id"] == sessions[new] and e["map"] == maps[0]["id"]
         robots = {r["robot"]: r for r in api.get("/robots")}
-        assert robots["A"]["map"] == robots["B"]["map"] == api.robot("B")["map"] == maps[0]["id"]
-        # joined where both walked: B's camera at the join within 0.6 m of A's streamed path,
-        # which B's first 45 frames never came within 1.2 m of
-        gt_a, gt_b = walks["A"].ground_truth, walks["B"].ground_truth
-        path_a = gt_a.poses[:LIVE_FRAMES, :3, 3]
-        k_join = int(np.searchsorted(gt_b.stamps, e["stamp"] - 1e-6))
-        assert np.min(np.linalg.norm(path_a - gt_b.poses[k_join, :3, 3], axis=1)) < 0.6, k_join
-        assert k_join > 45, k_join
-        # both trajectories in A's frame (A's first keyframe placed on its ground truth)
-        traj = {r: keyframe_trajectory(api, s) for r, s in (("A", sa), ("B", sb))}
-        to_truth = gt_a.poses[np.searchsorted(gt_a.stamps, traj["A"].stamps[0])] @ invert(traj["A"].poses[0])
+        assert robots["A"]["map"] == robots["B"]["map"] == api.robot(new)["map"] == maps[0]["id"]
+        # joined where both walked: the joining keyframe's camera within 0.6 m of the other
+        # robot's streamed path (B's first 45 frames never come within 1.2 m of A's)
+        gt = {r: walks[r].ground_truth for r in walks}
+        k_join = int(np.searchsorted(gt[new].stamps, e["stamp"] - 1e-6))
+        other_path = gt[old].poses[:LIVE_FRAMES, :3, 3]
+        assert np.min(np.linalg.norm(other_path - gt[new].poses[k_join, :3, 3], axis=1)) < 0.6, (new, k_join)
+        # both trajectories in the older map's frame (its first keyframe placed on its ground truth)
+        traj = {r: keyframe_trajectory(api, sessions[r]) for r in walks}
+        to_truth = gt[old].poses[np.searchsorted(gt[old].stamps, traj[old].stamps[0])] @ invert(traj[old].poses[0])
         rmse = {}
-        for r, gt in (("A", gt_a), ("B", gt_b)):
-            k = np.searchsorted(gt.stamps, traj[r].stamps)
-            err = np.linalg.norm(np.einsum("ij,njk->nik", to_truth, traj[r].poses)[:, :3, 3] - gt.poses[k, :3, 3],
+        for r in walks:
+            k = np.searchsorted(gt[r].stamps, traj[r].stamps)
+            err = np.linalg.norm(np.einsum("ij,njk->nik", to_truth, traj[r].poses)[:, :3, 3] - gt[r].poses[k, :3, 3],
                                  axis=1)
             rmse[r] = float(np.sqrt(np.mean(err ** 2)))
-        print("live join at B's frame", k_join, "RMSE in A's frame (cm):",
+        print(f"live join: {new} at its frame {k_join}; RMSE in {old}'s frame (cm):",
               {r: round(v * 100, 2) for r, v in rmse.items()})
         # the issue asks for 2 cm; measured 0.13 / 0.12 cm (in-process, interleaved: 0.19 / 0.23)
         assert rmse["A"] < 0.006 and rmse["B"] < 0.006, rmse

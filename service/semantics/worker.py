@@ -271,14 +271,15 @@ class SemanticWorker:
     def _merge_joined(self) -> None:
         """Between keyframes: when links stored since the last look joined parts of the map
         (robots mapping at the same time: the map update, behind tracking, may join them after
-        their last keyframe was fused), the twin objects of every part are merged, over the
-        next MERGE_AFTER_JOIN looks too (the join's corrected poses reach the store after its
-        link), and written."""
+        their last keyframe was fused), the twin objects of every part are merged, and written.
+        Again at each look while the map update stores links, and MERGE_AFTER_JOIN looks after
+        its last: the map update runs behind tracking, so the keyframes the joining robot made
+        after the joining one get their poses in the joined map's frame only as it catches up."""
         try:
             with self._lock:
                 joins = self.connectivity.joins
-                self.connectivity.refresh(self.store)
-                if self.connectivity.joins > joins:
+                read = self.connectivity.refresh(self.store)
+                if self.connectivity.joins > joins or (read and self._merge_after_join > 0):
                     self._merge_after_join = MERGE_AFTER_JOIN
                 if self._merge_after_join <= 0:
                     return
