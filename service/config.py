@@ -135,6 +135,7 @@ class LoopConfig:
     relocalize_window: int = 3  # links of the last this many keyframes (of the same map) may agree with the new keyframe's
     relocalize_agreement: float = 0.03  # m; two links agree when they place the keyframe within this of each other ...
     relocalize_agreement_rotation: float = 2.0  # deg; ... and within this rotation
+    relocalize_live: bool = True  # robots mapping at the same time relocalize against each other's keyframes too (the newer map joins the older by the same two agreeing links; in the mapping process and offline pipelines sharing a store)
     refine_dense: bool = True  # refine RGB-D loop links by dense photometric + point-to-plane registration
     refine_min_overlap: float = 0.1  # share of the new keyframe's points the registration must associate
     refine_max_correction: float = 0.1  # m; a refinement that moves the PnP link more is not used ...

@@ -192,7 +192,7 @@ class Localizer(Mapper):
         self._keyframes: list[tuple[int, int | None, np.ndarray | None, np.ndarray | None]] = []
         self._candidate: int | None = None  # the newest map node a keyframe was linked to
         super().__init__(camera, config, self.map, on_event=on_event, background=background,
-                         memory=mc)
+                         memory=mc, live=False)
 
     @property
     def held(self) -> int:

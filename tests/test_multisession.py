@@ -15,6 +15,7 @@ from mnemoslam.client.datasets import open_dataset
 from mnemoslam.client.kernel.geometry import invert, rotation_angle
 from mnemoslam.service.builder import build_pipeline
 from mnemoslam.storage import LinkType, MapStore
+from mnemoslam.storage.connectivity import MapIndex
 
 from conftest import run_cli as _run
 from conftest import slam_config
@@ -171,6 +172,84 @@ def test_identical_posters_elsewhere_do_not_join_the_maps(tmp_path):
         decisions = [r["decision"] for n in nodes["straight"] for r in (store.statistics(n) or {}).get(
             "relocalization", [])]
     assert "rejected: not refined densely" in decisions and "joined" not in decisions, decisions
+
+
+def _at_once(store, walks: dict, cfg) -> dict:
+    """Pipelines on one store (one per robot, created together) processing their frames
+    interleaved, frame k of each in the order of `walks` (name -> (dataset, first index)):
+    robots mapping at the same time, offline. Returns name -> [(node, frame)] of its keyframes."""
+    pipelines = {name: build_pipeline(store, name, ds.calibration, cfg) for name, (ds, _) in walks.items()}
+    keyframes: dict = {name: [] for name in walks}
+    for k in range(max(len(ds) + start for ds, start in walks.values())):
+        for name, (ds, start) in walks.items():
+            if 0 <= k - start < len(ds):
+                r = pipelines[name].process(ds.frame(k - start))
+                if r.node_id is not None:
+                    keyframes[name].append((r.node_id, k - start))
+    for p in pipelines.values():
+        p.close()
+    return keyframes
+
+
+def test_identical_posters_elsewhere_do_not_join_robots_mapping_at_once(tmp_path):
+    """The posters' negative control with the two robots mapping at the same time (`loop`'s
+    frames 140-200, `straight`'s first 40 starting 20 frames later, interleaved): each map
+    update searches the other's keyframes by appearance (`mapping.live`), and the dense check
+    refuses the posters there too: no link between the two, each its own map."""
+    from mnemoslam.client.datasets.subrange import frame_range
+
+    walks = {name: (frame_range(open_dataset(f"synthetic:{name}", rate=RATE), frames), start)
+             for name, frames, start in (("loop", "140:200", 0), ("straight", "0:40", 20))}
+    with MapStore(tmp_path / "map.db") as store:
+        kfs = _at_once(store, walks, slam_config())
+        old = {n for n, _ in kfs["loop"]}
+        assert not [lk for lk in store.links() if (lk.from_id in old) != (lk.to_id in old)]
+        decisions = [r for name in kfs for n, _ in kfs[name]
+                     for r in (store.statistics(n) or {}).get("relocalization", [])]
+    assert any(r.get("live") for r in decisions), "the robots did not search each other"
+    assert "rejected: not refined densely" in [r["decision"] for r in decisions], decisions
+    assert "joined" not in [r["decision"] for r in decisions]
+
+
+def test_the_older_robot_finding_the_newer_ones_keyframes_joins_the_newer_map(tmp_path):
+    """Robots mapping at the same time, offline: walk_b's first keyframe is the older, and
+    walk_b is the one that finds the other's keyframes (walk_a walked their shared stretch
+    first). The newer map, walk_a's, joins walk_b's (the map index names maps by their oldest
+    node, and the `relocalized` event is for the session whose frame changes): walk_a's mapper
+    places walk_b's keyframe in its graph and the two links go there; afterwards both
+    trajectories lie in walk_b's frame."""
+    walks = {name: (frame_range_of(name, "0:70"), 0) for name in ("walk_b", "walk_a")}
+    with MapStore(tmp_path / "map.db") as store:
+        kfs = _at_once(store, walks, slam_config())
+        b_nodes = {n for n, _ in kfs["walk_b"]}
+        cross = [lk for lk in store.links() if (lk.from_id in b_nodes) != (lk.to_id in b_nodes)]
+        poses = {n.id: n.pose for n in store.nodes(limit=None, merged=None)}
+        found_by_b = [n for n, _ in kfs["walk_b"]
+                      if any(r["decision"] == "joined" for r in (store.statistics(n) or {}).get("relocalization", []))]
+        index = MapIndex()
+        index.refresh(store)
+        joins = {s: index.join(s) for s in (1, 2)}
+    assert min(b_nodes) < min(n for n, _ in kfs["walk_a"])  # walk_b is the older map
+    assert found_by_b and len(cross) >= 2 and all(lk.type == LinkType.GLOBAL_CLOSURE for lk in cross[:2]), cross
+    # walk_a's session (2) joined walk_b's map (session 1's)
+    assert joins[2].joined and not joins[1].joined and joins[2].map == joins[1].map, joins
+    gt_b, gt_a = walks["walk_b"][0].ground_truth, walks["walk_a"][0].ground_truth
+    n0, i0 = kfs["walk_b"][0]
+    # walk_b's frame did not move (its first keyframe is its frame's origin); walk_a's did: its
+    # first keyframe now lies where walk_a started in walk_b's frame (> 2 m away)
+    assert np.allclose(poses[n0], np.eye(4), atol=1e-4), poses[n0]
+    assert np.linalg.norm(poses[kfs["walk_a"][0][0]][:3, 3]) > 2.0
+    to_truth = gt_b.poses[i0] @ invert(poses[n0])
+    for name, gt in (("walk_b", gt_b), ("walk_a", gt_a)):
+        err = np.array([np.linalg.norm((to_truth @ poses[n])[:3, 3] - gt.poses[i, :3, 3]) for n, i in kfs[name]])
+        # measured (walk_a in walk_b's frame) 0.27 cm, walk_b 0.23 cm
+        assert np.sqrt(np.mean(err ** 2)) < 0.01, (name, np.sqrt(np.mean(err ** 2)))
+
+
+def frame_range_of(name: str, frames: str):
+    from mnemoslam.client.datasets.subrange import frame_range
+
+    return frame_range(open_dataset(f"synthetic:{name}", rate=RATE), frames)
 
 
 # -- offline: `mnemoslam run DATASET --db MAP.db --out DIR` (issue 22 item 6) ---------------------
@@ -365,5 +444,110 @@ def test_service_walk_b_after_walk_a_relocalizes_once_and_maps_show_it(tmp_path)
         T = np.reshape(b["T_map_session"], (4, 4))
         assert np.allclose(np.reshape(e["T_map_session"], (4, 4)), T, atol=0.01)
         assert np.linalg.norm((to_truth @ T)[:3, 3] - gt_b.poses[k[0], :3, 3]) < 0.015  # measured 0.45 cm
+    finally:
+        svc.stop()
+
+
+# -- through the service: two robots mapping at the same time (issue 22 item 4) -------------------
+
+LIVE_FRAMES = 80  # of each walk: B enters A's stretch at its frame ~55 (A walked it at its frames 17-25)
+
+
+def _twins(objects, radius=0.4):
+    """Pairs of same-label objects (REST `ObjectOut`s) whose positions are within `radius` m."""
+    return [(a["id"], b["id"], a["label"]) for i, a in enumerate(objects) for b in objects[i + 1:]
+            if a["label"] == b["label"] and np.linalg.norm(np.subtract(a["position"], b["position"])) < radius]
+
+
+def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(tmp_path):
+    """`serve`; robots A and B stream walk_a and walk_b at the same time (their first 80 frames,
+    5 frames/s, both as fast as the service takes them, with the camera's labels). Each robot's
+    map update closes loops only to its own keyframes and to ended sessions' unless the map
+    updates running at once search each other (`mapping.live`): then the newer map (that of the
+    robot the service admitted second) joins the older once both walk the shared stretch, by two
+    agreeing verified links. One `relocalized` event, for the newer; /maps one map with both
+    sessions; both trajectories over REST in the older map's frame; the objects of both merged
+    (no two same-label objects within 0.4 m)."""
+    import threading
+    import time
+
+    from mnemoslam.client.kernel import protocol
+    from mnemoslam.client.streamer import stream_dataset
+    from mnemoslam.client.transport import ZenohSettings, open_session
+    from mnemoslam.service.demo import ServiceProcess, keyframe_trajectory
+
+    conf = {"service": {"queue_size": 10000, "idle_timeout": 3600.0}, "loop": {"backlog_images": 100000}}
+    walks = {robot: open_dataset(f"synthetic:{name}", rate=RATE) for robot, name in (("A", "walk_a"), ("B", "walk_b"))}
+    svc = ServiceProcess(tmp_path / "map.db", conf).start()
+    events: list = []
+    try:
+        z = open_session(ZenohSettings(connect=[svc.endpoint]))
+        subs = [z.declare_subscriber(protocol.KeySpace().events(r),
+                                     lambda s: events.append(protocol.decode_event(s.payload.to_bytes())))
+                for r in walks]
+        sent: dict[str, int] = {}
+
+        def stream(robot: str) -> None:
+            sent[robot] = stream_dataset(walks[robot], robot, ZenohSettings(connect=[svc.endpoint]), rate=None,
+                                         progress=False, wait_for_subscriber=10.0, labels=True,
+                                         max_frames=LIVE_FRAMES).frames
+
+        threads = [threading.Thread(target=stream, args=(r,)) for r in walks]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for r in walks:
+            svc.wait_processed(r, sent[r])
+            svc.wait_mapped(r)
+        api = svc.api
+        deadline = time.monotonic() + 120  # every keyframe fused (the semantic worker runs behind)
+        status = api.semantics()
+        while status["coverage"]["segmented"] < status["coverage"]["keyframes"] and time.monotonic() < deadline:
+            time.sleep(0.5)
+            status = api.semantics()
+        time.sleep(2.5)  # the service looks at the links every second
+        for s in subs:
+            s.undeclare()
+        z.close()
+        sessions = {r: svc.session_of(r) for r in walks}
+        # the robot whose first keyframe came first has the older map (a map is named by its oldest
+        # node's session): the other's joins it; /sessions says which kept its own map
+        listed = {s["id"]: s for s in api.get("/sessions")}
+        kept = [r for r in walks if listed[sessions[r]]["map"] == listed[sessions[r]]["map_id"]]
+        assert len(kept) == 1, listed
+        old, new = kept[0], next(r for r in walks if r != kept[0])
+        assert listed[sessions[new]]["joined"] and listed[sessions[new]]["map"] == listed[sessions[old]]["map_id"]
+        reloc = [e for e in events if e.kind == "relocalized"]
+        assert len(reloc) == 1 and reloc[0].robot == new, [(e.robot, e.kind) for e in events]
+        e = reloc[0]
+        maps = api.get("/maps")
+        assert len(maps) == 1 and maps[0]["sessions"] == sorted(sessions.values()), maps
+        assert e["session_id"] == sessions[new] and e["map"] == maps[0]["id"]
+        robots = {r["robot"]: r for r in api.get("/robots")}
+        assert robots["A"]["map"] == robots["B"]["map"] == api.robot(new)["map"] == maps[0]["id"]
+        # joined where both walked: the joining keyframe's camera within 0.6 m of the other
+        # robot's streamed path (B's first 45 frames never come within 1.2 m of A's)
+        gt = {r: walks[r].ground_truth for r in walks}
+        k_join = int(np.searchsorted(gt[new].stamps, e["stamp"] - 1e-6))
+        other_path = gt[old].poses[:LIVE_FRAMES, :3, 3]
+        assert np.min(np.linalg.norm(other_path - gt[new].poses[k_join, :3, 3], axis=1)) < 0.6, (new, k_join)
+        # both trajectories in the older map's frame (its first keyframe placed on its ground truth)
+        traj = {r: keyframe_trajectory(api, sessions[r]) for r in walks}
+        to_truth = gt[old].poses[np.searchsorted(gt[old].stamps, traj[old].stamps[0])] @ invert(traj[old].poses[0])
+        rmse = {}
+        for r in walks:
+            k = np.searchsorted(gt[r].stamps, traj[r].stamps)
+            err = np.linalg.norm(np.einsum("ij,njk->nik", to_truth, traj[r].poses)[:, :3, 3] - gt[r].poses[k, :3, 3],
+                                 axis=1)
+            rmse[r] = float(np.sqrt(np.mean(err ** 2)))
+        print(f"live join: {new} at its frame {k_join}; RMSE in {old}'s frame (cm):",
+              {r: round(v * 100, 2) for r, v in rmse.items()})
+        # the issue asks for 2 cm; measured 0.13 / 0.12 cm (in-process, interleaved: 0.19 / 0.23)
+        assert rmse["A"] < 0.006 and rmse["B"] < 0.006, rmse
+        # objects: B's fused into A's where both saw the same things
+        objects = api.objects(limit=1000)["objects"]
+        assert len({o["label"] for o in objects}) >= 2, objects
+        assert not _twins(objects), _twins(objects)
     finally:
         svc.stop()

@@ -71,9 +71,11 @@ def test_robots_on_a_shared_map_fuse_into_its_objects(tmp_path):
 
 def test_objects_of_unjoined_frames_stay_apart(tmp_path):
     """The same two walks on an empty map: no link joins B's frame and C's, so each keeps its
-    own objects although their coordinates coincide (both frames start at the origin)."""
+    own objects although their coordinates coincide (both frames start at the origin). (Robots
+    mapping at the same time relocalize against each other, `loop.relocalize_live`, and these
+    two would join: switched off here, as for two robots whose walks share nothing.)"""
     ds = synthetic("loop", **LOOP_NOISY)
-    cfg = load_config(None, CONFIG)
+    cfg = load_config(None, {**CONFIG, "loop": {"relocalize_live": False}})
     with MapStore(tmp_path / "map.db") as store:
         worker = build_semantics(store, cfg)
         sessions = _walk(store, worker, [("b", 3), ("c", 6)], ds, cfg)
@@ -100,6 +102,27 @@ def test_objects_of_unjoined_frames_stay_apart(tmp_path):
     assert not same(b_last.id, c_last.id)
     assert all(len(s) == 1 for s in seen.values()), seen  # no object mixes the two frames
     assert _twins(objects)  # the same things, twice, where the two unrelated frames nearly coincide
+
+
+def test_robots_mapping_at_once_join_and_share_their_objects(tmp_path):
+    """The same two walks on an empty map with the robots' map updates searching each other
+    (`mapping.live`, the default): C's map joins B's by appearance, and the things both see
+    are one object each (no same-label pair within 0.4 m), seen from both sessions."""
+    ds = synthetic("loop", **LOOP_NOISY)
+    cfg = load_config(None, CONFIG)
+    with MapStore(tmp_path / "map.db") as store:
+        worker = build_semantics(store, cfg)
+        sessions = _walk(store, worker, [("b", 3), ("c", 6)], ds, cfg)
+        worker[0].close()
+        objects = store.objects()
+        seen = _sessions_seen(store, objects)
+        conn = MapConnectivity()
+        conn.refresh(store)
+        b_last = store.nodes(session_id=sessions["b"], limit=None)[-1]
+        c_last = store.nodes(session_id=sessions["c"], limit=None)[-1]
+    assert conn.find(b_last.id) == conn.find(c_last.id)
+    assert not _twins(objects), _twins(objects)
+    assert any(len(s) == 2 for s in seen.values()), seen
 
 
 def test_a_robot_not_yet_localized_gets_no_object_from_another_frame(tmp_path):

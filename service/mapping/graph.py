@@ -197,6 +197,7 @@ class PoseGraph:
         self._raw: dict[int, np.ndarray] = {}  # pose given to add_node (odometry frame)
         self._links: list[_Link] = []  # active links (odometry + accepted loops)
         self._priors: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # node -> (pose, sigmas, idx)
+        self._first: int | None = None  # the first node `add_node` gave the tight prior (the graph's frame)
         self._n_factors = 0  # factor slots used in iSAM2 (removed slots are not reused)
         self._cache: dict[int, np.ndarray] | None = None  # full estimate, None = stale
         # what readers see: replaced (never mutated in place, arrays read-only) after every
@@ -229,6 +230,8 @@ class PoseGraph:
                 if transform is not None or information is not None:
                     raise ValueError("transform/information need odom_from")
                 sigmas = FIRST_PRIOR_SIGMAS if not self._nodes else SEGMENT_PRIOR_SIGMAS
+                if not self._nodes:
+                    self._first = nid
                 graph.add(gtsam.PriorFactorPose3(nid, to_pose3(pose), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
                 new_prior = (pose.copy(), sigmas, self._n_factors)
                 new_link = None
@@ -351,6 +354,26 @@ class PoseGraph:
                 snap.update({nid: _ro(p.copy()) for nid, p in poses.items()})
                 self._snap = snap
             self._published.update({nid: p.copy() for nid, p in poses.items()})
+
+    def loosen_first(self) -> bool:
+        """The graph's first node (`add_node`'s, with the tight first prior that fixes the
+        graph's frame) gets the loose segment prior instead, at the same pose: the graph may
+        now be placed by links to anchored nodes (another map joined: `mapping.live`). With
+        that one prior the optimum does not move. Returns whether a prior was loosened."""
+        with self._lock:
+            nid = self._first
+            if nid is None or nid not in self._priors:
+                return False
+            pose, _, idx = self._priors[nid]
+            graph = gtsam.NonlinearFactorGraph()
+            loose = gtsam.noiseModel.Diagonal.Sigmas(SEGMENT_PRIOR_SIGMAS)
+            graph.add(gtsam.PriorFactorPose3(nid, to_pose3(pose), loose))
+            self._isam.update(graph, gtsam.Values(), [idx])
+            self._priors[nid] = (pose.copy(), SEGMENT_PRIOR_SIGMAS, self._n_factors)
+            self._n_factors += 1
+            self._first = None
+            self._cache = None
+            return True
 
     def _loop_noise(self, info: np.ndarray, kernel: str) -> gtsam.noiseModel.Base:
         noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Information(info)

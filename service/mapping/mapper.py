@@ -29,12 +29,13 @@ from mnemoslam.client.kernel.geometry import invert, nearby, rotation_angle
 from mnemoslam.storage import LinkType, MapUpdateStore
 
 from ..config import LoopConfig, MemoryConfig
-from ..memory.manager import Memory, series_information
+from ..memory.manager import Memory, Place, series_information
 from ..memory.vocabulary import Vocabulary
 from ..tracking.features import FrameFeatures
 from ..tracking.matching import match_descriptors
 from .graph import PoseGraph
 from .link_refinement import refine_link
+from .live import LiveMaps
 from .local_ba import LocalBundleAdjustment
 from .loop_detection import LoopDetector
 from .merge_links import MergeLinks
@@ -94,6 +95,7 @@ class Evidence:
     candidate: int
     v: Verification
     T_map_own: np.ndarray
+    peer: Mapper | None = None  # the map update running at the same time the candidate is of (None: an older map's)
 
 
 @dataclass
@@ -109,7 +111,7 @@ class Rehearsal:
 class Mapper:
     def __init__(self, camera: PinholeCamera, config: LoopConfig, store: MapUpdateStore | None = None,
                  on_event: Callable[[str, dict], None] | None = None, background: bool = False,
-                 memory: MemoryConfig | None = None, previous_map: bool = True):
+                 memory: MemoryConfig | None = None, previous_map: bool = True, live: bool = True):
         self.camera = camera
         self.config = config
         self.memory_config = mc = memory if memory is not None else MemoryConfig()
@@ -135,6 +137,17 @@ class Mapper:
         # relocalization links verified for the last keyframes (loop.relocalize_window), not added yet
         self._evidence: collections.deque[list[Evidence]] = collections.deque(maxlen=max(config.relocalize_window, 1))
         self._queue: queue.Queue | None = None
+        # the map updates running at the same time on this store (other robots', `mapping.live`):
+        # a synchronous mapper relocalizes against them too; `_host` is the one whose map this
+        # one's joined (its frame is the host's from then on), `_foreign` the host's nodes placed
+        # in this graph (anchored where the host had them; the host writes their poses, never this)
+        # (`live`: False for a map update that is no robot's now: a resumed session, a localizer)
+        self._live = LiveMaps.for_store(store) \
+            if live and store is not None and not background and config.relocalize_live else None
+        self._host: Mapper | None = None
+        self._foreign: set[int] = set()
+        if self._live is not None:
+            self._live.register(self)
         self.submitted = 0  # keyframe updates handed to the map update ...
         self.mapped = 0  # ... and done (the difference is the backlog)
         if store is not None and previous_map:
@@ -157,7 +170,7 @@ class Mapper:
         update. `camera` defaults to the session's."""
         if camera is None:
             camera = Memory.session_camera(store, session_id)
-        m = cls(camera, config, store, on_event=on_event, memory=memory, previous_map=False)
+        m = cls(camera, config, store, on_event=on_event, memory=memory, previous_map=False, live=False)
         r = m.memory.resume(session_id)
         m.graph.restore(r.poses, r.odometry, r.loops)
         m._place(r.previous)
@@ -198,7 +211,15 @@ class Mapper:
         if self._queue is not None:
             self._queue.put(None)
             self._thread.join(timeout)
+        if self._live is not None:
+            self._live.unregister(self)
         self.flush_poses()
+
+    def root(self) -> int | None:
+        """The root (oldest node) of the map its newest keyframe is in, None before the first
+        (`mapping.live`: of two robots' maps the one with the larger root joins the other)."""
+        newest = self.memory.newest
+        return None if newest is None else self.memory.root(newest)
 
     @property
     def vocabulary(self) -> Vocabulary:
@@ -320,7 +341,11 @@ class Mapper:
         stats.hypothesis, stats.posterior = hyp.best_id, float(hyp.posterior)
         stats.likelihood_top = [(int(i), float(s)) for i, s in hyp.likelihood[:5]]
         stats.decision = "none" if hyp.best_id is None else ("accepted" if hyp.accepted else f"rejected: {hyp.reason}")
-        relocalizing = self.config.relocalize and self.memory.relocalizing(u.node_id)
+        # other robots mapping at the same time whose maps this one's may join (`mapping.live`)
+        peers = self._live.peers(self) if self._live is not None and self._host is None and self.config.relocalize \
+            else []
+        relocalizing = self.config.relocalize and self._host is None and (
+            self.memory.relocalizing(u.node_id) or bool(peers))
         hint = None
         if hyp.accepted and relocalizing and hyp.best_id is not None and self.memory.in_older_map(hyp.best_id):
             # into an older map this keyframe's has not joined: verified with the relocalization's
@@ -334,7 +359,7 @@ class Mapper:
                 stats.sigma = _rounded_sigma(v)
         if relocalizing:
             t = time.perf_counter()
-            self._relocalize(u, stats, hint)
+            self._relocalize(u, stats, hint, words, peers)
             stats.timings_ms["relocalization"] = (time.perf_counter() - t) * 1e3
         t4 = time.perf_counter()
         if self.config.proximity_by_space:
@@ -466,7 +491,7 @@ class Mapper:
         mc = self.memory_config
         assert u.odom_from is not None  # _rehearse's condition
         where = self.graph.pose(u.odom_from) @ u.transform
-        nodes = [n for n in self.memory.tiers.wm if n in self.vocabulary]
+        nodes = [n for n in self.memory.tiers.wm if n in self.vocabulary and n not in self._foreign]
         nodes += self.memory.ltm_near(where, 4 * mc.rehearsal_max_distance)
         # in the keyframe's own map: another map's coordinates coincide with its own by chance
         ram = self.memory.same_map(u.odom_from, nodes)
@@ -522,7 +547,8 @@ class Mapper:
                 return
 
     # -- relocalization ----------------------------------------------------------------------
-    def _relocalize(self, u: KeyframeUpdate, stats: LoopStatistics, hint: int | None = None) -> None:
+    def _relocalize(self, u: KeyframeUpdate, stats: LoopStatistics, hint: int | None = None,
+                    words: np.ndarray | None = None, peers: list[Mapper] | None = None) -> None:
         """A keyframe whose map has joined none of the older maps (`Memory.relocalizing`):
         the older maps' nodes that look most like it (`Memory.relocalization_candidates`, and
         `hint`, an appearance hypothesis into one of them) are verified by PnP with
@@ -531,14 +557,27 @@ class Mapper:
         where this map lies in the older one; the maps join (`_join`) only when two agree:
         two candidates of this keyframe, or this keyframe's and one of the last
         loop.relocalize_window keyframes' of its map, within loop.relocalize_agreement /
-        _rotation. One link, however well verified, can be a place that looks like another."""
+        _rotation. One link, however well verified, can be a place that looks like another.
+
+        `peers`: other robots' map updates running at the same time whose maps this one's may
+        join (`mapping.live`); their keyframes in RAM are scored with this keyframe's `words`
+        in the shared vocabulary and compete with the older maps' by score, verified from the
+        peer's RAM at the peer's current poses. Links agree only within one frame (one peer,
+        or the older maps)."""
         c = self.config
-        found = self.memory.relocalization_candidates(u.features.descriptors, RELOCALIZATION_SCORED)
+        found = self.memory.relocalization_candidates(u.features.descriptors, RELOCALIZATION_SCORED) \
+            if self.memory.relocalizing(u.node_id) else []
+        live: dict[int, Mapper] = {}  # candidate -> the peer it is of
+        if peers and words is not None:
+            found = found + self._live_candidates(words, peers, live)
+            found.sort(key=lambda f: -f[1])  # (stable: the older maps' order among equal scores)
+            found = found[:RELOCALIZATION_SCORED]
         scores = {n: s for n, s, _ in found}
-        places: list[list[tuple[int, np.ndarray]]] = []  # the candidates by place, best first
+        places: list[list[tuple[int, np.ndarray]]] = []  # the candidates by place (in one frame), best first
         for n, _, centre in found:
             for group in places:
-                if np.linalg.norm(group[0][1] - centre) <= c.relocalize_place_radius:
+                if live.get(group[0][0]) is live.get(n) and \
+                        np.linalg.norm(group[0][1] - centre) <= c.relocalize_place_radius:
                     group.append((n, centre))
                     break
             else:
@@ -549,10 +588,14 @@ class Mapper:
             order.insert(0, hint)
         evidence: list[Evidence] = []
         own = self.graph.pose(u.node_id)
-        stored = self.memory.stored_poses([n for n in order if n not in self.graph])
+        stored = self.memory.stored_poses([n for n in order if n not in self.graph and n not in live])
         for candidate in order:
-            place = None if self.memory.tiers.in_ram(candidate) else self.memory.place(candidate)
-            if place is None and not self.memory.tiers.in_ram(candidate):
+            peer = live.get(candidate)
+            if peer is not None:
+                place = peer.memory.place(candidate)  # in its RAM: its features and dense view
+            else:
+                place = None if self.memory.tiers.in_ram(candidate) else self.memory.place(candidate)
+            if place is None and (peer is not None or not self.memory.tiers.in_ram(candidate)):
                 decision, v = "rejected: no features", None
             else:
                 decision, v = self._register(u, candidate, place=place, min_inliers=c.relocalize_min_inliers)
@@ -564,18 +607,24 @@ class Mapper:
                     decision = "rejected: not refined densely"
                 if decision == "ok":
                     decision, v = self._accurate(u, candidate, v, None if place is None else place.features)
+                if decision == "ok" and peer is not None and place is not None:
+                    decision = self._verified_back(u, candidate, place, peer)
             if decision == "ok":
                 assert v is not None and v.transform is not None  # verified
-                pose = self.graph.pose(candidate) if candidate in self.graph else stored.get(candidate)
+                pose: np.ndarray | None = peer.pose(candidate) if peer is not None else \
+                    self.graph.pose(candidate) if candidate in self.graph else stored.get(candidate)
                 if pose is None:
                     decision = "rejected: no pose"
                 else:
-                    evidence.append(Evidence(u.node_id, candidate, v, pose @ v.transform @ invert(own)))
+                    evidence.append(Evidence(u.node_id, candidate, v, pose @ v.transform @ invert(own), peer))
                     decision = "verified"
-            stats.relocalization.append({"node": candidate, "score": round(scores.get(candidate, 0.0), 5),
-                                         "decision": decision, "inliers": 0 if v is None else v.inliers,
-                                         "sigma": _rounded_sigma(v), "refined": bool(v is not None and v.refined)})
-        if any(self._agree(a, b) is False for i, a in enumerate(evidence) for b in evidence[i + 1:]):
+            r = {"node": candidate, "score": round(scores.get(candidate, 0.0), 5),
+                 "decision": decision, "inliers": 0 if v is None else v.inliers,
+                 "sigma": _rounded_sigma(v), "refined": bool(v is not None and v.refined)}
+            if peer is not None:
+                r["live"] = True  # another robot's keyframe, mapping at the same time
+            stats.relocalization.append(r)
+        if any(a.peer is b.peer and not self._agree(a, b) for i, a in enumerate(evidence) for b in evidence[i + 1:]):
             # the keyframe verified at two places of the older maps that disagree: a place that looks
             # like another (repeated textures); none of its links is evidence
             for r in stats.relocalization:
@@ -583,7 +632,8 @@ class Mapper:
                     r["decision"] = "ambiguous"
             evidence = []
         earlier = [e for batch in self._evidence for e in batch
-                   if self.memory.same_map(u.node_id, [e.node]) and e.node in self.graph]
+                   if self.memory.same_map(u.node_id, [e.node]) and e.node in self.graph
+                   and (e.peer is None or e.peer in (peers or []))]
         self._evidence.append(evidence)
         pair = self._agreeing(evidence, earlier)
         if pair is None:
@@ -603,10 +653,15 @@ class Mapper:
         """The first pair of relocalization links that agree: one of this keyframe's (`now`,
         best first) with another of its own or one of the last keyframes' (`earlier`) to a
         different older node: both put one of the two keyframes at the same place of the
-        older map (loop.relocalize_agreement / _rotation)."""
+        older map (loop.relocalize_agreement / _rotation). Into a peer's map (another robot
+        mapping now) the two links must come from two different keyframes of this map: the
+        search runs both ways there, against a map that grows, and one keyframe of `loop`
+        facing the hall's identical posters verified two keyframes of `straight` 7 m away,
+        both ways and in agreement (the posters' negative control with both mapping at once)."""
         for i, a in enumerate(now):
             for b in now[i + 1:] + earlier[::-1]:
-                if b.candidate != a.candidate and self._agree(a, b):
+                if b.candidate != a.candidate and b.peer is a.peer and (a.peer is None or a.node != b.node) \
+                        and self._agree(a, b):
                     return a, b
         return None
 
@@ -623,8 +678,18 @@ class Mapper:
         """Join this map to the older one with two agreeing relocalization links: their older
         nodes retrieved into WM (and the graph, at their stored poses), the new keyframe's link
         added first (it places the map: the segment's loose prior gives way), then the other,
-        which the graph checks; if it refuses it, the first goes too and nothing is joined."""
-        self.retrieve([e.candidate for e in (first, second) if not self.memory.tiers.in_ram(e.candidate)])
+        which the graph checks; if it refuses it, the first goes too and nothing is joined.
+        Into a peer's map (another robot mapping now, `mapping.live`): its two nodes enter
+        this graph anchored at the peer's current poses (`_adopt`), and on success this map
+        update's frame is the peer's (`_host`) and it stops relocalizing."""
+        peer = first.peer
+        if peer is not None and (peer.root() or 0) > (self.root() or 0):
+            return peer._joined_by(self, first, second)  # the newer map joins: the peer's
+        if peer is not None:
+            self._adopt(peer, [first.candidate, second.candidate])
+            self.graph.loosen_first()  # this map's frame gives way to the peer's
+        else:
+            self.retrieve([e.candidate for e in (first, second) if not self.memory.tiers.in_ram(e.candidate)])
         if first.candidate not in self.graph or second.candidate not in self.graph:
             return False
         links: list[tuple[int, int, np.ndarray]] = []
@@ -638,9 +703,103 @@ class Mapper:
             links.append((e.candidate, e.node, e.v.transform))
         for e in (first, second):
             self._record_link(e.node, e.candidate, LinkType.GLOBAL_CLOSURE, e.v)
+        if peer is not None:
+            assert self._live is not None  # a peer comes from the registry
+            self._live.joined(self, peer)
+            self._host = peer
+            log.info("relocalized: keyframe %d joined the map of a robot mapping at the same time through %d "
+                     "and %d (keyframe %d)", first.node, first.candidate, second.candidate, second.node)
+            return True
         log.info("relocalized: keyframe %d joined the older map through %d and %d (keyframe %d)",
                  first.node, first.candidate, second.candidate, second.node)
         return True
+
+    def _joined_by(self, host: Mapper, first: Evidence, second: Evidence) -> bool:
+        """The host (another robot's map update, running now, whose map is older) verified two
+        agreeing links from its keyframes to this map's nodes: this map joins the host's.
+        The host's keyframes enter this graph anchored at its poses (`_adopt`), the links are
+        added here (the graph may refuse them, then nothing is joined), the poses they moved
+        are written and this map update's frame is the host's from then on."""
+        self._adopt(host, [first.node, second.node])
+        if first.node not in self.graph or second.node not in self.graph:
+            return False
+        self.graph.loosen_first()  # this map's frame gives way to the host's
+        links: list[tuple[int, int, np.ndarray]] = []
+        for e in (first, second):
+            assert e.v.transform is not None and e.v.information is not None  # verified
+            outcome = self.graph.add_loop(e.candidate, e.node, e.v.transform, e.v.information)
+            if not outcome.accepted:
+                for a, b, t in links:
+                    self.graph.remove_loop(a, b, t)
+                return False
+            links.append((e.candidate, e.node, e.v.transform))
+        for e in (first, second):
+            self._record_link(e.node, e.candidate, LinkType.GLOBAL_CLOSURE, e.v)
+        assert self._live is not None  # a host comes from the registry
+        self._live.joined(self, host)
+        self._host = host
+        self._evidence.clear()
+        self.memory.release_relocalization()
+        if len(self._write_moved()) > 0:
+            self.on_event("map_corrected", {"nodes": len(self.graph)})
+        log.info("relocalized: the map of a robot mapping at the same time found this map's keyframes %d and %d "
+                 "from its keyframes %d and %d: this map joined it", first.candidate, second.candidate,
+                 first.node, second.node)
+        return True
+
+    def _verified_back(self, u: KeyframeUpdate, candidate: int, place: Place, peer: Mapper) -> str:
+        """A live candidate verified the other way too: the peer's keyframe registered to this
+        one (PnP, and for RGB-D the dense refinement must succeed), as the peer's map update
+        would verify it. Registration is not symmetric: the dense check from one side passed
+        a poster 7 m away that the other side refuses (the posters' negative control with
+        both robots mapping at once). Returns "ok" or "rejected: back …"."""
+        c = self.config
+        f = place.features
+        v = verify(peer.camera, f.keypoints, f.descriptors, u.features.descriptors, u.features.points,
+                   min_inliers=c.relocalize_min_inliers)
+        if not v.accepted:
+            return f"rejected: back verification {v.reason}"
+        mine = self.memory.views.get(u.node_id)
+        if place.view is not None and mine is not None:
+            v = refine(v, place.view, mine, min_overlap=c.refine_min_overlap,
+                       max_correction=(c.refine_max_correction, c.refine_max_rotation))
+            if not v.refined:
+                return "rejected: back not refined densely"
+        return "ok"
+
+    def _live_candidates(self, words: np.ndarray, peers: list[Mapper],
+                         live: dict[int, Mapper]) -> list[tuple[int, float, np.ndarray]]:
+        """The peers' keyframes in RAM that look most like a keyframe with these `words`
+        (tf-idf in the shared vocabulary, as the loop detector's likelihood), best first, as
+        `Memory.relocalization_candidates` gives the older maps': (node, score > 0, its camera
+        centre in the peer's map). Fills `live` (node -> its peer)."""
+        of = {n: p for p in peers for n in p.memory.own_in_ram()}
+        if not of:
+            return []
+        nodes = np.array(sorted(of), np.int64)
+        with self.vocabulary.lock:
+            scores = self.vocabulary.tfidf(words, nodes)
+        best = np.argsort(-scores, kind="stable")[:RELOCALIZATION_SCORED]
+        out = []
+        for i in best.tolist():
+            if scores[i] <= 0:
+                continue
+            n = int(nodes[i])
+            live[n] = of[n]
+            out.append((n, float(scores[i]), of[n].pose(n)[:3, 3].copy()))
+        return out
+
+    def _adopt(self, peer: Mapper, nodes: list[int]) -> None:
+        """A peer's nodes (another robot's map update running now) enter this map update: its
+        memory (`Memory.adopt`) and this graph, anchored at the peer's current poses with the
+        tight prior, as an older map's are (`_place`). This mapper never writes their poses."""
+        root = peer.root()
+        assert root is not None  # a peer has keyframes
+        for n in nodes:
+            if n in self.graph or not self.memory.adopt(n, peer.memory, root):
+                continue
+            self._place({n: peer.pose(n)})
+            self._foreign.add(n)
 
     def _link_path(self, u: KeyframeUpdate, candidates: set[int], stats: LoopStatistics) -> None:
         """Proximity by time: register the new keyframe to recent keyframes of its own segment
@@ -768,6 +927,8 @@ class Mapper:
     def _write_moved(self, tolerance: tuple[float, float] | None = None) -> dict[int, np.ndarray]:
         """Write the poses the graph moved by more than `tolerance` (default: the graph's)."""
         moved = self.graph.changed_poses(tolerance)
+        if self._foreign:  # another robot's nodes: its map update writes them
+            moved = {k: v for k, v in moved.items() if k not in self._foreign}
         self.memory.save_poses(moved)
         return moved
 

@@ -221,6 +221,46 @@ class Memory:
         return [(int(nodes[i]), float(scores[i]), self._older_centres[int(nodes[i])])
                 for i in best.tolist() if scores[i] > 0]
 
+    def root(self, node: int) -> int:
+        """The root of the map (connected part) `node` is in: its oldest node this memory
+        knows to be linked to it (union–find keeps the smallest id)."""
+        return self._maps.find(node)
+
+    @property
+    def newest(self) -> int | None:
+        """The newest keyframe this map update added (or resumed); None before the first."""
+        return self._order[-1] if self._order else None
+
+    def own_in_ram(self) -> list[int]:
+        """The keyframes this map update added (or resumed) that are in RAM with their words
+        indexed, ascending: what another robot's map update may relocalize against while this
+        one runs (`Mapper._relocalize`, `mapping.live`)."""
+        with self._vocabulary.lock:
+            return sorted(n for n in self._order if self._tiers.in_ram(n) and n in self._vocabulary)
+
+    def adopt(self, node: int, other: Memory, root: int) -> bool:
+        """A keyframe of another map update running at the same time (another robot's,
+        `mapping.live`) enters this one's WM, as a retrieved node of an older map does: its
+        features and dense view (the other memory's, shared), its words already in the shared
+        vocabulary, a stamp older than any loop.min_age; it is in the map of the other's `root`
+        (so this map is that map once a link joins them). Returns False when the other memory
+        no longer holds its features (nothing changes)."""
+        if node in self._stamps:
+            return True
+        f = other._features.get(node)
+        if f is None:
+            return False
+        self._features[node] = f
+        if node in other._views:
+            self._views[node] = other._views[node]
+        self._stamps[node] = -np.inf
+        self._neighbours.setdefault(node, [])
+        self._tiers.weights[node] = other._tiers.weights.get(node, 0)
+        self._tiers.ltm.add(node)
+        self._tiers.retrieved([node])
+        self._maps.union(node, root)
+        return True
+
     def release_relocalization(self) -> None:
         """The map joined an older one: the older maps' word index leaves RAM."""
         self._older_index, self._older_centres = None, {}

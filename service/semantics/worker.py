@@ -249,8 +249,11 @@ class SemanticWorker:
         backfilling = False  # the last look found a keyframe to back-fill: look again at once
         while True:
             try:
-                kf = self._queue.get(block=not backfilling, timeout=0.5 if self.backfills else None)
+                kf = self._queue.get(block=not backfilling, timeout=0.5)
             except queue.Empty:  # the back-fill: only while no robot maps (slow or idle), tracking keeps the cores
+                self._merge_joined()  # (and twins of parts joined after their last keyframe)
+                if not self.backfills:
+                    continue
                 idle = time.monotonic() - self._last_keyframe >= float(self.config.idle_after)
                 kf = self._next_backfill() if idle and not self._busy() else None
                 backfilling = kf is not None
@@ -264,6 +267,35 @@ class SemanticWorker:
             mapping = time.monotonic() - self._last_keyframe < float(self.config.idle_after)
             if duty < 1.0 and mapping:  # rest in proportion: busy at most `max_duty` of the time (a stop waits)
                 time.sleep((time.perf_counter() - t) * (1.0 / duty - 1.0))
+
+    def _merge_joined(self) -> None:
+        """Between keyframes: when links stored since the last look joined parts of the map
+        (robots mapping at the same time: the map update, behind tracking, may join them after
+        their last keyframe was fused), the twin objects of every part are merged, and written.
+        Again at each look while the map update stores links, and MERGE_AFTER_JOIN looks after
+        its last: the map update runs behind tracking, so the keyframes the joining robot made
+        after the joining one get their poses in the joined map's frame only as it catches up."""
+        try:
+            with self._lock:
+                joins = self.connectivity.joins
+                read = self.connectivity.refresh(self.store)
+                if self.connectivity.joins > joins or (read and self._merge_after_join > 0):
+                    self._merge_after_join = MERGE_AFTER_JOIN
+                if self._merge_after_join <= 0:
+                    return
+                self._merge_after_join -= 1
+                anchors = np.array(sorted(self.fusion.anchors()), np.int64)
+                if not len(anchors):
+                    return
+                roots = self.connectivity.roots(anchors)
+                poses = {n.id: n.pose for n in self.store.get_nodes(anchors.tolist())}
+                for root in np.unique(roots).tolist():
+                    part = anchors[roots == root].tolist()
+                    if len(part) > 1:
+                        self.fusion.merge_duplicates({n: poses[n] for n in part if n in poses})
+            self.flush()
+        except Exception as e:  # the store closing under a stopping service: the next look tries again
+            log.debug("semantics: merge after a join: %s", e)
 
     def _next_backfill(self) -> SemanticKeyframe | None:
         """The next keyframe to back-fill, read back from the store (pose, images): the newest
