@@ -96,7 +96,8 @@ class LocalMap:
     def update(self, stamp_id: int, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> np.ndarray:
         """Insert a tracked frame: features matched to a map point refresh its descriptor
         (the point keeps its first position: later observations come from poses that have
-        drifted more, and averaging them in moves the map with the drift); unmatched
+        drifted more, and averaging them in moves the map with the drift; `fuse` does so
+        under `odometry.map_point_fusion`, off by default); unmatched
         features with depth become new points; the least recently seen points beyond
         capacity are dropped. Returns each feature's stable point id (the matched point's, the
         new point's, or -1)."""
