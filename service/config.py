@@ -85,6 +85,14 @@ class OdometryConfig:
     # ... and its σ grows by this × how far that motion moved the point (translation + depth ×
     # rotation): the constant-velocity motion is a guess (fr1/desk with loops 2.65 -> 2.52 cm)
     depth_time_sigma: float = 0.5  # × the depth-time motion's displacement of a point, added to its depth σ
+    # RGB-D: at each map update the inliers' depth readings refine their map points (an
+    # information-weighted mean of the readings at the tracked poses, a structure-only local
+    # BA), where a point otherwise keeps its first reading. Off: on fr1/desk odometry alone
+    # 3.21 / 3.21 / 4.16 -> 3.09 / 3.09 / 2.96 cm on three RANSAC draws but not on three others,
+    # and with loops 2.52-2.55 -> 2.62-2.63 (issue 26, docs/benchmarks.md)
+    map_point_fusion: bool = False  # RGB-D: refine local-map points with the depth readings of later map updates
+    fusion_gate: float = 3.0  # a reading farther than this (Mahalanobis, point's and reading's covariance) is left out
+    fusion_readings: int = 10  # readings fused into a point after its first, at most
     lost_frames_reset: int = 3  # lost frames in a row before a new segment starts (Odom/ResetCountdown)
 
 

@@ -64,8 +64,9 @@ class TrackResult:
 class LocalMap:
     """A bounded set of world points with descriptors, refreshed by keyframes."""
 
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, focal: float = 525.0):
         self.capacity = capacity
+        self.focal = focal  # px: a pixel σ across a reading's ray is z·σ/focal metres
         self.points = np.zeros((0, 3), np.float64)
         self.descriptors = np.zeros((0, 32), np.uint8)
         self.observations = np.zeros(0, np.int32)
@@ -77,6 +78,11 @@ class LocalMap:
         self.cos0 = np.zeros(0, np.float64)  # cosine between the first ray and that camera's optical axis
         # stable point ids (indices shift when points are trimmed): the map update's point tracks
         self.ids = np.zeros(0, np.int64)
+        # `fuse`: each point's information (3×3, world) and information × position summed over its
+        # depth readings; NaN rows for points never fused (stereo points, fusion off)
+        self.info = np.zeros((0, 3, 3), np.float64)
+        self.info_x = np.zeros((0, 3), np.float64)
+        self.fused = np.zeros(0, np.int32)  # depth readings fused into the point after its first
         self._next_id = 0
 
     def __len__(self) -> int:
@@ -84,13 +90,14 @@ class LocalMap:
 
     def clear(self) -> None:
         next_id = self._next_id  # ids stay unique over segments
-        LocalMap.__init__(self, self.capacity)
+        LocalMap.__init__(self, self.capacity, self.focal)
         self._next_id = next_id
 
     def update(self, stamp_id: int, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> np.ndarray:
         """Insert a tracked frame: features matched to a map point refresh its descriptor
         (the point keeps its first position: later observations come from poses that have
-        drifted more, and averaging them in moves the map with the drift); unmatched
+        drifted more, and averaging them in moves the map with the drift; `fuse` does so
+        under `odometry.map_point_fusion`, off by default); unmatched
         features with depth become new points; the least recently seen points beyond
         capacity are dropped. Returns each feature's stable point id (the matched point's, the
         new point's, or -1)."""
@@ -119,6 +126,11 @@ class LocalMap:
         self.rays = np.concatenate([self.rays, rays])
         self.sigma = np.concatenate([self.sigma, features.depth_sigmas()[new]])
         self.origins = np.concatenate([self.origins, np.broadcast_to(pose[:3, 3], (n_new, 3))])
+        info = _reading_information(features.points[new].astype(np.float64), features.pixel_sigmas()[new],
+                                    features.depth_sigmas()[new], pose, self.focal)
+        self.info = np.concatenate([self.info, info])
+        self.info_x = np.concatenate([self.info_x, np.einsum("nij,nj->ni", info, world[new])])
+        self.fused = np.concatenate([self.fused, np.zeros(n_new, np.int32)])
         if features.disparity is None:
             self.disparity = np.concatenate([self.disparity, np.full(n_new, np.nan)])
             self.cos0 = np.concatenate([self.cos0, np.full(n_new, np.nan)])
@@ -149,6 +161,48 @@ class LocalMap:
             self.rays, self.sigma = self.rays[keep], self.sigma[keep]
             self.origins, self.disparity, self.cos0 = self.origins[keep], self.disparity[keep], self.cos0[keep]
             self.ids = self.ids[keep]
+            self.info, self.info_x, self.fused = self.info[keep], self.info_x[keep], self.fused[keep]
+
+    def fuse(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray, gate: float,
+             max_readings: int) -> int:
+        """Refine the points from this tracked frame's depth readings (`map_index`: each
+        feature's inlier map point or -1): each reading is a 3-D point at the frame's pose,
+        uncertain by the depth σ along its ray and by the pixel σ across it, and a point's
+        position becomes the information-weighted mean of its readings (a structure-only
+        bundle adjustment with the frames' poses fixed: ORB-SLAM refines its local map's points
+        over many views, where each of ours had its first reading alone). A reading farther
+        than `gate` (Mahalanobis) from the point is left out (a depth edge, a misregistered
+        depth), and so is any beyond `max_readings` per point. Stereo points (re-placed by the
+        disparity offset) are left alone. Returns the readings fused."""
+        q = np.nonzero((map_index >= 0) & features.has_depth)[0]
+        if not len(q) or features.disparity is not None:
+            return 0
+        m = map_index[q]
+        keep = self.fused[m] < max_readings
+        q, m = q[keep], m[keep]
+        p = features.points[q].astype(np.float64)
+        world = p @ pose[:3, :3].T + pose[:3, 3]
+        info = _reading_information(p, features.pixel_sigmas()[q], features.depth_sigmas()[q], pose, self.focal)
+        A, X = self.info[m], self.points[m]
+        # gate on the difference's covariance (the point's plus the reading's)
+        cov = np.linalg.inv(A) + np.linalg.inv(info)
+        d = world - X
+        chi2 = np.einsum("ni,ni->n", d, np.linalg.solve(cov, d[:, :, None])[:, :, 0])
+        ok = np.isfinite(chi2) & (chi2 <= gate ** 2)
+        m, info, world = m[ok], info[ok], world[ok]
+        if not len(m):
+            return 0
+        np.add.at(self.info, m, info)
+        np.add.at(self.info_x, m, np.einsum("nij,nj->ni", info, world))
+        np.add.at(self.fused, m, 1)
+        u = np.unique(m)
+        cov = np.linalg.inv(self.info[u])
+        self.points[u] = np.einsum("nij,nj->ni", cov, self.info_x[u])
+        # the pose refinement's model of a point's uncertainty: its largest axis
+        w, v = np.linalg.eigh(cov)
+        self.rays[u] = v[:, :, 2]
+        self.sigma[u] = np.sqrt(np.maximum(w[:, 2], 0.0))
+        return int(len(m))
 
 
 class Odometry:
@@ -159,7 +213,7 @@ class Odometry:
         self.camera = camera
         self.config = config
         self.K = camera.K
-        self.map = LocalMap(config.local_map_size)
+        self.map = LocalMap(config.local_map_size, camera.fx)
         self.pose: np.ndarray | None = None  # last tracked pose
         self.velocity = np.eye(4)  # last inter-frame motion, camera frame
         self.last_stamp: float | None = None
@@ -211,7 +265,10 @@ class Odometry:
         inlier_index = np.where(inliers, map_index, -1)
         point_ids = np.where(inlier_index >= 0, self.map.ids[np.maximum(inlier_index, 0)], -1)
         if self._needs_map_update(pose, int(inliers.sum())):
+            if self.config.map_point_fusion:
+                self.map.fuse(features, pose, inlier_index, self.config.fusion_gate, self.config.fusion_readings)
             point_ids = self._update_map(features, pose, inlier_index, int(inliers.sum()))
+
         cal = self.calibration
         if cal is not None and cal.offset != offset:  # the map follows the new estimate (the frames will)
             self.map.place_stereo_points(cal.offset, cal.fb, cal.config.disparity_sigma)
@@ -416,6 +473,22 @@ class Odometry:
                 np.linalg.norm(pose[:3, 3] - self.pose[:3, 3]) > c.max_translation:
             return None, np.zeros(len(world), bool), None
         return pose, mask, None if H is None else sigma_from_hessian(H)
+
+
+def _reading_information(points: np.ndarray, sigma_px: np.ndarray, sigma_z: np.ndarray, pose: np.ndarray,
+                         focal: float) -> np.ndarray:
+    """(n, 3, 3) world-frame information of depth readings `points` (camera frame) taken at
+    `pose`: σ_z along the camera's z axis, z·σ_px/focal across it (rotated into the world).
+    Readings without a depth σ get σ_z = 1 cm·z² (so the matrix stays invertible)."""
+    z = np.maximum(np.nan_to_num(points[:, 2], nan=1.0), 1e-3)
+    lateral = z * np.asarray(sigma_px, np.float64) / focal
+    sz = np.asarray(sigma_z, np.float64)
+    sz = np.where(np.isfinite(sz) & (sz > 0), sz, 0.01 * z ** 2)
+    diag = np.zeros((len(z), 3, 3))
+    diag[:, 0, 0] = diag[:, 1, 1] = 1.0 / lateral ** 2
+    diag[:, 2, 2] = 1.0 / sz ** 2
+    R = pose[:3, :3]
+    return R @ diag @ R.T
 
 
 def _support(result) -> int:
