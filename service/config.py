@@ -168,6 +168,12 @@ class LoopConfig:
     link_refine_information: bool = True  # loosen the link's information where the refinement's covariance is larger
     link_refine_sigma_factor: float = 0.667  # a link that takes the refined transform claims the verification's σ × this
     link_refine_drop: bool = True  # a link whose σ is beyond link_max_sigma_* (or that cannot be refined) is dropped
+    # ... and one whose two estimates disagree: the refinement moved the verified (PnP) transform by
+    # more than this; a good link's two estimates agree within ~2 cm (TUM fr1/desk: 0.3-2.1 cm), and
+    # where the verification was grossly off (10 cm / 3.8° against the motion capture) the refinement
+    # started from too far and stopped half-way (4.6 cm moved, 5.9 cm off). 0 = no such check
+    link_max_disagreement: float = 0.04  # m
+    link_max_disagreement_rotation: float = 3.0  # deg
     process: bool = True  # service: every robot's map update in one child process (its own GIL), so a slow update never slows tracking; false = a thread of the service (offline runs are always inline)
     process_nice: int = 10  # that child's nice increment (lower CPU priority than tracking); 0 = same priority
     backlog_images: int = 30  # keyframes waiting for the map update with their images (1.6 MB each at 640x480); beyond, they go without (no dense refinement at them) so a map update that falls behind costs no more memory (issue 24)

@@ -882,6 +882,13 @@ class Mapper:
             return f"rejected: inaccurate ({why})", v
         if e.covariance is None:  # not refined, not dropped: the verified link as it is
             return "ok", v
+        if c.link_refine_drop and c.link_max_disagreement > 0:
+            assert e.transform is not None  # refined
+            d = invert(v.transform) @ e.transform
+            moved, turned = float(np.linalg.norm(d[:3, 3])), float(np.degrees(rotation_angle(d[:3, :3])))
+            if moved > c.link_max_disagreement or turned > c.link_max_disagreement_rotation:
+                self.links_dropped += 1
+                return f"rejected: inaccurate (refinement moved it {moved * 100:.2f} cm / {turned:.2f} deg)", v
         refined = c.link_refine_transform and not v.refined
         T = e.transform if refined else v.transform
         info = v.information / c.link_refine_sigma_factor ** 2 if refined else v.information
