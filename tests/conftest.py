@@ -105,15 +105,53 @@ def require_chromium() -> Path:
 # Synthetic frames rendered once per test session
 
 from mnemoslam.client.synthetic import SyntheticDataset  # noqa: E402 (beside the fixtures that use it)
+from mnemoslam.client.synthetic.dataset import CACHE_ENV  # noqa: E402
+
+# The synthetic frames rendered are kept on disk for the session (client/synthetic/dataset.py
+# CACHE_ENV: a folder the first process, xdist's controller or the single one, makes and removes)
+# and read back by every process that plays them again: both xdist workers and the service, CLI
+# and streamer processes the tests start (they inherit the environment). The loop at 30 Hz, the
+# figure-8 and the walks are played by many modules on both workers. A frame costs ~25 ms of
+# CPU to render, ~2 ms to read back. The renderer's own tests (RENDERER_TESTS) render every frame.
+RENDERER_TESTS = {"test_synthetic.py", "test_synthetic_person.py", "test_synthetic_fastrot.py"}
+_FRAME_CACHE: list[str] = []  # the folder this process made
+
+
+def pytest_configure(config):
+    import tempfile
+
+    if not hasattr(config, "workerinput") and not os.environ.get(CACHE_ENV):
+        _FRAME_CACHE.append(tempfile.mkdtemp(prefix="mnemoslam-frames-"))
+        os.environ[CACHE_ENV] = _FRAME_CACHE[0]
+
+
+def pytest_unconfigure(config):
+    import shutil
+
+    for folder in _FRAME_CACHE:
+        os.environ.pop(CACHE_ENV, None)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture(autouse=True)
+def _renderer_tests_render(request, monkeypatch):
+    """The renderer's tests (RENDERER_TESTS) see frames rendered, never read back."""
+    if request.path.name in RENDERER_TESTS:
+        monkeypatch.delenv(CACHE_ENV, raising=False)
+
 
 _RENDERED: dict = {}
 
 
 class RenderedOnce(SyntheticDataset):
     """The synthetic dataset, each frame rendered once per test session (see `synthetic`); a
-    test's own subclass (tests/test_semantics.py `_Recording`) shares the frames too."""
+    test's own subclass (tests/test_semantics.py `_Recording`) shares the frames too. With the
+    session's frames kept on disk (CACHE_ENV, as `pytest_configure` sets it) they are read back
+    from there, else held in this process."""
 
     def frame(self, i: int):
+        if os.environ.get(CACHE_ENV):  # kept on disk, read back (a copy of its own): no memory held
+            return super().frame(i)
         key = (self.trajectory, self.path.duration, self.rate, self.camera, self.noise, self.exposure, self.seed,
                getattr(self.person, "walk", None), i)
         f = _RENDERED.get(key) if 0 <= i < len(self) else None

@@ -187,21 +187,30 @@ def test_local_map_ids_are_stable_across_trimming():
     assert m.update(3, features(5), np.eye(4), np.full(5, -1)).min() >= 70  # ids stay unique after a reset
 
 
-def test_map_update_runs_local_ba_on_a_synthetic_run(tmp_path):
+@pytest.fixture(scope="module")
+def local_ba_run(tmp_path_factory):
+    """The synthetic loop with noise, 90 frames at 30 Hz, loop.local_ba on, offline: the dataset,
+    the run and its folder (map.db). Both synthetic-run tests read this one run."""
+    from mnemoslam.client.datasets import open_dataset
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.runner import run_dataset
+
+    out_dir = tmp_path_factory.mktemp("local_ba")
+    ds = open_dataset("synthetic:loop", max_frames=90, noise=True)
+    return ds, run_dataset(ds, load_config(overrides={"loop": {"local_ba": True}}), out_dir, progress=False), out_dir
+
+
+def test_map_update_runs_local_ba_on_a_synthetic_run(local_ba_run):
     """loop.local_ba on: every keyframe after the first windows' is bundle-adjusted with the
     tracker's point tracks, the graph's odometry links are refined and the run stays accurate
     (measured: synthetic loop with noise, 150 frames at 30 Hz, 0.44 cm with it, 0.32 cm without)."""
-    from mnemoslam.client.datasets import open_dataset
-    from mnemoslam.service.config import load_config
     from mnemoslam.service.evaluation import evaluate
-    from mnemoslam.service.runner import run_dataset
     from mnemoslam.storage import MapStore
 
-    ds = open_dataset("synthetic:loop", max_frames=90, noise=True)
-    out = run_dataset(ds, load_config(overrides={"loop": {"local_ba": True}}), tmp_path, progress=False)
+    ds, out, out_dir = local_ba_run
     assert out.summary.tracked == len(ds)
     assert evaluate(ds.ground_truth, out.trajectory).ate_rmse < 0.01
-    with MapStore(tmp_path / "map.db", create=False) as store:
+    with MapStore(out_dir / "map.db", create=False) as store:
         ba = [store.statistics(n.id).get("local_ba") for n in store.nodes(limit=None)]
     solved = [b for b in ba if b]
     assert len(solved) >= len(ba) - 3  # all but the first keyframes (a window needs two)
@@ -242,20 +251,16 @@ def test_duplicate_tracker_points_are_fused():
     assert sizes[False] > 1.5 * truly and sizes[True] < 1.1 * truly
 
 
-def test_the_database_holds_the_links_local_ba_refined(tmp_path):
+def test_the_database_holds_the_links_local_ba_refined(local_ba_run):
     """The odometry links the local BA replaces in the graph are written to the database too:
     a graph restored from the database's links converges to the poses the run stored. (Before
     the fix the database kept the tracker's links and the restored graph ended 1.0 cm away;
     without local BA it ends 1e-7 m away.)"""
-    from mnemoslam.client.datasets import open_dataset
-    from mnemoslam.service.config import load_config
     from mnemoslam.service.mapping.graph import PoseGraph
-    from mnemoslam.service.runner import run_dataset
     from mnemoslam.storage import LinkType, MapStore
 
-    ds = open_dataset("synthetic:loop", max_frames=90, noise=True)
-    run_dataset(ds, load_config(overrides={"loop": {"local_ba": True}}), tmp_path, progress=False)
-    with MapStore(tmp_path / "map.db", create=False) as store:
+    _, _, out_dir = local_ba_run
+    with MapStore(out_dir / "map.db", create=False) as store:
         nodes = sorted(store.nodes(limit=None, merged=False), key=lambda n: n.id)
         links = store.links()
         relinked = sum(store.statistics(n.id).get("local_ba", {}).get("relinked", 0) for n in nodes)

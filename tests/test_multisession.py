@@ -25,16 +25,18 @@ BOUND_JOIN_M = 0.5  # m of B's path after the overlap before it joins (measured 
 
 
 @pytest.fixture(scope="module")
-def two_walks(tmp_path_factory):
-    db = tmp_path_factory.mktemp("multisession") / "map.db"
+def two_walks(cli_walks):
+    """walk_a, then walk_b into one map (`cli_walks`' run, read from its file): each walk's ground
+    truth and keyframes (node id, frame index), every node's final pose and the links as stored."""
+    _, db, _ = cli_walks
     walks = {}
-    with MapStore(db) as store:
-        for name in ("walk_a", "walk_b"):
-            ds = open_dataset(f"synthetic:{name}", rate=RATE)
-            pipeline = build_pipeline(store, name, ds.calibration, slam_config())
-            keyframes = [(r.node_id, r.index) for r in map(pipeline.process, ds) if r.node_id is not None]
-            pipeline.close()
-            walks[name] = (ds.ground_truth, keyframes)
+    with MapStore(db, create=False) as store:
+        for session, name in ((1, "walk_a"), (2, "walk_b")):
+            gt = open_dataset(f"synthetic:{name}", rate=RATE).ground_truth
+            nodes = store.nodes(session_id=session, limit=None, merged=None)
+            index = np.searchsorted(gt.stamps, [n.stamp for n in nodes])
+            assert np.allclose(gt.stamps[index], [n.stamp for n in nodes])
+            walks[name] = (gt, sorted(zip((n.id for n in nodes), index.tolist())))
         poses = {n.id: n.pose for n in store.nodes(limit=None, merged=None)}
         links = store.links()
         stored = {tuple(r): i for i, r in enumerate(store.link_rows()[1].tolist())}  # (from, to, type) -> order

@@ -103,8 +103,20 @@ def _loops_by_stamp(db: Path) -> tuple[list[float], set[tuple[float, float]]]:
 def uninterrupted(tmp_path_factory):
     """The uninterrupted run of FIGURE8's frames as the service receives them (`_AsStreamed`),
     offline, the map update inline: the reference both figure-8 tests compare recovery with.
-    Its keyframes' stamps, loops (by stamp) and final keyframe poses (by stamp)."""
-    return _uninterrupted_run(synthetic("figure8", **FIGURE8), tmp_path_factory.mktemp("uninterrupted"))
+    A function of `skip` (the first frames the service never processed): its keyframes' stamps,
+    loops (by stamp) and final keyframe poses (by stamp), run once per `skip`. The kill -9 test
+    runs first and asks for the frames its service processed (those that beat the camera info
+    are rejected); `skip` None, as the in-process test asks, is the run already made (else from
+    the first frame), so that one reference run serves both."""
+    runs: dict[int, dict] = {}
+
+    def reference(skip: int | None = None) -> dict:
+        skip = next(iter(runs), 0) if skip is None else skip
+        if skip not in runs:
+            runs[skip] = _uninterrupted_run(synthetic("figure8", **FIGURE8), tmp_path_factory.mktemp("uninterrupted"),
+                                            skip)
+        return runs[skip]
+    return reference
 
 
 def _uninterrupted_run(ds, out_dir: Path, skip: int = 0) -> dict:
@@ -115,12 +127,94 @@ def _uninterrupted_run(ds, out_dir: Path, skip: int = 0) -> dict:
                       progress=False)
     stamps, loops = _loops_by_stamp(out_dir / "map.db")
     np.testing.assert_array_equal(stamps, out.keyframes.stamps)
-    return dict(stamps=stamps, loops=loops, poses=dict(zip(stamps, out.keyframes.poses)))
+    return dict(stamps=stamps, loops=loops, poses=dict(zip(stamps, out.keyframes.poses)), skip=skip)
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] == "Z"  # exited, not reaped yet
+    except FileNotFoundError:
+        return True
+
+
+def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path, uninterrupted):
+    """kill -9 of `mnemoslam serve` while the map update is behind tracking; the next start
+    ends the session "crashed" and maps its backlog (loops included) before it serves."""
+    db = tmp_path / "map.db"
+    ds = synthetic("figure8", **FIGURE8)
+    svc = ServiceProcess(db, service_config({"service": {"queue_size": 10000}, **NO_REHEARSAL})).start()
+    settings = ZenohSettings(connect=[svc.endpoint])
+    t = threading.Thread(target=stream_dataset, args=(ds, "k9", settings),
+                         kwargs=dict(rate=None, progress=False, wait_for_subscriber=10.0), daemon=True)
+    t.start()
+    child = svc.api.stats()["service"]["mapping_process"]["pid"]
+    # every frame tracked (and its keyframe stored), the map update behind
+    t.join(300)  # every frame sent; those that beat k9's camera info were rejected by the service
+    early = svc.api.stats()["service"]["rejected"].get("no_calibration", 0)  # (not counted by the robot)
+    robot = svc.wait_processed("k9", len(ds) - early, timeout=300)
+    svc.proc.send_signal(signal.SIGKILL)
+    svc.proc.wait()
+    svc.stop()
+    t.join(30)
+    backlog_at_kill = robot["map_backlog"]
+    assert backlog_at_kill > 0, robot  # tracking outran the map update (measured: ~125 of ~200 keyframes)
+    with MapStore(db) as s:
+        sid = s.sessions()[0].id
+        assert s.session(sid).ended_at is None  # nobody ended it
+        keyframes = [n.id for n in s.nodes(session_id=sid, limit=None)]
+        # (the killed service's mapping child maps on until it sees its parent gone: a few more, fast ones
+        # once keyframes past loop.backlog_images come without images)
+        unmapped = set(s.unmapped_nodes()[sid])
+    assert len(keyframes) == robot["keyframes"] and len(unmapped) >= backlog_at_kill - 5
+
+    t0 = time.monotonic()
+    svc2 = ServiceProcess(db, service_config(NO_REHEARSAL)).start(timeout=300)  # recovery runs before it serves
+    try:
+        startup = time.monotonic() - t0
+        session = [x for x in svc2.api.sessions() if x["id"] == sid][0]
+        assert session["end_reason"] == "crashed" and session["ended_at"] is not None
+    finally:
+        assert svc2.stop() == 0
+    log = Path(svc2.log_path).read_text()
+    assert f"session crashed session={sid} robot=k9" in log and "recovery done" in log, log
+    assert _gone(child)  # the killed service's mapping child (which recovery waited for)
+    with MapStore(db) as s:
+        assert s.unmapped_nodes() == {}  # every stored keyframe has its map update
+        assert all(s.statistics(i) is not None for i in keyframes)
+        assert [x.end_reason for x in s.sessions()] == ["crashed"]
+        loops = _loops(s, sid)
+        recovered = {(a, b) for a, b in loops if b in unmapped}
+        ate = evaluate(ds.ground_truth, s.trajectory(sid)).ate_rmse
+    with sqlite3.connect(db) as conn:
+        assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    print(f"\nbacklog at kill {backlog_at_kill} of {len(keyframes)} keyframes ({len(unmapped)} unmapped in the file); "
+          f"restart with recovery {startup:.1f} s; loops {len(loops)}, {len(recovered)} to recovered keyframes; "
+          f"keyframe ATE {ate * 100:.3f} cm")
+    assert recovered, "the recovered keyframes closed loops"
+    assert ate < 0.005  # loops closed: ~0.2 cm (odometry alone drifts ~2 cm)
+
+    # the uninterrupted run of the same frames (offline, map update inline): the same keyframes,
+    # and loops to the keyframes that were in the backlog where it has them
+    # (frames that beat the camera info: the reference starts where the service did)
+    reference = uninterrupted(early)
+    ref_stamps, ref_loops = reference["stamps"], reference["loops"]
+    stamps, our_loops = _loops_by_stamp(db)
+    np.testing.assert_allclose(stamps, ref_stamps, atol=1e-6)
+    with MapStore(db) as s:
+        backlog_stamps = {n.stamp for n in s.nodes(session_id=sid, limit=None) if n.id in unmapped}
+    ours = {b for _, b in our_loops if b in backlog_stamps}
+    theirs = {b for _, b in ref_loops if b in backlog_stamps}
+    print(f"keyframes of the backlog with a loop: recovered {len(ours)}, uninterrupted {len(theirs)}, "
+          f"common {len(ours & theirs)}; loops to them {sum(b in backlog_stamps for _, b in our_loops)} vs "
+          f"{sum(b in backlog_stamps for _, b in ref_loops)}")
+    assert len(ours & theirs) >= 0.9 * len(theirs) > 0
 
 
 def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, uninterrupted):
+    uninterrupted = uninterrupted()  # (the kill -9 test's reference: its first frames may be skipped)
     ds = synthetic("figure8", **FIGURE8)
-    frames = _AsStreamed(ds)  # the frames of the uninterrupted reference run
+    frames = _AsStreamed(ds, uninterrupted["skip"])  # the frames of the uninterrupted reference run
     cfg = slam_config(NO_REHEARSAL)
     cfg = dataclasses.replace(cfg, storage=dataclasses.replace(cfg.storage, path=str(tmp_path / "map.db")))
     cut = 150  # after the first loops: the mapped part has loop links too
@@ -128,7 +222,7 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, u
     memory = KeyframeWriter(store, "r1", ds.calibration, cfg)
     stored = Mapper(ds.calibration.camera, cfg.loop, store, memory=cfg.memory)
     pipeline = Pipeline(ds.calibration, cfg, memory, _Crash(stored, cut))
-    results = [pipeline.process(frames.frame(i)) for i in range(len(ds))]
+    results = [pipeline.process(frames.frame(i)) for i in range(len(frames))]
     ids = [r.node_id for r in results if r.node_id is not None]
     # the same keyframes as the uninterrupted run (tracking never reads the map update)
     np.testing.assert_array_equal([r.stamp for r in results if r.node_id is not None], uninterrupted["stamps"])
@@ -228,87 +322,6 @@ def test_a_keyframe_that_cannot_be_mapped_is_counted_and_the_others_go_on(tmp_pa
         assert s.integrity_check() == "ok"
     r = recover(cfg)  # tried again at every start, never stopping it
     assert (r.keyframes, r.mapped, r.failed) == (1, 0, 1)
-
-
-def _gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] == "Z"  # exited, not reaped yet
-    except FileNotFoundError:
-        return True
-
-
-def test_kill_9_with_a_map_backlog_then_restart_maps_it(tmp_path, uninterrupted):
-    """kill -9 of `mnemoslam serve` while the map update is behind tracking; the next start
-    ends the session "crashed" and maps its backlog (loops included) before it serves."""
-    db = tmp_path / "map.db"
-    ds = synthetic("figure8", **FIGURE8)
-    svc = ServiceProcess(db, service_config({"service": {"queue_size": 10000}, **NO_REHEARSAL})).start()
-    settings = ZenohSettings(connect=[svc.endpoint])
-    t = threading.Thread(target=stream_dataset, args=(ds, "k9", settings),
-                         kwargs=dict(rate=None, progress=False, wait_for_subscriber=10.0), daemon=True)
-    t.start()
-    child = svc.api.stats()["service"]["mapping_process"]["pid"]
-    # every frame tracked (and its keyframe stored), the map update behind
-    t.join(300)  # every frame sent; those that beat k9's camera info were rejected by the service
-    early = svc.api.stats()["service"]["rejected"].get("no_calibration", 0)  # (not counted by the robot)
-    robot = svc.wait_processed("k9", len(ds) - early, timeout=300)
-    svc.proc.send_signal(signal.SIGKILL)
-    svc.proc.wait()
-    svc.stop()
-    t.join(30)
-    backlog_at_kill = robot["map_backlog"]
-    assert backlog_at_kill > 0, robot  # tracking outran the map update (measured: ~125 of ~200 keyframes)
-    with MapStore(db) as s:
-        sid = s.sessions()[0].id
-        assert s.session(sid).ended_at is None  # nobody ended it
-        keyframes = [n.id for n in s.nodes(session_id=sid, limit=None)]
-        # (the killed service's mapping child maps on until it sees its parent gone: a few more, fast ones
-        # once keyframes past loop.backlog_images come without images)
-        unmapped = set(s.unmapped_nodes()[sid])
-    assert len(keyframes) == robot["keyframes"] and len(unmapped) >= backlog_at_kill - 5
-
-    t0 = time.monotonic()
-    svc2 = ServiceProcess(db, service_config(NO_REHEARSAL)).start(timeout=300)  # recovery runs before it serves
-    try:
-        startup = time.monotonic() - t0
-        session = [x for x in svc2.api.sessions() if x["id"] == sid][0]
-        assert session["end_reason"] == "crashed" and session["ended_at"] is not None
-    finally:
-        assert svc2.stop() == 0
-    log = Path(svc2.log_path).read_text()
-    assert f"session crashed session={sid} robot=k9" in log and "recovery done" in log, log
-    assert _gone(child)  # the killed service's mapping child (which recovery waited for)
-    with MapStore(db) as s:
-        assert s.unmapped_nodes() == {}  # every stored keyframe has its map update
-        assert all(s.statistics(i) is not None for i in keyframes)
-        assert [x.end_reason for x in s.sessions()] == ["crashed"]
-        loops = _loops(s, sid)
-        recovered = {(a, b) for a, b in loops if b in unmapped}
-        ate = evaluate(ds.ground_truth, s.trajectory(sid)).ate_rmse
-    with sqlite3.connect(db) as conn:
-        assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
-    print(f"\nbacklog at kill {backlog_at_kill} of {len(keyframes)} keyframes ({len(unmapped)} unmapped in the file); "
-          f"restart with recovery {startup:.1f} s; loops {len(loops)}, {len(recovered)} to recovered keyframes; "
-          f"keyframe ATE {ate * 100:.3f} cm")
-    assert recovered, "the recovered keyframes closed loops"
-    assert ate < 0.005  # loops closed: ~0.2 cm (odometry alone drifts ~2 cm)
-
-    # the uninterrupted run of the same frames (offline, map update inline): the same keyframes,
-    # and loops to the keyframes that were in the backlog where it has them
-    if early:  # frames that beat the camera info: the reference starts where the service did
-        uninterrupted = _uninterrupted_run(ds, tmp_path / "reference", skip=early)
-    ref_stamps, ref_loops = uninterrupted["stamps"], uninterrupted["loops"]
-    stamps, our_loops = _loops_by_stamp(db)
-    np.testing.assert_allclose(stamps, ref_stamps, atol=1e-6)
-    with MapStore(db) as s:
-        backlog_stamps = {n.stamp for n in s.nodes(session_id=sid, limit=None) if n.id in unmapped}
-    ours = {b for _, b in our_loops if b in backlog_stamps}
-    theirs = {b for _, b in ref_loops if b in backlog_stamps}
-    print(f"keyframes of the backlog with a loop: recovered {len(ours)}, uninterrupted {len(theirs)}, "
-          f"common {len(ours & theirs)}; loops to them {sum(b in backlog_stamps for _, b in our_loops)} vs "
-          f"{sum(b in backlog_stamps for _, b in ref_loops)}")
-    assert len(ours & theirs) >= 0.9 * len(theirs) > 0
 
 
 def test_normal_stop_ends_the_session_stopped_and_a_restart_keeps_it(tmp_path):

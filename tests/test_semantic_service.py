@@ -18,7 +18,7 @@ TOKEN = "test-token"
 
 @pytest.fixture(scope="module")
 def streamed(tmp_path_factory):
-    ds = open_dataset("synthetic:loop", rate=10)  # 600 frames: every door is seen from several keyframes
+    ds = open_dataset("synthetic:loop", rate=5)  # 300 frames: every door is seen from several keyframes
     svc = ServiceProcess(tmp_path_factory.mktemp("sem") / "map.db",
                          {"api": {"token": TOKEN}, "service": {"idle_timeout": 3600.0}}).start()
     try:

@@ -310,3 +310,40 @@ def test_noise_model():
     assert grazing.any() and (b.depth[grazing] == 0).all()
     d = b.image.astype(float) - a.image.astype(float)
     assert 1.5 < d.std() < 2.5 and abs(d.mean()) < 0.2
+
+
+def test_frames_kept_on_disk_read_back_bit_for_bit(tmp_path, monkeypatch):
+    """With CACHE_ENV set (the test suite's session sets it) a frame rendered is written once and
+    read back by any later dataset of the same sequence, arrays and dtypes identical to a fresh
+    render; a frame file that is not whole is rendered again; another seed, size, noise or a
+    person is another sequence; a scene of one's own is never kept."""
+    from mnemoslam.client.synthetic.dataset import CACHE_ENV, Walk
+
+    specs = [dict(trajectory="loop", rate=10.0, max_frames=3, noise=True), dict(trajectory="loop", max_frames=3),
+             dict(trajectory="walk_a", rate=5.0, max_frames=3, width=80, height=60, fx=65.625, noise="kinect"),
+             dict(trajectory="loop", max_frames=3, person=Walk((0.5, 0.5), (2.0, 0.5), 0.5, 0.0), width=320,
+                  height=240)]
+    fresh = [[SyntheticDataset(**kw).frame(i) for i in range(3)] for kw in specs]  # (the variable unset here)
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path))
+    for kw, ref in zip(specs, fresh):
+        for _ in range(2):  # written, then read back
+            for i, want in enumerate(ref):
+                got = SyntheticDataset(**kw).frame(i)
+                assert (got.index, got.stamp, got.source) == (want.index, want.stamp, want.source)
+                for a, b in [(got.image, want.image), (got.depth, want.depth),
+                             *((got.extras[k], want.extras[k]) for k in want.extras)]:
+                    assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b) and a.flags.writeable
+    folders = sorted(tmp_path.iterdir())
+    assert len(folders) == len(specs) and all(len(list(f.glob("*.frame"))) == 3 for f in folders)
+    assert not list(tmp_path.glob("*/.*"))  # no temporary file left
+    key = SyntheticDataset(**specs[0])._cache_key
+    kept = tmp_path / key / "0.frame"
+    data = kept.read_bytes()
+    kept.write_bytes(bytes(len(data)))  # read back, not rendered: a file of zeros gives a black frame
+    assert not SyntheticDataset(**specs[0]).frame(0).image.any()
+    kept.write_bytes(data[:-1])  # not whole: rendered again, and written whole
+    assert np.array_equal(SyntheticDataset(**specs[0]).frame(0).depth, fresh[0][0].depth)
+    assert kept.read_bytes() == data
+    own = SyntheticDataset("loop", max_frames=2, scene=SyntheticScene(0))
+    own.frame(0)
+    assert len(list(tmp_path.iterdir())) == len(specs)  # its own scene: not kept

@@ -1,7 +1,11 @@
 """`SyntheticDataset`: the synthetic scene as a camera source (RGB-D + labels + ground truth)."""
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+import shutil
+from pathlib import Path
 from statistics import NormalDist
 
 import cv2
@@ -24,6 +28,11 @@ MAX_INCIDENCE_DEG = 75.0  # no depth on surfaces seen at a more grazing angle
 DEPTH_QUANTUM = 0.001  # metres
 RGB_SIGMA = 2.0  # grey levels
 NOISE_MODELS = ("axial", "kinect")  # noise=True is "axial"
+# A folder where the frames rendered are kept and read back (`SyntheticDataset.frame`): set by the
+# test suite (tests/conftest.py) for its session, so that the worker processes and the service and
+# CLI processes they start render each frame once; unset (the default), every frame is rendered.
+CACHE_ENV = "MNEMOSLAM_SYNTHETIC_CACHE"
+CACHE_MIN_FREE = 10 << 30  # bytes left free on the cache's disk: no frame is written below that
 
 
 def depth_sigma(z):
@@ -87,6 +96,12 @@ class SyntheticDataset(Dataset):
             n = max(0, min(n, int(limit)))
         self.stamps = np.arange(n) / self.rate
         self.ground_truth = Trajectory(self.stamps, self.path(self.stamps) if n else np.zeros((0, 4, 4)))
+        self._cache_key = None  # the frames' folder name in the CACHE_ENV folder; None: the scene is not the seed's
+        if scene is None or scene is get_scene(self.seed):
+            walk = None if self.person is None else self.person.walk
+            what = (self.trajectory, self.path.duration, self.rate, w, h, float(fx), self.noise, self.exposure,
+                    self.seed, walk)
+            self._cache_key = hashlib.sha1(repr(what).encode()).hexdigest()[:20]
 
     def __len__(self) -> int:
         return len(self.ground_truth)
@@ -102,6 +117,39 @@ class SyntheticDataset(Dataset):
     def frame(self, i: int) -> Frame:
         if not 0 <= i < len(self):
             raise IndexError(f"{self.name}: frame {i} out of range 0..{len(self) - 1}")
+        folder = os.environ.get(CACHE_ENV)
+        if not folder or self._cache_key is None:
+            return self._render(i)
+        path = Path(folder) / self._cache_key / f"{i}.frame"
+        f = self._read(path, i)
+        if f is not None:
+            return f
+        f = self._render(i)
+        _keep(path, f)
+        return f
+
+    def _read(self, path: Path, i: int) -> Frame | None:
+        """Frame i as `_keep` wrote it to `path`, or None (not there, or not whole)."""
+        try:
+            with open(path, "rb") as src:
+                buf = bytearray(src.read())
+        except OSError:
+            return None
+        h, w = self.camera.height, self.camera.width
+        sizes = (h * w * 3, h * w * 4, h * w)
+        wide = len(buf) == sum(sizes) + h * w * 4  # instances as int32, else as uint8
+        if len(buf) != sum(sizes) + h * w * (4 if wide else 1):
+            return None
+        image = np.frombuffer(buf, np.uint8, sizes[0]).reshape(h, w, 3)
+        depth = np.frombuffer(buf, np.float32, h * w, sizes[0]).reshape(h, w).copy()  # (aligned)
+        labels = np.frombuffer(buf, np.uint8, h * w, sizes[0] + sizes[1]).reshape(h, w)
+        at = sum(sizes)
+        instances = (np.frombuffer(buf, np.int32, h * w, at).copy() if wide
+                     else np.frombuffer(buf, np.uint8, h * w, at).astype(np.int32)).reshape(h, w)
+        return Frame(index=i, stamp=float(self.ground_truth.stamps[i]), image=image, depth=depth,
+                     source=f"synthetic:{self.trajectory}#{i}", extras={"labels": labels, "instances": instances})
+
+    def _render(self, i: int) -> Frame:
         pose = self.ground_truth.poses[i]
         r = self.scene.render(pose, self.camera, incidence=bool(self.noise))
         if self.person is not None:
@@ -134,6 +182,27 @@ class SyntheticDataset(Dataset):
         walk = Walk(tuple(map(float, walk.start)), tuple(map(float, walk.end)), float(walk.speed), float(walk.phase))
         instance = 1 + max((o.instance_id for o in self.scene.objects), default=0)
         return Person(walk, self.seed, instance, self.scene.quads.detail)
+
+
+def _keep(path: Path, f: Frame) -> None:
+    """Write frame `f` to the cache file `path` (colour, depth, labels, instance ids as uint8
+    when they fit, else int32: raw, one after the other) whole or not at all: a file of its own,
+    renamed into place (concurrent writers of the same frame write the same bytes). Nothing when
+    the disk has less than CACHE_MIN_FREE bytes free, or on any error (the frame is rendered again)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if shutil.disk_usage(path.parent).free < CACHE_MIN_FREE:
+            return
+        instances = f.extras["instances"]
+        if instances.size and 0 <= instances.min() and instances.max() < 256:
+            instances = instances.astype(np.uint8)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as out:
+            for a in (f.image, f.depth, f.extras["labels"], instances):
+                out.write(np.ascontiguousarray(a).tobytes())
+        os.replace(tmp, path)
+    except OSError:
+        pass
 
 
 def _noise_model(noise) -> str | bool:
