@@ -119,6 +119,7 @@ class Memory:
         self._older = np.zeros(0, np.int64)
         self._older_index: Vocabulary | None = None
         self._older_centres: dict[int, np.ndarray] = {}
+        self._older_indexed = np.zeros(0, np.int64)  # the older nodes the index has words of, ascending
 
     # -- what the map update reads -----------------------------------------------------------
     @property
@@ -214,8 +215,8 @@ class Memory:
             assert self.store is not None  # older maps: the mapper has a store
             self._older_index = Vocabulary.of_nodes(self.store, self._older.tolist(), nndr=self.loop_config.nndr_ratio)
             self._older_centres = {r.id: r.pose[:3, 3].copy() for r in self.store.get_nodes(self._older.tolist())}
-        index = self._older_index
-        nodes = np.array(sorted(n for n in self._older.tolist() if n in index), np.int64)
+            self._older_indexed = np.array([n for n in self._older.tolist() if n in self._older_index], np.int64)
+        index, nodes = self._older_index, self._older_indexed
         scores = index.tfidf(index.query(descriptors), nodes)
         best = np.argsort(-scores, kind="stable")[:k]
         return [(int(nodes[i]), float(scores[i]), self._older_centres[int(nodes[i])])
@@ -263,7 +264,7 @@ class Memory:
 
     def release_relocalization(self) -> None:
         """The map joined an older one: the older maps' word index leaves RAM."""
-        self._older_index, self._older_centres = None, {}
+        self._older_index, self._older_centres, self._older_indexed = None, {}, np.zeros(0, np.int64)
 
     def stored_poses(self, nodes) -> dict[int, np.ndarray]:
         """The stored map poses of nodes ({id: 4×4}; the older maps' are their final ones)."""
