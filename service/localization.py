@@ -162,6 +162,10 @@ class TransientMap:
                 a, b = (to_id, from_id) if transient(from_id) else (from_id, to_id)
                 self._to_map.append((int(a), int(b)))
 
+    def add_links(self, links: Iterable[tuple], *, replace: bool = False) -> None:
+        for from_id, to_id, type, transform, information in links:
+            self.add_link(from_id, to_id, type, transform, information, replace=replace)
+
     def merge_node(self, node_id: int, into_id: int, transform: np.ndarray, information: np.ndarray) -> int:
         return 0
 

@@ -59,25 +59,37 @@ class Nodes(Part):
                  information: np.ndarray | None = None, *, replace: bool = False) -> None:
         """Add a constraint T_from_to (pose_to = pose_from @ T). `information` defaults to
         identity. An existing (from, to, type) link is an error unless `replace`."""
-        a, b = as_int(from_id, "from_id"), as_int(to_id, "to_id")
-        try:
-            t = LinkType(as_int(type, "link type"))
-        except ValueError as e:
-            known = ", ".join(f"{x.value} {x.name.lower()}" for x in LinkType)
-            raise ValueError(f"unknown link type {type!r} (known: {known})") from e
-        T = pack(as_rigid(transform, "transform"), np.float64)
-        info = pack(np.eye(6) if information is None else as_matrix(information, (6, 6), "information"), np.float64)
-        verb = "INSERT OR REPLACE" if replace else "INSERT"
-        with self.db.write("add_link") as c:
+        self.add_links([(from_id, to_id, type, transform, information)], replace=replace)
+
+    def add_links(self, links: Iterable[tuple], *, replace: bool = False) -> None:
+        """Add constraints (from_id, to_id, type, T_from_to, information or None), as `add_link`
+        does each, in ONE transaction: all of them or, on any error, none (a map joined
+        through two links never holds one of them alone, whatever kills the process)."""
+        rows = []
+        for from_id, to_id, type, transform, information in links:
+            a, b = as_int(from_id, "from_id"), as_int(to_id, "to_id")
             try:
-                c.execute(f"{verb} INTO links (from_id, to_id, type, transform, information) VALUES (?, ?, ?, ?, ?)",
-                          (a, b, int(t), T, info))
-            except sqlite3.IntegrityError as e:
-                if "FOREIGN KEY" in str(e):
-                    missing = [i for i in (a, b)
-                               if c.execute("SELECT 1 FROM nodes WHERE id = ?", (i,)).fetchone() is None]
-                    raise UnknownIdError(f"link {a} -> {b}: no node {', '.join(map(str, missing))}") from e
-                raise StoreError(f"link {a} -> {b} of type {t.name.lower()} already exists (pass replace=True)") from e
+                t = LinkType(as_int(type, "link type"))
+            except ValueError as e:
+                known = ", ".join(f"{x.value} {x.name.lower()}" for x in LinkType)
+                raise ValueError(f"unknown link type {type!r} (known: {known})") from e
+            T = pack(as_rigid(transform, "transform"), np.float64)
+            info = pack(np.eye(6) if information is None else as_matrix(information, (6, 6), "information"),
+                        np.float64)
+            rows.append((a, b, t, T, info))
+        sql = ("INSERT OR REPLACE" if replace else "INSERT") + \
+            " INTO links (from_id, to_id, type, transform, information) VALUES (?, ?, ?, ?, ?)"
+        with self.db.write("add_link" if len(rows) == 1 else "add_links") as c:
+            for a, b, t, T, info in rows:
+                try:
+                    c.execute(sql, (a, b, int(t), T, info))
+                except sqlite3.IntegrityError as e:
+                    if "FOREIGN KEY" in str(e):
+                        missing = [i for i in (a, b)
+                                   if c.execute("SELECT 1 FROM nodes WHERE id = ?", (i,)).fetchone() is None]
+                        raise UnknownIdError(f"link {a} -> {b}: no node {', '.join(map(str, missing))}") from e
+                    raise StoreError(f"link {a} -> {b} of type {t.name.lower()} already exists "
+                                     f"(pass replace=True)") from e
 
     def merge_node(self, node_id: int, into_id: int, transform: np.ndarray, information: np.ndarray) -> int:
         """Rehearsal: keyframe `node_id` is merged into node `into_id`, which it sees from

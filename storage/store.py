@@ -120,6 +120,7 @@ class MapStore:
 
     # -- the map update's writes (through service.memory: `roles.MapUpdateStore`) ---------------
     add_link = _via("_nodes", Nodes.add_link)
+    add_links = _via("_nodes", Nodes.add_links)
     merge_node = _via("_nodes", Nodes.merge_node)
     update_poses = _via("_nodes", Nodes.update_poses)
     set_statistics = _via("_nodes", Nodes.set_statistics)

@@ -541,6 +541,15 @@ def test_links_by_type(store, rng):
     with pytest.raises(ValueError):
         store.add_link(a[0], a[1], 4, np.eye(4), np.eye(4))
     assert len(store.links()) == 6
+    # several links in one transaction: all of them, or none when one fails (a join's two)
+    store.add_links([(b[1], a[2], LinkType.GLOBAL_CLOSURE, pose(0.4), None),
+                     (b[1], a[3], LinkType.GLOBAL_CLOSURE, pose(0.6), np.eye(6) * 9)])
+    assert len(store.links(session_id=s2, type=LinkType.GLOBAL_CLOSURE)) == 3
+    for bad in ((b[0], 4242, LinkType.GLOBAL_CLOSURE, pose(0.7), None),  # no such node
+                (b[1], a[2], LinkType.GLOBAL_CLOSURE, pose(0.8), None)):  # exists already
+        with pytest.raises((UnknownIdError, StoreError)):
+            store.add_links([(b[0], a[2], LinkType.GLOBAL_CLOSURE, pose(0.7), None), bad])
+        assert len(store.links()) == 8  # the first of the two was not kept either
 
 
 def test_trajectory_is_ordered_by_stamp(store, rng):

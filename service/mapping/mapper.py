@@ -692,17 +692,8 @@ class Mapper:
             self.retrieve([e.candidate for e in (first, second) if not self.memory.tiers.in_ram(e.candidate)])
         if first.candidate not in self.graph or second.candidate not in self.graph:
             return False
-        links: list[tuple[int, int, np.ndarray]] = []
-        for e in (first, second):
-            assert e.v.transform is not None and e.v.information is not None  # verified
-            outcome = self.graph.add_loop(e.candidate, e.node, e.v.transform, e.v.information)
-            if not outcome.accepted:
-                for a, b, t in links:
-                    self.graph.remove_loop(a, b, t)
-                return False
-            links.append((e.candidate, e.node, e.v.transform))
-        for e in (first, second):
-            self._record_link(e.node, e.candidate, LinkType.GLOBAL_CLOSURE, e.v)
+        if not self._add_join_links(first, second):
+            return False
         if peer is not None:
             assert self._live is not None  # a peer comes from the registry
             self._live.joined(self, peer)
@@ -712,6 +703,25 @@ class Mapper:
             return True
         log.info("relocalized: keyframe %d joined the older map through %d and %d (keyframe %d)",
                  first.node, first.candidate, second.candidate, second.node)
+        return True
+
+    def _add_join_links(self, first: Evidence, second: Evidence) -> bool:
+        """A join's two links into the graph, which checks each (if it refuses one, neither
+        stays); then into the database in one transaction (a kill between two writes would
+        leave the map joined by one link) and memory. Whether they were added."""
+        links: list[tuple[int, int, np.ndarray]] = []
+        for e in (first, second):
+            assert e.v.transform is not None and e.v.information is not None  # verified
+            outcome = self.graph.add_loop(e.candidate, e.node, e.v.transform, e.v.information)
+            if not outcome.accepted:
+                for a, b, t in links:
+                    self.graph.remove_loop(a, b, t)
+                return False
+            links.append((e.candidate, e.node, e.v.transform))
+        self.memory.save_links([(e.candidate, e.node, LinkType.GLOBAL_CLOSURE, e.v.transform, e.v.information)
+                                for e in (first, second)])
+        for e in (first, second):
+            self._record_link(e.node, e.candidate, LinkType.GLOBAL_CLOSURE, e.v, stored=True)
         return True
 
     def _joined_by(self, host: Mapper, first: Evidence, second: Evidence) -> bool:
@@ -724,17 +734,8 @@ class Mapper:
         if first.node not in self.graph or second.node not in self.graph:
             return False
         self.graph.loosen_first()  # this map's frame gives way to the host's
-        links: list[tuple[int, int, np.ndarray]] = []
-        for e in (first, second):
-            assert e.v.transform is not None and e.v.information is not None  # verified
-            outcome = self.graph.add_loop(e.candidate, e.node, e.v.transform, e.v.information)
-            if not outcome.accepted:
-                for a, b, t in links:
-                    self.graph.remove_loop(a, b, t)
-                return False
-            links.append((e.candidate, e.node, e.v.transform))
-        for e in (first, second):
-            self._record_link(e.node, e.candidate, LinkType.GLOBAL_CLOSURE, e.v)
+        if not self._add_join_links(first, second):
+            return False
         assert self._live is not None  # a host comes from the registry
         self._live.joined(self, host)
         self._host = host
@@ -907,14 +908,16 @@ class Mapper:
         self._record_link(u.node_id, candidate, kind, v)
         return "accepted"
 
-    def _record_link(self, node: int, candidate: int, kind: LinkType, v: Verification) -> None:
-        """A link the graph accepted: memory, the database, a `loop_closed` event (not for path links)."""
+    def _record_link(self, node: int, candidate: int, kind: LinkType, v: Verification, stored: bool = False) -> None:
+        """A link the graph accepted: memory, the database (unless `stored` already), a
+        `loop_closed` event (not for path links)."""
         assert v.transform is not None and v.information is not None  # accepted: both set
         if kind != LinkType.LOCAL_TIME:
             self.loops.append((candidate, node))
             self.memory.loop_closed(candidate)
             self.memory.link(node, candidate)
-        self.memory.save_link(candidate, node, kind, v.transform, v.information)
+        if not stored:
+            self.memory.save_link(candidate, node, kind, v.transform, v.information)
         if kind != LinkType.LOCAL_TIME:
             self.on_event("loop_closed", {"from": candidate, "to": node, "inliers": v.inliers, "link": kind.label})
 

@@ -661,6 +661,12 @@ class Memory:
         if self.store is not None:
             self.store.add_link(from_id, to_id, kind, transform, information, replace=replace)
 
+    def save_links(self, links: list[tuple]) -> None:
+        """Store links the map update put in its graph together, (from, to, type, transform,
+        information) each: all or none (a join's two links)."""
+        if self.store is not None and links:
+            self.store.add_links(links)
+
     def save_poses(self, poses: Mapping[int, np.ndarray]) -> None:
         """Store keyframes' map poses ({node: 4×4}) as the graph places them."""
         if self.store is not None and poses:
