@@ -69,24 +69,29 @@ def test_robots_on_a_shared_map_fuse_into_its_objects(tmp_path):
     assert worker[0].stats("b")["processed"] > 0 and worker[0].stats("c")["errors"] == 0
 
 
+def _b_then_c(store, cfg):
+    """Robots b and c walking the noisy loop at once (from its frames 3 and 6) into `store`
+    with one semantic worker: (sessions, objects, the sessions each object was seen from, the
+    map's connectivity, b's and c's last keyframes)."""
+    worker = build_semantics(store, cfg)
+    sessions = _walk(store, worker, [("b", 3), ("c", 6)], synthetic("loop", **LOOP_NOISY), cfg)
+    worker[0].close()
+    objects = store.objects()
+    conn = MapConnectivity()
+    conn.refresh(store)
+    last = tuple(store.nodes(session_id=sessions[k], limit=None)[-1] for k in ("b", "c"))
+    return sessions, objects, _sessions_seen(store, objects), conn, last
+
+
 def test_objects_of_unjoined_frames_stay_apart(tmp_path):
     """The same two walks on an empty map: no link joins B's frame and C's, so each keeps its
     own objects although their coordinates coincide (both frames start at the origin). (Robots
     mapping at the same time relocalize against each other, `loop.relocalize_live`, and these
     two would join: switched off here, as for two robots whose walks share nothing.)"""
-    ds = synthetic("loop", **LOOP_NOISY)
     cfg = load_config(None, {**CONFIG, "loop": {"relocalize_live": False}})
     with MapStore(tmp_path / "map.db") as store:
-        worker = build_semantics(store, cfg)
-        sessions = _walk(store, worker, [("b", 3), ("c", 6)], ds, cfg)
-        worker[0].close()
-        objects = store.objects()
-        seen = _sessions_seen(store, objects)
-        conn = MapConnectivity()
-        conn.refresh(store)
+        sessions, objects, seen, conn, (b_last, c_last) = _b_then_c(store, cfg)
         same = lambda a, b: conn.find(a) == conn.find(b)  # noqa: E731
-        b_last = store.nodes(session_id=sessions["b"], limit=None)[-1]
-        c_last = store.nodes(session_id=sessions["c"], limit=None)[-1]
         # the planner's "nearest door to robot C" answers from C's frame only, however near B's doors are
         index = ObjectIndex(store)
         anchor_session = {n.id: n.session_id for n in store.get_nodes({o.node_id for o in objects})}
@@ -108,18 +113,8 @@ def test_robots_mapping_at_once_join_and_share_their_objects(tmp_path):
     """The same two walks on an empty map with the robots' map updates searching each other
     (`mapping.live`, the default): C's map joins B's by appearance, and the things both see
     are one object each (no same-label pair within 0.4 m), seen from both sessions."""
-    ds = synthetic("loop", **LOOP_NOISY)
-    cfg = load_config(None, CONFIG)
     with MapStore(tmp_path / "map.db") as store:
-        worker = build_semantics(store, cfg)
-        sessions = _walk(store, worker, [("b", 3), ("c", 6)], ds, cfg)
-        worker[0].close()
-        objects = store.objects()
-        seen = _sessions_seen(store, objects)
-        conn = MapConnectivity()
-        conn.refresh(store)
-        b_last = store.nodes(session_id=sessions["b"], limit=None)[-1]
-        c_last = store.nodes(session_id=sessions["c"], limit=None)[-1]
+        _, objects, seen, conn, (b_last, c_last) = _b_then_c(store, load_config(None, CONFIG))
     assert conn.find(b_last.id) == conn.find(c_last.id)
     assert not _twins(objects), _twins(objects)
     assert any(len(s) == 2 for s in seen.values()), seen
