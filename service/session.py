@@ -95,7 +95,7 @@ class RobotSession:
         # is on: its frame-time margin (`needs_cpu`, the semantic worker's probe)
         self._spans: deque[tuple[float, float]] = deque(maxlen=120)
         self._frame_started: float | None = None
-        self._first_started: float | None = None  # its first frame's start (a young session's window is shorter)
+        self._first_started: float | None = None  # its first frame's start (a young session's margin is not known)
         self._thread = threading.Thread(target=self._run, name=f"slam-{robot}", daemon=True)
         self._thread.start()
 
@@ -117,16 +117,19 @@ class RobotSession:
         return len(self._queue)
 
     def busy_share(self, now: float | None = None, window: float = 1.0) -> float:
-        """The share of the last `window` seconds (or of the time since its first frame, when
-        shorter) the worker thread spent processing frames (1 - its frame-time margin: 0.9 = a
-        frame takes 90 % of the time between frames)."""
+        """The share of the last `window` seconds the worker thread spent processing frames
+        (1 - its frame-time margin: 0.9 = a frame takes 90 % of the time between frames).
+        A session younger than `window` (from its first frame) has no margin known yet: 1.0.
+        (Measured over its short life instead, the share swings with every few milliseconds
+        a frame comes late: the semantic worker took a stream's first keyframe while
+        tracking had no margin.)"""
         now = time.monotonic() if now is None else now
         first = self._first_started
         if first is None:
             return 0.0
-        start = max(now - window, first)
-        if now <= start:
+        if now - first < window:
             return 1.0
+        start = now - window
         spans = list(self._spans)
         busy = sum(e - max(s, start) for s, e in spans if e > start)
         current = self._frame_started

@@ -517,6 +517,7 @@ def test_a_session_needs_the_cores_while_frames_wait_or_it_has_no_margin():
         assert session.queue_depth == 2
         assert session.needs_cpu(1, 0.0)  # the queue
         assert not session.needs_cpu(2, 0.0)
+        assert session.busy_share() == 1.0 and session.needs_cpu(2, 0.2)  # younger than a second: no margin known
         time.sleep(1.1)
         assert session.busy_share() > 0.9 and session.needs_cpu(5, 0.2)  # no margin: one frame for 1.1 s
         release.set()
