@@ -741,8 +741,9 @@ class Mapper:
         self._host = host
         self._evidence.clear()
         self.memory.release_relocalization()
-        if len(self._write_moved()) > 0:
-            self.on_event("map_corrected", {"nodes": len(self.graph)})
+        moved = self._write_moved()
+        if moved:
+            self.on_event("map_corrected", {"nodes": len(moved)})  # (docs/service.md: the nodes moved)
         log.info("relocalized: the map of a robot mapping at the same time found this map's keyframes %d and %d "
                  "from its keyframes %d and %d: this map joined it", first.candidate, second.candidate,
                  first.node, second.node)
@@ -777,18 +778,10 @@ class Mapper:
         of = {n: p for p in peers for n in p.memory.own_in_ram()}
         if not of:
             return []
-        nodes = np.array(sorted(of), np.int64)
         with self.vocabulary.lock:
-            scores = self.vocabulary.tfidf(words, nodes)
-        best = np.argsort(-scores, kind="stable")[:RELOCALIZATION_SCORED]
-        out = []
-        for i in best.tolist():
-            if scores[i] <= 0:
-                continue
-            n = int(nodes[i])
-            live[n] = of[n]
-            out.append((n, float(scores[i]), of[n].pose(n)[:3, 3].copy()))
-        return out
+            best = self.vocabulary.most_alike(words, np.array(sorted(of), np.int64), RELOCALIZATION_SCORED)
+        live.update((n, of[n]) for n, _ in best)
+        return [(n, score, of[n].pose(n)[:3, 3].copy()) for n, score in best]
 
     def _adopt(self, peer: Mapper, nodes: list[int]) -> None:
         """A peer's nodes (another robot's map update running now) enter this map update: its

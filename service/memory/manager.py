@@ -216,11 +216,9 @@ class Memory:
             self._older_index = Vocabulary.of_nodes(self.store, self._older.tolist(), nndr=self.loop_config.nndr_ratio)
             self._older_centres = {r.id: r.pose[:3, 3].copy() for r in self.store.get_nodes(self._older.tolist())}
             self._older_indexed = np.array([n for n in self._older.tolist() if n in self._older_index], np.int64)
-        index, nodes = self._older_index, self._older_indexed
-        scores = index.tfidf(index.query(descriptors), nodes)
-        best = np.argsort(-scores, kind="stable")[:k]
-        return [(int(nodes[i]), float(scores[i]), self._older_centres[int(nodes[i])])
-                for i in best.tolist() if scores[i] > 0]
+        index = self._older_index
+        return [(n, score, self._older_centres[n])
+                for n, score in index.most_alike(index.query(descriptors), self._older_indexed, k)]
 
     def root(self, node: int) -> int:
         """The root of the map (connected part) `node` is in: its oldest node this memory

@@ -542,6 +542,13 @@ class Vocabulary:
         np.add.at(s, pos, counts / n_i[pos] * idf)
         return s
 
+    def most_alike(self, word_ids, nodes: np.ndarray, k: int) -> list[tuple[int, float]]:
+        """The `k` of `nodes` (sorted ids) with the highest `tfidf` given these word ids, best
+        first (ties by id), as (node, score > 0): a relocalization's candidates."""
+        scores = self.tfidf(word_ids, nodes)
+        best = np.argsort(-scores, kind="stable")[:max(0, k)]
+        return [(int(nodes[i]), float(scores[i])) for i in best.tolist() if scores[i] > 0]
+
     def word_nodes(self, word_id: int) -> dict[int, int]:
         return dict(self._postings.get(int(word_id), {}))
 
