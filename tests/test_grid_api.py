@@ -181,7 +181,9 @@ def test_grid_follows_moved_poses(world, tmp_path):
     poses = {i: T @ world.store.get_node(i).pose for i in world.ids}
     world.store.update_poses(poses)
     try:
-        after = _get(world, "/maps/0/grid").json()
+        r = _get(world, "/maps/0/grid", wait=60)
+        assert r.headers["X-Map-Current"] == "true"
+        after = r.json()
         assert len(after["data"]) == n and abs(after["origin"][0] - before["origin"][0] - 0.5) < 0.051
     finally:
         world.store.update_poses({i: np.linalg.inv(T) @ p for i, p in poses.items()})
