@@ -25,6 +25,7 @@ from collections import deque
 import numpy as np
 
 from .kernel.frames import DatasetError
+from .kernel.protocol import MAX_ACCEL
 
 IMU = "sensor_msgs/msg/Imu"
 #: The camera's optical axes from REP 103 body axes (x forward, y left, z up): optical x = -body y,
@@ -73,11 +74,13 @@ def axes_by_name(frame_id: str) -> tuple[np.ndarray, str]:
 
 def reading(msg) -> tuple[np.ndarray, str] | None:
     """An Imu message's linear_acceleration (3,) and its frame, or None when it has none
-    (covariance[0] = -1 by the message's convention, or not finite, or zero)."""
+    (covariance[0] = -1 by the message's convention, or not finite, zero or beyond the wire
+    protocol's MAX_ACCEL)."""
     cov = np.asarray(msg.linear_acceleration_covariance, np.float64).reshape(-1)
     a = msg.linear_acceleration
     v = np.array([a.x, a.y, a.z], np.float64)
-    if (len(cov) and cov[0] == -1.0) or not np.all(np.isfinite(v)) or not np.any(v):
+    if (len(cov) and cov[0] == -1.0) or not np.all(np.isfinite(v)) or not np.any(v) \
+            or float(np.linalg.norm(v)) > MAX_ACCEL:
         return None
     return v, str(msg.header.frame_id)
 

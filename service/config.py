@@ -304,7 +304,7 @@ class SemanticsConfig:
 @dataclass
 class RosConfig:
     enabled: bool = False  # accept ROS 2 camera topics bridged to Zenoh (zenoh-bridge-ros2dds / rmw_zenoh: CDR Image, CompressedImage, CameraInfo) for the robots below (service/ros.py)
-    robots: list = field(default_factory=list)  # one mapping per robot: {robot: r1, color: KEY, depth: KEY, info: KEY, pose: KEY, intrinsics: k}; KEY = the topic's Zenoh key (the bridge's: the topic without its leading '/'); depth registered to colour; pose (PoseStamped out), intrinsics (k, or p for image_rect topics) and localize (true: localization only for that robot) optional
+    robots: list = field(default_factory=list)  # one mapping per robot: {robot: r1, color: KEY, depth: KEY, info: KEY, pose: KEY, intrinsics: k}; KEY = the topic's Zenoh key (the bridge's: the topic without its leading '/'); depth registered to colour; pose (PoseStamped out), intrinsics (k, or p for image_rect topics), localize (true: localization only for that robot), imu (KEY of sensor_msgs/Imu: each frame's accelerometer reading, the occupancy grid's up) and imu_axes (optical | body | A:B:C, the IMU's axes in the camera's; default by the Imu's frame name) optional
     frame_id: str = "map"  # header.frame_id of the PoseStamped poses published on a robot's pose key
     sync_tolerance: float = 0.015  # s; a colour and a depth image pair when their header stamps differ by at most this (the nearest)
     sync_window: float = 0.5  # s; an unpaired image waits for its partner until its own stream is this far past it (the other stream's callbacks may lag), then is dropped (counted unpaired)
