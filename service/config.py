@@ -335,6 +335,7 @@ class GridConfig:
     update_error: float = 0.01  # m; a keyframe whose optimised pose moved more (or turned more than this / 1 m in rad) is re-placed in the map grid (GridGlobal/UpdateError); 0 = at any change
     refresh_interval: float = 1.0  # s; a map's grid asked for over REST is kept up to date by a thread of the API, a pass this often while it is asked for (within 60 s) and one at each request, so a request does not pay a loop closure's re-assembly; 0 = every request assembles (docs/grid.md)
     max_wait: float = 0.1  # s; a request waits this long for the grid to be brought up to date, then gets the last one assembled (header X-Map-Current: false)
+    cloud_cache_mb: int = 256  # MiB; GET /maps/{map}/cloud keeps each keyframe's filtered points (by pose and voxel) and the last whole cloud within this, so a second request does not decode every keyframe's images again; 0 = no cache
     footprint_radius: float = 0.2  # m; the cells this close to a keyframe's position are free: the camera (the robot, the person holding it) was there (GridGlobal/FootprintRadius, 0 there); 0 = off
     robot_radius: float = 0.2  # m; paths (GET /path) keep this far from occupied cells
     path_unknown: bool = False  # paths may cross unknown cells (else free cells only)

@@ -21,6 +21,7 @@ from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import GridConfig
 from .assembly import GlobalGrid, GridImage
+from .cloud import CloudCache
 from .local import LocalGridMaker, StoredLocalGrid
 
 log = logging.getLogger("mnemoslam.grid")
@@ -51,6 +52,7 @@ class MapGrids:
         self._known_ids: tuple[np.ndarray, np.ndarray] | None = None
         self._roots: tuple | None = None  # (node ids, their parts' roots, their map ids) at the last look
         self.last_update: dict = {}
+        self.clouds = CloudCache(max(0, config.cloud_cache_mb) * 2 ** 20)  # GET /maps/{map}/cloud's
         # the background assembler (`latest`): maps asked for, their last grid, the passes
         self._cond = threading.Condition()
         self._asked: dict[int, float] = {}  # map id -> monotonic time of its last request

@@ -105,11 +105,12 @@ def map_cloud(map_id: DbId, request: Request, store: StoreDep, voxel: Voxel = 0.
     """The map's coloured point cloud in the map frame: every keyframe's stored depth and
     colour at its optimised pose, voxel-filtered (`voxel` m). PLY by default (binary, as
     rtabmap-export writes it); `json` for small maps."""
+    grids = _grids(request, store)
     try:
-        ids, poses = _grids(request, store).keyframes(map_id)
+        ids, poses = grids.keyframes(map_id)
     except NoMap as e:
         raise HTTPException(404, str(e)) from None
-    P, C = grid_cloud.map_cloud(store, ids, poses, voxel)
+    P, C = grid_cloud.map_cloud(store, ids, poses, voxel, cache=grids.clouds)
     if len(P) == 0:
         raise HTTPException(404, f"map {map_id} has no stored depth (storage.keep_images false, or a stereo map)")
     if format == "json":
