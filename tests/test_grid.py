@@ -269,13 +269,14 @@ def test_map_grids_follow_the_store(tmp_path, walk_grids):
         assert sorted(mg.maps()) == [0, 1]
         a0, a1 = mg.grid(0), mg.grid(1)
         assert a0.keyframes + a1.keyframes == len(ids)
+        assert mg.grid(0) is a0 and mg.last_update.get("unchanged")  # nothing committed since: no pose read
         with pytest.raises(NoMap, match="no map 7"):
             mg.grid(7)
         # a loop link joins the second session to the first: one map of every keyframe
         first, last = node_of[int(ids[0])], node_of[int(ids[len(ids) // 2])]
         s.add_link(first, last, int(LinkType.GLOBAL_CLOSURE), np.linalg.inv(poses[0]) @ poses[len(ids) // 2])
         assert sorted(mg.maps()) == [0]
-        assert mg.grid(0).keyframes == len(ids)
+        assert mg.grid(0).keyframes == len(ids) and not mg.last_update.get("unchanged")
         bent = _corrected(poses, 0.1)
         bent[:5] = poses[:5]
         s.update_poses({node_of[int(n)]: bent[k] for k, n in enumerate(ids)})

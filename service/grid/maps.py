@@ -52,6 +52,8 @@ class MapGrids:
         self._known_ids: tuple[np.ndarray, np.ndarray] | None = None
         self._roots: tuple | None = None  # (node ids, their parts' roots, their map ids) at the last look
         self.last_update: dict = {}
+        self._counter = None  # the store's change counter (PRAGMA data_version); False: none to be had
+        self._counted: dict[int, int] = {}  # map id -> the change counter when its grid was last brought up to date
         self.clouds = CloudCache(max(0, config.cloud_cache_mb) * 2 ** 20)  # GET /maps/{map}/cloud's
         # the background assembler (`latest`): maps asked for, their last grid, the passes
         self._cond = threading.Condition()
@@ -104,6 +106,13 @@ class MapGrids:
         waits for it: seconds after a loop closure moved a large map; see `latest`)."""
         with self._assembly, self._lock:
             t0 = time.perf_counter()
+            version = self._version()
+            if version is not None and self._counted.get(map_id) == version and map_id in self._grids:
+                # nothing committed to the file since: the same grid (no pose read, ~1 ms)
+                g = self._grids[map_id]
+                self.last_update = {"added": 0, "moved": 0, "removed": 0, "rebuilt": False, "unchanged": True,
+                                    "ms": (time.perf_counter() - t0) * 1e3, "keyframes": g.keyframes}
+                return g.image()
             parts = self._partition()
             if map_id not in parts:
                 raise NoMap(f"no map {map_id}" + (f" (maps: {', '.join(map(str, sorted(parts)))})" if parts else
@@ -124,7 +133,23 @@ class MapGrids:
             finally:
                 self._lock.acquire()
             self.last_update = {**stats, "ms": (time.perf_counter() - t0) * 1e3, "keyframes": g.keyframes}
+            if version is not None:
+                self._counted[map_id] = version
             return g.image()
+
+    def _version(self) -> int | None:
+        """The store file's change counter (None without one: an in-memory store)."""
+        if self._counter is None:
+            try:
+                self._counter = self.store.change_counter()
+            except Exception:  # (no file to count the changes of)
+                self._counter = False
+        if self._counter is False:
+            return None
+        try:
+            return self._counter()
+        except Exception:
+            return None
 
     # -- the background assembler -------------------------------------------------------------------
     def latest(self, map_id: int, max_wait: float | None = None) -> tuple[GridImage, bool]:
@@ -217,6 +242,10 @@ class MapGrids:
             t = self._thread
         if t is not None and t is not threading.current_thread():
             t.join(timeout=30)
+        with self._assembly:
+            if self._counter:
+                self._counter.close()
+            self._counter = False
 
     def keyframes(self, map_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(node ids, their current poses) of a map (NoMap when there is no such map)."""
