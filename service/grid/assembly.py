@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -73,6 +73,8 @@ class GridImage:
     origin: tuple[float, float]
     map_to_grid: np.ndarray
     keyframes: int = 0
+    #: what was made of this image (REST's encoded answers), dropped with it when the grid changes
+    encoded: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def width(self) -> int:

@@ -5,6 +5,7 @@ point). The grids are `service.grid.maps.MapGrids`', kept up to date by a backgr
 (new and moved keyframes only) once asked for; a request waits at most grid.max_wait for it."""
 from __future__ import annotations
 
+import threading
 from typing import Annotated, Literal
 
 import numpy as np
@@ -65,19 +66,28 @@ def map_grid(map_id: DbId, request: Request, store: StoreDep, resolution: Resolu
         grid, current = _grids(request, store).latest(map_id, wait)
     except NoMap as e:
         raise HTTPException(404, str(e)) from None
-    if resolution is not None:
-        grid = grid.resampled(resolution)
-    f = files.map_yaml_fields(grid, "grid.pgm")
-    headers = {"X-Map-Resolution": f"{grid.resolution:.9g}", "X-Map-Origin": ",".join(f"{v:.9g}" for v in f["origin"]),
-               "X-Map-To-Grid": ",".join(f"{v:.9g}" for v in f["map_to_grid"]), "X-Map-Keyframes": str(grid.keyframes),
-               "X-Map-Current": "true" if current else "false"}
-    if format == "png":
-        return Response(files.png_bytes(grid), media_type="image/png", headers=headers)
-    if format == "pgm":
-        return Response(files.pgm_bytes(grid), media_type="image/x-portable-graymap", headers=headers)
-    if format == "yaml":
-        return Response(files.map_yaml(grid), media_type="text/yaml", headers=headers)
-    return Response(_grid_json(grid), media_type="application/json", headers=headers)
+    # the answer's bytes are kept with the grid image (a new image when the grid changes): a
+    # planner polling a map gets them without encoding its ~10^6 cells again
+    key = (format, None if resolution is None else float(resolution))
+    with _ENCODED_LOCK:
+        kept = grid.encoded.get(key)
+    if kept is None:
+        g = grid if resolution is None else grid.resampled(resolution)
+        f = files.map_yaml_fields(g, "grid.pgm")
+        fields = {"X-Map-Resolution": f"{g.resolution:.9g}", "X-Map-Origin": ",".join(f"{v:.9g}" for v in f["origin"]),
+                  "X-Map-To-Grid": ",".join(f"{v:.9g}" for v in f["map_to_grid"]), "X-Map-Keyframes": str(g.keyframes)}
+        body = {"png": files.png_bytes, "pgm": files.pgm_bytes, "yaml": files.map_yaml}.get(format, _grid_json)(g)
+        kept = (body, fields)
+        with _ENCODED_LOCK:
+            if len(grid.encoded) >= 8:  # (a few formats and resolutions)
+                grid.encoded.clear()
+            grid.encoded[key] = kept
+    body, fields = kept
+    media = {"png": "image/png", "pgm": "image/x-portable-graymap", "yaml": "text/yaml"}.get(format, "application/json")
+    return Response(body, media_type=media, headers={**fields, "X-Map-Current": "true" if current else "false"})
+
+
+_ENCODED_LOCK = threading.Lock()
 
 
 def _grid_json(grid) -> bytes:
