@@ -15,7 +15,11 @@ loop closure, and REST latency of the grid of a 20k-keyframe map.
    all re-placed) against a from-scratch assembly at the corrected poses.
 3. REST: the app under uvicorn in a thread (a service stand-in holding the store), GET
    /maps/0/grid?format=png and ?format=json, `--requests` each, p50 / p99 as the client sees
-   them (the grid up to date, no change between requests: what a planner polling pays).
+   them (the grid up to date, no change between requests: what a planner polling pays); then
+   a loop closure moving every keyframe while a planner polls every 50 ms: the requests'
+   latency and how long until the grid served follows it (X-Map-Current).
+4. The map cloud (`map_cloud`, GET /maps/{map}/cloud's) of `--cloud-keyframes` keyframes of
+   walk_b with images: without the cache, and with it (first, again, after 10 % moved).
 
 Prints the load average: on a shared 2-core machine the figures move with it.
 """
@@ -131,6 +135,21 @@ def build_map(path: Path, n: int, grids, seed: int = 0):
     return s, np.array(ids), np.stack(poses)
 
 
+def bend(poses, degrees: float, keep: int):
+    """Poses as a loop closure corrects them: a yaw about the map's y and a shift along x,
+    growing along the path; the first `keep` (the grid frame's keyframes) kept: no rebuild."""
+    n = len(poses)
+    f = np.arange(n) / (n - 1)
+    a = np.radians(degrees) * f
+    bent = poses.copy()
+    for i in range(n):
+        R = np.array([[np.cos(a[i]), 0, np.sin(a[i])], [0, 1, 0], [-np.sin(a[i]), 0, np.cos(a[i])]])
+        bent[i, :3, :3] = R @ poses[i, :3, :3]
+        bent[i, :3, 3] = R @ poses[i, :3, 3] + np.array([0.5 * f[i], 0, 0])
+    bent[:keep] = poses[:keep]
+    return bent
+
+
 def assembly(store, ids, poses):
     from mnemoslam.service.config import GridConfig
     from mnemoslam.service.grid.maps import MapGrids
@@ -147,15 +166,7 @@ def assembly(store, ids, poses):
     print(f"   first assembly (read + place all)   {first * 1e3:8.0f} ms")
     print(f"   a request without change            {again * 1e3:8.1f} ms")
     # a loop closure: every keyframe moved (a bend growing along the path)
-    n = len(ids)
-    f = np.arange(n) / (n - 1)
-    a = np.radians(1.0) * f
-    bent = poses.copy()
-    for i in range(n):
-        R = np.array([[np.cos(a[i]), 0, np.sin(a[i])], [0, 1, 0], [-np.sin(a[i]), 0, np.cos(a[i])]])
-        bent[i, :3, :3] = R @ poses[i, :3, :3]
-        bent[i, :3, 3] = R @ poses[i, :3, 3] + np.array([0.5 * f[i], 0, 0])
-    bent[:cfg.frame_nodes] = poses[:cfg.frame_nodes]  # the grid frame's keyframes kept: no rebuild
+    bent = bend(poses, 1.0, cfg.frame_nodes)
     store.update_poses({int(k): p for k, p in zip(ids, bent)})
     t = time.perf_counter()
     img = mg.grid(0)
@@ -204,7 +215,70 @@ def rest(store, requests_n: int):
                 assert r.status == 200, body[:200]
             print(f"   GET /maps/0/grid?format={fmt:<4}  p50 {ms(lat, 50):7.1f} ms  p99 {ms(lat, 99):7.1f} ms  "
                   f"({size / 1e6:.2f} MB)")
+        # a loop closure moving every keyframe while a planner polls (every 50 ms): with the
+        # background thread (grid.refresh_interval) the requests get the last grid at once until
+        # the re-placed one is ready; without it the first request pays the re-placing
+        from mnemoslam.service.config import GridConfig
+
+        g = store.grid_nodes(has_grid=False)
+        store.update_poses({int(k): p for k, p in zip(g["id"], bend(g["pose"], -1.0, GridConfig().frame_nodes))})
+        t0, lat, stale = time.perf_counter(), [], 0
+        while time.perf_counter() - t0 < 120:
+            t = time.perf_counter()
+            conn.request("GET", "/maps/0/grid?format=png")
+            r = conn.getresponse()
+            r.read()
+            lat.append(time.perf_counter() - t)
+            if r.getheader("X-Map-Current", "true") == "true":
+                break
+            stale += 1
+            time.sleep(0.05)
+        print(f"   after a loop closure moving every keyframe, GET ?format=png every 50 ms: {len(lat)} requests "
+              f"(p50 {ms(lat, 50):.0f} ms, max {max(lat) * 1e3:.0f} ms; {stale} served the last grid), "
+              f"up to date after {time.perf_counter() - t0:.1f} s")
         conn.close()
+
+
+def cloud(keyframes: int):
+    """4. The map cloud: `map_cloud` of walk_b's keyframes (every 2nd frame at 5 Hz, images
+    stored as the service stores them) without the cache, then with it: the first request,
+    a second one (nothing changed), one after 10 % of the keyframes moved."""
+    import cv2
+
+    from mnemoslam.client.synthetic.dataset import SyntheticDataset
+    from mnemoslam.service.config import GridConfig
+    from mnemoslam.service.grid.cloud import CloudCache, map_cloud
+    from mnemoslam.storage import KeyframeRecord, MapStore
+
+    ds = SyntheticDataset("walk_b", rate=5.0)
+    with tempfile.TemporaryDirectory() as d, MapStore(Path(d) / "c.db") as s:
+        sid = s.begin_session("r", ds.calibration)
+        T0 = np.linalg.inv(ds.ground_truth.poses[0])
+        ids, poses = [], []
+        for i in list(range(0, len(ds), 2))[:keyframes]:
+            f = ds.frame(i)
+            p = T0 @ ds.ground_truth.poses[i]
+            depth = cv2.imencode(".png", np.clip(np.rint(f.depth * 1000), 0, 65535).astype(np.uint16))[1].tobytes()
+            jpeg = cv2.imencode(".jpg", f.image)[1].tobytes()
+            ids.append(s.add_keyframe(KeyframeRecord(sid, f.stamp, p, np.zeros((0, 2), np.float32),
+                                                     np.zeros((0, 32), np.uint8), np.zeros((0, 3), np.float32),
+                                                     image_jpeg=jpeg, depth_png=depth)))
+            poses.append(p)
+        poses = np.stack(poses)
+        moved = poses.copy()
+        moved[::10, 0, 3] += 0.05
+        cache = CloudCache(GridConfig().cloud_cache_mb * 2 ** 20)
+        t = []
+        runs = (("no cache", poses, None), ("cached: first", poses, cache), ("cached: again", poses, cache),
+                ("cached: 10 % moved", moved, cache), ("no cache, 10 % moved", moved, None))
+        for label, ps, c in runs:
+            t0 = time.perf_counter()
+            P, _ = map_cloud(s, ids, ps, 0.02, cache=c)
+            t.append((label, time.perf_counter() - t0, len(P)))
+        print(f"4. map cloud of {len(ids)} keyframes (640x480, voxel 0.02 m; cache {cache.bytes / 2 ** 20:.0f} MiB):")
+        for label, dt, n in t:
+            print(f"   {label:<22} {dt * 1e3:7.0f} ms  ({n} points)")
+        print(f"   again / no cache = {t[2][1] / t[0][1]:.3f}; 10 % moved / no cache = {t[3][1] / t[4][1]:.2f}")
 
 
 def main() -> int:
@@ -213,7 +287,12 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--requests", type=int, default=30)
     ap.add_argument("--db", help="keep the map here (reused when it exists)")
+    ap.add_argument("--cloud-keyframes", type=int, default=96, help="keyframes of the cloud figure (0: skip it)")
+    ap.add_argument("--only-cloud", action="store_true", help="the cloud figure alone")
     a = ap.parse_args()
+    if a.only_cloud:
+        cloud(a.cloud_keyframes)
+        return 0
     print(f"load average {os.getloadavg()[0]:.1f}")
     grids, _ = per_keyframe(a.frames)
     from mnemoslam.storage import MapStore
@@ -231,6 +310,8 @@ def main() -> int:
         with store:
             assembly(store, ids, poses)
             rest(store, a.requests)
+    if a.cloud_keyframes:
+        cloud(a.cloud_keyframes)
     print(f"load average {os.getloadavg()[0]:.1f}")
     return 0
 

@@ -33,8 +33,10 @@ FRAMES_HELP = ("play only frames START to END-1 of the dataset (either may be le
                "its stamp and ground truth as in the full run; --max-frames then counts from START")
 
 TOPICS_HELP = ("ROS bags: the topics to play, e.g. color=/camera/rgb/image_raw,depth=/camera/depth/image_raw,"
-               "info=/camera/rgb/camera_info[,pose=/groundtruth] (roles color, depth, info, pose; repeatable). "
-               "Needed only for a role the bag has several topics of; the others are found by message type")
+               "info=/camera/rgb/camera_info[,pose=/groundtruth][,imu=/imu/data] (roles color, depth, info, pose, imu; "
+               "repeatable). Needed only for a role the bag has several topics of; the others are found by message "
+               "type. imu_axes=optical|body|A:B:C: the IMU's axes in the camera's when the bag has no /tf_static "
+               "between them (default: by the IMU frame's name)")
 
 
 DEPTH_REGISTRATION = {"auto": None, "on": True, "off": False}  # --depth-registration: the 7-Scenes player's register

@@ -304,7 +304,7 @@ class SemanticsConfig:
 @dataclass
 class RosConfig:
     enabled: bool = False  # accept ROS 2 camera topics bridged to Zenoh (zenoh-bridge-ros2dds / rmw_zenoh: CDR Image, CompressedImage, CameraInfo) for the robots below (service/ros.py)
-    robots: list = field(default_factory=list)  # one mapping per robot: {robot: r1, color: KEY, depth: KEY, info: KEY, pose: KEY, intrinsics: k}; KEY = the topic's Zenoh key (the bridge's: the topic without its leading '/'); depth registered to colour; pose (PoseStamped out), intrinsics (k, or p for image_rect topics) and localize (true: localization only for that robot) optional
+    robots: list = field(default_factory=list)  # one mapping per robot: {robot: r1, color: KEY, depth: KEY, info: KEY, pose: KEY, intrinsics: k}; KEY = the topic's Zenoh key (the bridge's: the topic without its leading '/'); depth registered to colour; pose (PoseStamped out), intrinsics (k, or p for image_rect topics), localize (true: localization only for that robot), imu (KEY of sensor_msgs/Imu: each frame's accelerometer reading, the occupancy grid's up) and imu_axes (optical | body | A:B:C, the IMU's axes in the camera's; default by the Imu's frame name) optional
     frame_id: str = "map"  # header.frame_id of the PoseStamped poses published on a robot's pose key
     sync_tolerance: float = 0.015  # s; a colour and a depth image pair when their header stamps differ by at most this (the nearest)
     sync_window: float = 0.5  # s; an unpaired image waits for its partner until its own stream is this far past it (the other stream's callbacks may lag), then is dropped (counted unpaired)
@@ -333,6 +333,9 @@ class GridConfig:
     prob_clamping_max: float = 0.971  # (GridGlobal/ProbClampingMax)
     occupancy_thr: float = 0.5  # a cell is occupied above this probability (GridGlobal/OccupancyThr)
     update_error: float = 0.01  # m; a keyframe whose optimised pose moved more (or turned more than this / 1 m in rad) is re-placed in the map grid (GridGlobal/UpdateError); 0 = at any change
+    refresh_interval: float = 1.0  # s; a map's grid asked for over REST is kept up to date by a thread of the API, a pass this often while it is asked for (within 60 s) and one at each request, so a request does not pay a loop closure's re-assembly; 0 = every request assembles (docs/grid.md)
+    max_wait: float = 0.1  # s; a request waits this long for the grid to be brought up to date, then gets the last one assembled (header X-Map-Current: false)
+    cloud_cache_mb: int = 256  # MiB; GET /maps/{map}/cloud keeps each keyframe's filtered points (by pose and voxel) and the last whole cloud within this, so a second request does not decode every keyframe's images again; 0 = no cache
     footprint_radius: float = 0.2  # m; the cells this close to a keyframe's position are free: the camera (the robot, the person holding it) was there (GridGlobal/FootprintRadius, 0 there); 0 = off
     robot_radius: float = 0.2  # m; paths (GET /path) keep this far from occupied cells
     path_unknown: bool = False  # paths may cross unknown cells (else free cells only)

@@ -13,6 +13,8 @@ Configuration (`ros` in the config; off by default)::
           info: r1/camera/color/camera_info                # sensor_msgs/CameraInfo of the colour camera
           pose: r1/mnemoslam/pose                          # optional: PoseStamped out
           intrinsics: k                                    # optional: k (default) | p (image_rect topics)
+          imu: r1/camera/imu                               # optional: sensor_msgs/Imu, the grid's up
+          imu_axes: optical                                # optional: optical | body | A:B:C (client/imu.py)
 
 A key is the Zenoh key of the topic: zenoh-bridge-ros2dds bridges the ROS 2 topic
 ``/r1/camera/color/image_raw`` to ``r1/camera/color/image_raw`` (after the bridge's namespace,
@@ -25,6 +27,14 @@ subscribers need its liveliness tokens and attachments, which we do not send.
 RGB-D only: the depth must be registered to the colour image (same size and intrinsics, e.g.
 a RealSense's aligned_depth_to_color); stereo pairs and colour-only cameras are not supported
 (the pipeline needs depth).
+
+With an ``imu`` key (sensor_msgs/Imu), each frame gets the IMU's linear_acceleration at its
+stamp (linear between the readings either side, none farther than 50 ms; the last 2 s are
+kept) in the camera's optical axes as ``frame.extras["accel"]``, as the rosbag player gives
+it: the occupancy grid's up direction (docs/grid.md). The IMU's axes: ``imu_axes``, else by
+the Imu's frame name ("..._optical_frame", e.g. a RealSense's camera_imu_optical_frame: the
+camera's axes; any other: REP 103 body axes of a frame aligned with the camera). There is no
+tf here: an IMU mounted otherwise needs ``imu_axes``.
 
 Message types: a key whose topic ends in ``/compressed`` or ``/compressedDepth``
 (image_transport's names), or whose sample key names ``CompressedImage_`` (rmw_zenoh), carries
@@ -58,7 +68,8 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 from mnemoslam.client import ros_cdr
-from mnemoslam.client.kernel.frames import Frame
+from mnemoslam.client.imu import IMU, ImuBuffer, parse_axes, reading
+from mnemoslam.client.kernel.frames import DatasetError, Frame
 from mnemoslam.client.kernel.protocol import ROBOT_PATTERN, ProtocolError
 from mnemoslam.client.transport import undeclare_all
 
@@ -66,7 +77,7 @@ from .config import ConfigError, RosConfig
 
 log = logging.getLogger("mnemoslam.ros")
 
-ROBOT_FIELDS = ("robot", "color", "depth", "info", "pose", "intrinsics", "localize")
+ROBOT_FIELDS = ("robot", "color", "depth", "info", "pose", "intrinsics", "localize", "imu", "imu_axes")
 
 
 @dataclass(frozen=True)
@@ -78,6 +89,8 @@ class RosRobot:
     pose: str | None = None
     intrinsics: str = "k"
     localize: bool = False  # localization only for this robot (nothing of it written to the map)
+    imu: str | None = None  # sensor_msgs/Imu: each frame's accelerometer reading (the grid's up)
+    imu_axes: str | None = None  # the IMU's axes in the camera's (client.imu.parse_axes); None: by its frame's name
 
 
 def _check_key(key, where: str, wildcards: bool = True) -> str:
@@ -127,11 +140,18 @@ def parse_robots(config: RosConfig) -> list[RosRobot]:
         localize = entry.get("localize", False)
         if not isinstance(localize, bool):
             raise ConfigError(f"{where}.localize: expected true or false, got {localize!r}")
+        axes = entry.get("imu_axes")
+        if axes is not None:
+            try:
+                parse_axes(str(axes))
+            except DatasetError as e:
+                raise ConfigError(f"{where}.{e}") from None
         out.append(RosRobot(
             robot, _check_key(entry["color"], f"{where}.color"), _check_key(entry["depth"], f"{where}.depth"),
             _check_key(entry["info"], f"{where}.info"),
             None if entry.get("pose") is None else _check_key(entry["pose"], f"{where}.pose", wildcards=False),
-            intrinsics, localize))
+            intrinsics, localize, None if entry.get("imu") is None else _check_key(entry["imu"], f"{where}.imu"),
+            None if axes is None else str(axes)))
     return out
 
 
@@ -173,6 +193,7 @@ class _Stream:
     stamps: OrderedDict = field(default_factory=OrderedDict)  # frame stamp (s) -> ns, for the pose's header
     # (a leaf lock: decode runs under the service's)
     stamps_lock: threading.Lock = field(default_factory=threading.Lock)
+    imu: ImuBuffer | None = None  # the last seconds of its Imu readings, with an imu key
 
 
 class RosIngest:
@@ -183,6 +204,9 @@ class RosIngest:
         self.service = service
         self.config = config
         self.robots = {r.robot: _Stream(r) for r in parse_robots(config)}
+        for st in self.robots.values():
+            if st.robot.imu is not None:
+                st.imu = ImuBuffer(None if st.robot.imu_axes is None else parse_axes(st.robot.imu_axes))
         self._subscribers = []
 
     def start(self, zenoh_session) -> None:
@@ -193,6 +217,8 @@ class RosIngest:
                 r.color, lambda s, st=st: self._on_image(st, s, False)))
             self._subscribers.append(zenoh_session.declare_subscriber(
                 r.depth, lambda s, st=st: self._on_image(st, s, True)))
+            if r.imu is not None:
+                self._subscribers.append(zenoh_session.declare_subscriber(r.imu, lambda s, st=st: self._on_imu(st, s)))
             log.info("ROS robot robot=%s color=%s depth=%s info=%s pose=%s", r.robot, r.color, r.depth, r.info, r.pose)
 
     def stop(self) -> None:
@@ -219,6 +245,20 @@ class RosIngest:
             self.service.count_reject("internal", key, e)
             return
         self.service.admit(st.robot.robot, cal, None, localize=st.robot.localize)
+
+    def _on_imu(self, st: _Stream, sample) -> None:
+        """An Imu message: its linear_acceleration kept (in the camera's axes) for the frames
+        around its stamp; a message without one (covariance[0] = -1) is skipped."""
+        key = str(sample.key_expr)
+        try:
+            msg = ros_cdr.deserialize(sample.payload.to_bytes(), IMU, self.service.limits.max_message_bytes)
+            r = reading(msg)
+            if r is not None and st.imu is not None:
+                st.imu.add(ros_cdr.seconds(ros_cdr.stamp_ns(msg)), *r)
+        except ProtocolError as e:
+            self.service.count_reject(e.reason, key, e)
+        except Exception as e:  # a bug here must not reach Zenoh's thread
+            self.service.count_reject("internal", key, e)
 
     def _on_image(self, st: _Stream, sample, is_depth: bool) -> None:
         key = str(sample.key_expr)
@@ -282,6 +322,10 @@ class RosIngest:
         # the depth image's own stamp, as the rosbag player gives it: the tracker moves the depth
         # to the colour image's time (odometry.depth_time_compensation)
         extras = {"depth_stamp": ros_cdr.seconds(ros_cdr.stamp_ns(pair.depth))}
+        if st.imu is not None:  # the accelerometer at the frame's stamp, as the rosbag player gives it
+            a = st.imu.at(stamp)
+            if a is not None:
+                extras["accel"] = a
         return pair.seq, Frame(index=pair.seq, stamp=stamp, image=image, depth=depth,
                                source=f"{session.robot}#{pair.seq}", extras=extras)
 

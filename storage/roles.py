@@ -203,7 +203,8 @@ class ApiStore(MapReader, Protocol):
 class GridStore(Protocol):
     """The map's occupancy grid and cloud (`service.grid`): which nodes have local grids, the
     grids, the stored depth of keyframes written before grids were (their grid is made once,
-    then saved), and the links that join keyframes into maps (`MapConnectivity.refresh`)."""
+    then saved), the links that join keyframes into maps (`MapConnectivity.refresh`), and the
+    file's change counter (a request with nothing committed since reads no pose)."""
 
     def sessions(self, robot: str | None = None) -> list[SessionRecord]: ...
 
@@ -222,3 +223,5 @@ class GridStore(Protocol):
     def save_local_grids(self, grids: Iterable[LocalGridRecord]) -> int: ...
 
     def links_after(self, rowid: int = 0) -> tuple[int, np.ndarray]: ...
+
+    def change_counter(self) -> ChangeCounter: ...

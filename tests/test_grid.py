@@ -249,7 +249,7 @@ def _store_with(path, walk_grids, sessions=1):
                                             np.zeros((0, 32), np.uint8), np.zeros((0, 3), np.float32),
                                             odom_link=link))
         g = grids[int(n)]
-        s.save_local_grids([LocalGridRecord(nid, g.cell_size, g.T_cam_local, g.origin_x, g.origin_y, g.blob,
+        s.save_local_grids([LocalGridRecord(nid, g.cell_size, g.T_cam_local, g.origin_x, g.origin_y, g.encode_cells(),
                                             g.up_source, g.floor_points)])
         node_of[int(n)], prev = nid, nid
     return s, node_of
@@ -269,13 +269,14 @@ def test_map_grids_follow_the_store(tmp_path, walk_grids):
         assert sorted(mg.maps()) == [0, 1]
         a0, a1 = mg.grid(0), mg.grid(1)
         assert a0.keyframes + a1.keyframes == len(ids)
+        assert mg.grid(0) is a0 and mg.last_update.get("unchanged")  # nothing committed since: no pose read
         with pytest.raises(NoMap, match="no map 7"):
             mg.grid(7)
         # a loop link joins the second session to the first: one map of every keyframe
         first, last = node_of[int(ids[0])], node_of[int(ids[len(ids) // 2])]
         s.add_link(first, last, int(LinkType.GLOBAL_CLOSURE), np.linalg.inv(poses[0]) @ poses[len(ids) // 2])
         assert sorted(mg.maps()) == [0]
-        assert mg.grid(0).keyframes == len(ids)
+        assert mg.grid(0).keyframes == len(ids) and not mg.last_update.get("unchanged")
         bent = _corrected(poses, 0.1)
         bent[:5] = poses[:5]
         s.update_poses({node_of[int(n)]: bent[k] for k, n in enumerate(ids)})
@@ -284,6 +285,45 @@ def test_map_grids_follow_the_store(tmp_path, walk_grids):
         fresh = MapGrids(s, cfg).grid(0)
         np.testing.assert_array_equal(img.states, fresh.states)
         assert img.origin == fresh.origin
+
+
+def test_background_assembly_serves_the_last_grid_then_follows(tmp_path, walk_grids):
+    """With the background thread (grid.refresh_interval): a request after a loop closure does
+    not wait for the re-placing (max_wait 0: the last grid, not current), the thread brings it
+    up to date by itself (a periodic pass, no request), and then it equals a from-scratch
+    assembly at the corrected poses."""
+    import time
+
+    from mnemoslam.service.grid.maps import MapGrids, NoMap
+
+    ids, poses, grids = walk_grids
+    cfg = GridConfig(update_error=0.0, frame_nodes=5, refresh_interval=0.2)
+    s, node_of = _store_with(tmp_path / "b.db", walk_grids)
+    with s:
+        mg = MapGrids(s, cfg)
+        try:
+            first, current = mg.latest(0, max_wait=0)  # the first request waits for the first assembly
+            assert current and first.keyframes == len(ids)
+            with pytest.raises(NoMap, match="no map 3"):
+                mg.latest(3, max_wait=0)
+            bent = _corrected(poses, 0.1)
+            bent[:5] = poses[:5]
+            s.update_poses({node_of[int(n)]: bent[k] for k, n in enumerate(ids)})
+            stale, current = mg.latest(0, max_wait=0)
+            assert not current and stale is first  # served at once: the pass it started is under way
+            fresh = MapGrids(s, cfg).grid(0)  # (refresh_interval plays no part in `grid`)
+            assert not np.array_equal(stale.states, fresh.states) or stale.origin != fresh.origin
+            deadline = time.monotonic() + 30
+            while mg.published(0) is first and time.monotonic() < deadline:  # no request: the thread's own passes
+                time.sleep(0.05)
+            img = mg.published(0)
+            np.testing.assert_array_equal(img.states, fresh.states)
+            assert img.origin == fresh.origin
+            again, current = mg.latest(0, max_wait=30)
+            assert current and again is img  # nothing changed since: the same image
+        finally:
+            mg.close()
+        assert mg._thread is not None and not mg._thread.is_alive()
 
 
 def test_run_out_writes_grid_cloud_and_groundtruth(tmp_path):

@@ -128,6 +128,36 @@ def test_cloud_ply(world):
     assert _get(world, "/maps/9/cloud").status_code == 404
 
 
+def test_cloud_cache_reads_each_keyframe_once(world):
+    """map_cloud with a CloudCache: the same keyframes at the same poses give the same cloud
+    without reading a keyframe again; a moved keyframe alone is read again and the cloud is
+    the uncached one at the new poses; a cache too small for the map still gives it."""
+    from mnemoslam.service.grid.cloud import CloudCache, map_cloud
+
+    ids = world.ids[::3]
+    poses = np.stack([world.store.get_node(i).pose for i in ids])
+    plain = map_cloud(world.store, ids, poses, 0.05)
+    cache = CloudCache(256 * 2 ** 20)
+    first = map_cloud(world.store, ids, poses, 0.05, cache=cache)
+    assert cache.misses == len(ids) and cache.hits == 0
+    np.testing.assert_array_equal(first[0], plain[0])
+    np.testing.assert_array_equal(first[1], plain[1])
+    again = map_cloud(world.store, ids, poses, 0.05, cache=cache)
+    assert again[0] is first[0] and cache.misses == len(ids)  # the whole cloud kept: nothing read
+    moved = poses.copy()
+    moved[2, 0, 3] += 0.3
+    after = map_cloud(world.store, ids, moved, 0.05, cache=cache)
+    assert cache.misses == len(ids) + 1 and cache.hits == len(ids) - 1
+    fresh = map_cloud(world.store, ids, moved, 0.05)
+    np.testing.assert_array_equal(after[0], fresh[0])
+    assert len(after[0]) != len(first[0]) or not np.array_equal(after[0], first[0])
+    small = CloudCache(400_000)  # a few keyframes' worth
+    for _ in range(2):
+        out = map_cloud(world.store, ids, moved, 0.05, cache=small)
+        np.testing.assert_array_equal(out[0], fresh[0])
+    assert 0 < small.hits < len(ids) and small.bytes <= 400_000
+
+
 def test_path_through_doors_to_an_object_and_a_point(world):
     """From the hall (the walk's start) to the office's sideboard: through the living room's two
     doorways, its length within 10 % of the true shortest path (A* on the scene's floor plan)."""
@@ -181,7 +211,9 @@ def test_grid_follows_moved_poses(world, tmp_path):
     poses = {i: T @ world.store.get_node(i).pose for i in world.ids}
     world.store.update_poses(poses)
     try:
-        after = _get(world, "/maps/0/grid").json()
+        r = _get(world, "/maps/0/grid", wait=60)
+        assert r.headers["X-Map-Current"] == "true"
+        after = r.json()
         assert len(after["data"]) == n and abs(after["origin"][0] - before["origin"][0] - 0.5) < 0.051
     finally:
         world.store.update_poses({i: np.linalg.inv(T) @ p for i, p in poses.items()})

@@ -240,6 +240,60 @@ def test_colour_and_depth_pair_by_nearest_stamp_within_the_tolerance():
     assert svc.rejected[-1] == "bad_cdr" and len(svc.frames) == 3 and not st.colors and not st.depths
 
 
+def test_imu_key_gives_frames_their_accelerometer_reading():
+    """A robot with an `imu` key: its Imu messages (here in a body-axes frame, rotated into
+    the camera's; then with imu_axes configured) give each decoded frame the reading at its
+    stamp (interpolated) as extras["accel"]; none farther than 50 ms, none without a reading
+    (covariance[0] = -1), a bad message is counted, not raised."""
+    from types import SimpleNamespace
+
+    from mnemoslam.client.imu import BODY_TO_OPTICAL, IMU, parse_axes
+    from mnemoslam.service.ros import RosPair
+
+    ts = ros_cdr.typestore()
+    T = ts.types
+
+    def imu_msg(ns, v, frame="imu_link", cov0=0.0):
+        v3 = T["geometry_msgs/msg/Vector3"]
+        stamp = T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        return ros_cdr.serialize(T["sensor_msgs/msg/Imu"](
+            header=T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+            orientation_covariance=np.zeros(9), angular_velocity=v3(x=0.0, y=0.0, z=0.0),
+            angular_velocity_covariance=np.zeros(9), linear_acceleration=v3(x=v[0], y=v[1], z=v[2]),
+            linear_acceleration_covariance=np.r_[cov0, np.zeros(8)]), IMU)
+
+    img, depth = _images()
+    session = SimpleNamespace(robot="rosraw", limits=SimpleNamespace(size=None, max_width=64, max_height=64))
+    ms = 1_000_000
+    for axes, R in ((None, BODY_TO_OPTICAL), ("x:-z:y", parse_axes("x:-z:y"))):
+        entry = {**RAW, "imu": "rosraw/imu"} | ({"imu_axes": axes} if axes else {})
+        config = load_config(None, {"ros": {"enabled": True, "robots": [entry]}})
+        svc = _Service(config)
+        from mnemoslam.service.ros import RosIngest
+
+        ros = RosIngest(svc, config.ros)
+        st = ros.robots["rosraw"]
+        for t in (1000, 1010, 1020):
+            ros._on_imu(st, _Sample("rosraw/imu", imu_msg(t * ms, [0.1 * t, 9.8, -0.5])))
+        ros._on_imu(st, _Sample("rosraw/imu", imu_msg(1030 * ms, [99.0, 0.0, 0.0], cov0=-1.0)))  # no reading: skipped
+        ros._on_imu(st, _Sample("rosraw/imu", b"\x00\x01\x00\x00junk"))
+        assert svc.rejected == ["bad_cdr"]
+
+        def frame(t, ros=ros):
+            pair = RosPair(0, t * ms, ros_cdr.deserialize(ros_cdr.encode_image(img, "bgr8", t * ms), ros_cdr.IMAGE),
+                           ros_cdr.deserialize(ros_cdr.encode_image(depth, "16UC1", t * ms), ros_cdr.IMAGE), 0)
+            return ros.decode(pair, session)[1]
+
+        np.testing.assert_allclose(frame(1015).extras["accel"], R @ [101.5, 9.8, -0.5], atol=1e-9)
+        np.testing.assert_allclose(frame(1040).extras["accel"], R @ [102.0, 9.8, -0.5], atol=1e-9)  # 20 ms past
+        assert "accel" not in frame(1080).extras  # 60 ms past the last reading
+    with pytest.raises(ConfigError, match="imu_axes"):
+        parse_robots(load_config(None, {"ros": {"robots": [{**RAW, "imu": "a", "imu_axes": "up"}]}}).ros)
+    robots = parse_robots(load_config(None, {"ros": {"robots": [RAW]}}).ros)
+    assert robots[0].imu is None
+
+
 # -- the service ---------------------------------------------------------------------------
 class _Frames(list):
     """Frames with a calibration: what stream_dataset needs of a dataset."""

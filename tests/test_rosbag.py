@@ -41,7 +41,7 @@ class BagWriter:
 
     def __init__(self, path: Path, storage: str, color="rgb8", depth="16UC1", pose="PoseStamped",
                  color_topic=COLOR_TOPIC, depth_topic=DEPTH_TOPIC, info_topics=(INFO_TOPIC,), pose_topic="/groundtruth",
-                 distortion=None):
+                 distortion=None, imu_topic=None, tf_static=()):
         from rosbags.rosbag1 import Writer as Writer1
         from rosbags.rosbag2 import StoragePlugin
         from rosbags.rosbag2 import Writer as Writer2
@@ -66,6 +66,31 @@ class BagWriter:
         self.c_infos = [add(t, "sensor_msgs/msg/CameraInfo") for t in info_topics]
         self.c_pose = add(pose_topic, {"PoseStamped": "geometry_msgs/msg/PoseStamped",
                                        "Odometry": "nav_msgs/msg/Odometry"}[pose]) if pose else None
+        self.c_imu = add(imu_topic, "sensor_msgs/msg/Imu") if imu_topic else None
+        if tf_static:  # [(parent, child, R parent <- child)], one TFMessage at t = 0
+            c = add("/tf_static", "tf2_msgs/msg/TFMessage")
+            G = T
+            trs = []
+            for parent, child, R in tf_static:
+                q = rot_to_quat(np.asarray(R, np.float64))
+                trs.append(G["geometry_msgs/msg/TransformStamped"](
+                    header=self.header(0, parent), child_frame_id=child,
+                    transform=G["geometry_msgs/msg/Transform"](
+                        translation=G["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                        rotation=G["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))))
+            self.write(c, 1, G["tf2_msgs/msg/TFMessage"](transforms=trs))
+
+    def add_imu(self, stamp_ns: int, accel, frame_id: str = "imu_link") -> None:
+        """An Imu message: `accel` its linear_acceleration (m/s², in `frame_id`'s axes)."""
+        G = self.T
+        v3 = G["geometry_msgs/msg/Vector3"]
+        msg = G["sensor_msgs/msg/Imu"](
+            header=self.header(stamp_ns, frame_id), orientation=G["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0,
+                                                                                                w=1.0),
+            orientation_covariance=np.r_[-1.0, np.zeros(8)], angular_velocity=v3(x=0.0, y=0.0, z=0.0),
+            angular_velocity_covariance=np.zeros(9), linear_acceleration=v3(x=accel[0], y=accel[1], z=accel[2]),
+            linear_acceleration_covariance=np.zeros(9))
+        self.write(self.c_imu, int(stamp_ns) + 500_000, msg)
 
     def header(self, stamp_ns: int, frame_id="camera_rgb_optical_frame"):
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
@@ -353,6 +378,103 @@ def test_rosbag2_without_message_definitions_uses_the_standard_types(tmp_path):
         db.execute("DELETE FROM message_definitions")
     ds = open_dataset(path)
     assert len(ds) == 4 and np.array_equal(ds.frame(3).image, list(_frames())[3].image)
+
+
+def _rx(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+
+
+@pytest.mark.parametrize("storage,imu_frame,tf,axes,expect", [
+    ("sqlite3", "camera_imu_optical_frame", False, None, "optical"),  # by name: the camera's axes
+    ("ros1", "imu_link", False, None, "body"),  # by name: REP 103 body axes (x forward, y left, z up)
+    ("mcap", "imu_link", True, None, "tf"),  # /tf_static: imu_link and the camera's frame under camera_link
+    ("sqlite3", "imu_link", True, "x:-z:y", "configured"),  # configured axes win over the tf
+])
+def test_bag_imu_readings_become_frame_accel_in_camera_axes(tmp_path, storage, imu_frame, tf, axes, expect):
+    """An Imu topic: each frame gets the linear_acceleration at its stamp (linear between the
+    readings either side) in the camera's optical axes, as `frame.extras["accel"]`; a frame
+    more than 50 ms from every reading gets none. The IMU's axes: configured, else /tf_static,
+    else by its frame's name (client.imu)."""
+    from mnemoslam.client.imu import BODY_TO_OPTICAL, parse_axes
+
+    R_link_cam = BODY_TO_OPTICAL.T  # camera_link (body axes) <- camera_rgb_optical_frame
+    R_link_imu = _rx(30.0) @ np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # an IMU turned in the head
+    frames_tf = [("camera_link", "camera_rgb_optical_frame", R_link_cam), ("camera_link", imu_frame, R_link_imu)]
+    path = tmp_path / ("imu" + (".bag" if storage == "ros1" else ""))
+    w = BagWriter(path, storage, pose=None, imu_topic="/imu/data", tf_static=frames_tf if tf else ())
+
+    def v(t):  # the reading in the IMU's axes: linear in time, so interpolation is exact
+        return np.array([0.3, 9.7, -1.2]) + (t - 100.0) * np.array([2.0, -1.0, 0.5])
+
+    for k in range(0, 10):  # 200 Hz from 100.0 to 100.045 s; frames at 100 + i / 30 s
+        t = 100.0 + k * 0.005
+        w.add_imu(round(t * 1e9), v(t), imu_frame)
+    for f in _frames():
+        w.add_frame(f, _calibration())
+    w.close()
+    ds = open_dataset(path, topics=f"imu_axes={axes}" if axes else None)
+    assert ds.topics["imu"] == "/imu/data" and len(ds.accel) == 10
+    R = {"optical": np.eye(3), "body": BODY_TO_OPTICAL, "tf": R_link_cam.T @ R_link_imu,
+         "configured": parse_axes(axes) if axes else None}[expect]
+    assert ds.imu_axes_source.startswith({"tf": "/tf_static", "configured": "configured"}.get(expect, expect))
+    for i in range(2):  # at a reading, between two
+        f = ds.frame(i)
+        np.testing.assert_allclose(f.extras["accel"], R @ v(f.stamp), atol=1e-9)
+    np.testing.assert_allclose(ds.frame(2).extras["accel"], R @ v(100.045), atol=1e-9)  # 22 ms past the last: it
+    assert "accel" not in ds.frame(3).extras  # 55 ms past it: none
+    if expect == "body":  # gravity along the body's z (up) is the camera's -y (up in an image)
+        assert np.allclose(BODY_TO_OPTICAL @ [0, 0, 9.81], [0, -9.81, 0])
+
+
+def test_bag_imu_options_and_no_imu(tmp_path):
+    from mnemoslam.client.imu import parse_axes
+
+    assert np.array_equal(parse_axes("-y:-z:x"), parse_axes("body"))
+    for bad in ("x:y", "x:x:z", "x:y:-z", "up"):  # not three axes, not a rotation, a reflection, unknown
+        with pytest.raises(DatasetError, match="imu_axes"):
+            parse_axes(bad)
+    with pytest.raises(DatasetError, match="unknown role"):
+        parse_topics("imu_axis=body")
+    ds = open_dataset(_small_bag(tmp_path / "plain", "sqlite3", pose=None))
+    assert ds.topics.get("imu") is None and len(ds.accel) == 0 and "accel" not in ds.frame(0).extras
+
+
+def test_grid_up_follows_the_bag_imu(tmp_path):
+    """The synthetic walk written to a rosbag2 with an IMU (body axes, no tf: the by-name
+    rule) whose gravity is tilted 2° from the scene's true up: from the ACCEL_MIN_READINGS-th
+    keyframe on, the local grids' up is the IMU's (within 0.2°; measured ~0°), not the floor's
+    (2° off it)."""
+    from mnemoslam.client.imu import BODY_TO_OPTICAL
+    from mnemoslam.client.synthetic.dataset import SyntheticDataset
+    from mnemoslam.service.config import GridConfig
+    from mnemoslam.service.grid.local import ACCEL_MIN_READINGS, LocalGridMaker, angle_deg
+
+    syn = SyntheticDataset("walk_b", rate=5.0)
+    idx = list(range(0, len(syn), 4))[:ACCEL_MIN_READINGS + 8]
+    up_world = _rx(2.0) @ np.array([0.0, 0.0, 1.0])  # the IMU's gravity: 2° off the true up
+    w = BagWriter(tmp_path / "walk", "sqlite3", pose=None, imu_topic="/imu")
+    for i in idx:
+        f = syn.frame(i)
+        R_wc = syn.ground_truth.poses[i][:3, :3]
+        v_imu = BODY_TO_OPTICAL.T @ (9.81 * R_wc.T @ up_world)
+        for dt in (-0.004, 0.004):
+            w.add_imu(round((f.stamp + dt) * 1e9), v_imu)
+        w.add_frame(f, syn.calibration)
+    w.close()
+    bag = open_dataset(tmp_path / "walk")
+    assert len(bag) == len(idx) and bag.imu_axes_source == "body"
+    mk = LocalGridMaker(bag.calibration.camera, GridConfig())
+    T0inv = np.linalg.inv(syn.ground_truth.poses[idx[0]])
+    for k, i in enumerate(idx):
+        f = bag.frame(k)
+        gt = syn.ground_truth.poses[i]
+        imu_up, true_up = gt[:3, :3].T @ up_world, gt[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        assert angle_deg(f.extras["accel"], imu_up) < 1e-3
+        g = mk.make(f.depth, T0inv @ gt, 0, accel=f.extras["accel"])
+        if k >= ACCEL_MIN_READINGS - 1:
+            assert g.up_source == "accelerometer"
+            assert angle_deg(g.up, imu_up) < 0.2 and angle_deg(g.up, true_up) > 1.8
 
 
 def test_pairs_by_header_stamp_and_reads_frames_in_any_order(tmp_path):

@@ -20,13 +20,21 @@ Topics, by message type (and, for `sensor_msgs/Image`, by the encoding of its fi
   contains "rect" the images are already rectified and the intrinsics are P's;
 - ground truth (optional): `geometry_msgs/PoseStamped`, `PoseWithCovarianceStamped` or
   `nav_msgs/Odometry`, taken as the camera's pose in the world (camera-to-world; ATE uses
-  the positions).
+  the positions);
+- IMU (optional): `sensor_msgs/Imu`. Each frame gets its `linear_acceleration` at the frame's
+  stamp (linear between the readings either side; none farther than 50 ms) in the camera's
+  optical axes as `frame.extras["accel"]`, which the occupancy grid takes its up direction
+  from (docs/grid.md). The IMU's axes in the camera's: `--topics imu_axes=optical|body|A:B:C`,
+  else the bag's /tf_static chain between the Imu's frame and the colour image's, else by the
+  Imu frame's name (`client.imu`: "..._optical_frame" the camera's axes, any other REP 103
+  body axes of a frame aligned with the camera).
 
 Each role is found automatically when the bag has exactly one topic of that kind (for the
 camera info, with several: the one in the colour topic's namespace, e.g.
 /camera/rgb/image_raw -> /camera/rgb/camera_info) and is chosen with `topics` otherwise
 (`mnemoslam run BAG --topics color=/cam/rgb,depth=/cam/depth,info=/cam/rgb/camera_info`;
-keys `color`, `depth`, `info`, `pose`). A bag without a pose topic has no ground truth.
+keys `color`, `depth`, `info`, `pose`, `imu`). A bag without a pose topic has no ground truth,
+one without an Imu topic no accelerometer readings.
 
 Frames are the colour messages that have a depth message within `MAX_DT` (20 ms) by header
 stamp, matched one to one as the TUM player does, stamped with the colour header stamp (a
@@ -51,6 +59,7 @@ from typing import Iterable
 import cv2
 import numpy as np
 
+from ..imu import IMU, accel_at, axes_by_name, parse_axes, reading
 from ..kernel.frames import Calibration, DatasetError, Frame
 from ..kernel.geometry import quat_to_rot
 from ..kernel.trajectory import Trajectory
@@ -69,9 +78,11 @@ COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC3", "8UC1")
 DEPTH_ENCODINGS = ("16UC1", "mono16", "32FC1")
 DEPTH_SCALE = 1000.0  # raw units per metre of 16UC1 depth (millimetres), the calibration's depth_scale
 
-ROLES = ("color", "depth", "info", "pose")
+ROLES = ("color", "depth", "info", "pose", "imu")
+OPTIONAL = ("pose", "imu")  # roles a bag may lack
 _ALIASES = {"colour": "color", "rgb": "color", "image": "color", "camera_info": "info", "gt": "pose",
-            "groundtruth": "pose", "odometry": "pose"}
+            "groundtruth": "pose", "odometry": "pose", "accel": "imu"}
+TF_STATIC = "tf2_msgs/msg/TFMessage"
 _PNG = b"\x89PNG\r\n\x1a\n"
 JUMP_NS = 2_000_000_000  # a frame this far (receive time) beyond the cursor: restart the cursor there
 EARLY = 16  # messages read ahead of their frame kept at most (a few in order: depth before colour, ...)
@@ -99,8 +110,9 @@ def bag_path(path: str | Path) -> Path | None:
 def parse_topics(spec: str | Iterable[str] | dict | None) -> dict[str, str]:
     """`--topics` as {role: topic}: "color=/cam/rgb,depth=/cam/depth,info=/cam/info" (or
     several such strings, e.g. the option given more than once). Roles: color (colour),
-    depth, info (camera_info), pose (gt); a role given twice, an unknown role or an empty
-    topic is a DatasetError."""
+    depth, info (camera_info), pose (gt), imu (accel); and `imu_axes` (not a topic: the IMU's
+    axes in the camera's, client.imu.parse_axes). A role given twice, an unknown role or an
+    empty topic is a DatasetError."""
     if spec is None:
         return {}
     if isinstance(spec, dict):
@@ -118,8 +130,9 @@ def parse_topics(spec: str | Iterable[str] | dict | None) -> dict[str, str]:
             role = _ALIASES.get(role, role)
             if not sep or not topic:
                 raise DatasetError(f"--topics: expected ROLE=TOPIC, got {part!r} (roles: {', '.join(ROLES)})")
-            if role not in ROLES:
-                raise DatasetError(f"--topics: unknown role {role!r} in {part!r} (roles: {', '.join(ROLES)})")
+            if role not in ROLES and role != "imu_axes":
+                raise DatasetError(f"--topics: unknown role {role!r} in {part!r} (roles: {', '.join(ROLES)}; "
+                                   "and imu_axes=optical|body|A:B:C)")
             if role in out and out[role] != topic:
                 raise DatasetError(f"--topics: {role} given twice ({out[role]}, {topic})")
             out[role] = topic
@@ -294,7 +307,7 @@ class RosbagDataset(Dataset):
     format = "rosbag"
 
     def __init__(self, path: str | Path, *, topics: str | dict | Iterable[str] | None = None,
-                 max_frames: int | None = None, max_dt: float = MAX_DT):
+                 max_frames: int | None = None, max_dt: float = MAX_DT, imu_axes=None):
         try:
             from rosbags.highlevel import AnyReader
             from rosbags.typesys import Stores, get_typestore
@@ -308,6 +321,8 @@ class RosbagDataset(Dataset):
         self.path = where
         self.name = where.stem if where.is_file() else where.resolve().name
         chosen = parse_topics(topics)
+        axes = chosen.pop("imu_axes", None) if imu_axes is None else imu_axes
+        self._imu_axes = None if axes is None else parse_axes(axes)
         self._lock = threading.Lock()
         try:
             # bags without message definitions (rosbag2 before Iron) decode with the standard types
@@ -334,8 +349,8 @@ class RosbagDataset(Dataset):
         topics = {name: info for name, info in reader.topics.items() if info.msgcount}
         roles = self._choose(topics, chosen)
         self.topics = dict(roles)
-        log.info("%s: colour %s, depth %s, info %s, pose %s", self.path, roles["color"], roles["depth"],
-                 roles["info"], roles.get("pose"))
+        log.info("%s: colour %s, depth %s, info %s, pose %s, imu %s", self.path, roles["color"], roles["depth"],
+                 roles["info"], roles.get("pose"), roles.get("imu"))
         color, depth = self._index(topics, roles["color"], roles["depth"])
         ia, ib = associate(color.stamps / 1e9, depth.stamps / 1e9, max_dt)
         if not len(ia):
@@ -356,6 +371,11 @@ class RosbagDataset(Dataset):
         if roles.get("pose"):
             gt = self._poses(topics[roles["pose"]], roles["pose"])
             self.ground_truth = sample_poses(gt, self.stamps)
+        #: (N, 4): stamp, the Imu's linear_acceleration in the camera's axes; empty without an Imu topic
+        self.accel = np.zeros((0, 4))
+        self.imu_axes, self.imu_axes_source = None, None  # camera ← IMU rotation, and where it came from
+        if roles.get("imu"):
+            self._read_imu(topics, roles["imu"], roles["color"])
 
     def _first(self, info):
         """The first message of a topic, deserialized."""
@@ -373,6 +393,8 @@ class RosbagDataset(Dataset):
             return "info"
         if t in POSE_TYPES:
             return "pose"
+        if t == IMU:
+            return "imu"
         if t == IMAGE:
             enc = self._first(info).encoding
             return "color" if enc in COLOR_ENCODINGS else "depth" if enc in DEPTH_ENCODINGS else None
@@ -388,13 +410,14 @@ class RosbagDataset(Dataset):
                                    f"(topics: {listing})")
         kinds = {}
         for name, info in topics.items():
-            if info.msgtype in (IMAGE, COMPRESSED, CAMERA_INFO) + POSE_TYPES:
+            if info.msgtype in (IMAGE, COMPRESSED, CAMERA_INFO, IMU) + POSE_TYPES:
                 kinds[name] = self._kind(name, info)
         by_role = {r: sorted(n for n, k in kinds.items() if k == r) for r in ROLES}
         what = {"color": "colour image (sensor_msgs/Image rgb8/bgr8/mono8 or CompressedImage)",
                 "depth": "depth image (sensor_msgs/Image 16UC1/32FC1 or compressedDepth)",
                 "info": "camera info (sensor_msgs/CameraInfo)",
-                "pose": "pose (PoseStamped/PoseWithCovarianceStamped/Odometry)"}
+                "pose": "pose (PoseStamped/PoseWithCovarianceStamped/Odometry)",
+                "imu": "IMU (sensor_msgs/Imu)"}
         roles: dict[str, str | None] = {}
         for role in ROLES:
             if role in chosen:
@@ -409,10 +432,10 @@ class RosbagDataset(Dataset):
                 found = _nearest_info(found, roles["color"])
             if len(found) == 1:
                 roles[role] = found[0]
-            elif role == "pose":
+            elif role in OPTIONAL:
                 if found:
-                    log.warning("%s: %d pose topics (%s); no ground truth unless one is chosen with "
-                                "--topics pose=TOPIC", self.path, len(found), ", ".join(found))
+                    log.warning("%s: %d %s topics (%s); none is used unless one is chosen with "
+                                "--topics %s=TOPIC", self.path, len(found), role, ", ".join(found), role)
                 roles[role] = None
             elif not found:
                 raise DatasetError(f"{self.path}: no {what[role]} topic in the bag (topics: {listing})")
@@ -450,6 +473,64 @@ class RosbagDataset(Dataset):
             streams.append(_Stream(topic, info.msgtype, info.connections, a[keep, 0], a[keep, 1], stamps[keep],
                                    header_stamps=not unset))
         return streams[0], streams[1]
+
+    def _read_imu(self, topics: dict, imu_topic: str, color_topic: str) -> None:
+        """Every Imu reading of the bag (stamp, linear_acceleration in the camera's axes): the
+        axes configured, else from /tf_static between the Imu's frame and the colour image's,
+        else by the Imu frame's name (client.imu)."""
+        rows, frame = [], None
+        for conn, t, raw in self._reader.messages(connections=topics[imu_topic].connections):
+            msg = self._reader.deserialize(raw, conn.msgtype)
+            r = reading(msg)
+            if r is None:
+                continue
+            s = msg.header.stamp
+            rows.append((int(s.sec) * 1_000_000_000 + int(s.nanosec), t, *r[0]))
+            frame = frame or r[1]
+        if not rows:
+            log.warning("%s: %s has no linear_acceleration readings", self.path, imu_topic)
+            return
+        a = np.array(rows, np.float64)
+        stamps = a[:, 1] if (a[:, 0] == 0).all() else a[:, 0]  # unset header stamps: receive times
+        a = np.column_stack([stamps / 1e9, a[:, 2:]])
+        a = a[np.argsort(a[:, 0], kind="stable")]
+        if self._imu_axes is not None:
+            R, how = self._imu_axes, "configured"
+        else:
+            cam = str(self._first(topics[color_topic]).header.frame_id)
+            R = self._tf_rotation(topics, cam, frame)
+            how = f"/tf_static {frame} -> {cam}"
+            if R is None:
+                R, how = axes_by_name(frame)
+        a[:, 1:] = a[:, 1:] @ R.T
+        self.accel, self.imu_axes, self.imu_axes_source = a, R, how
+        log.info("%s: %d IMU readings from %s (frame %s; axes in the camera's: %s)", self.path, len(a), imu_topic,
+                 frame, how)
+
+    def _tf_rotation(self, topics: dict, target: str, source: str) -> np.ndarray | None:
+        """The rotation target ← source from the bag's /tf_static (None without a chain)."""
+        edges: dict[str, list[tuple[str, np.ndarray]]] = {}
+        for name, info in topics.items():
+            if info.msgtype != TF_STATIC or name.rstrip("/").split("/")[-1] != "tf_static":
+                continue
+            for conn, _, raw in self._reader.messages(connections=info.connections):
+                for tr in self._reader.deserialize(raw, conn.msgtype).transforms:
+                    q = tr.transform.rotation
+                    R = quat_to_rot(np.array([q.x, q.y, q.z, q.w]))  # parent ← child
+                    parent, child = str(tr.header.frame_id).lstrip("/"), str(tr.child_frame_id).lstrip("/")
+                    edges.setdefault(parent, []).append((child, R))
+                    edges.setdefault(child, []).append((parent, R.T))
+        target, source = target.lstrip("/"), source.lstrip("/")
+        if target == source:
+            return np.eye(3)
+        seen, todo = {target: np.eye(3)}, [target]  # breadth first: target ← frame
+        while todo:
+            f = todo.pop(0)
+            for g, R in edges.get(f, []):
+                if g not in seen:
+                    seen[g] = seen[f] @ R
+                    todo.append(g)
+        return seen.get(source)
 
     def _calibration(self, info, topic: str, width: int, height: int):
         """Calibration from the first CameraInfo message, and undistortion maps (or None)."""
@@ -597,6 +678,9 @@ class RosbagDataset(Dataset):
         # odometry.depth_time_compensation); not when either topic's stamps are receive times
         extras = {"depth_stamp": float(self._depth.stamps[self._di[i]] / 1e9)} \
             if self._color.header_stamps and self._depth.header_stamps else {}
+        a = accel_at(self.accel, float(self.stamps[i]))
+        if a is not None:  # the IMU's reading at the frame's stamp (the grid's up: docs/grid.md)
+            extras["accel"] = a
         return Frame(i, float(self.stamps[i]), image, depth=depth, source=source, extras=extras)
 
     def close(self) -> None:

@@ -31,6 +31,7 @@ def create_app(service: SlamService) -> FastAPI:
     app.state.viewer = Viewer(service, objects=app.state.objects.get)
     app.add_middleware(RequestTimer, observe=app.state.metrics.observe_request)
     app.router.add_event_handler("shutdown", app.state.objects.close)
+    app.router.add_event_handler("shutdown", app.state.grids.close)
     for router in ROUTERS:
         app.include_router(router)
     return app

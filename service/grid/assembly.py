@@ -26,14 +26,14 @@ the image (the camera was there; RTAB-Map's GridGlobal/FootprintRadius), whateve
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from ..config import GridConfig
-from .local import FREE, OCCUPIED, LocalGrid
+from .local import FREE, OCCUPIED, LocalGrid, StoredLocalGrid
 
 #: State values of an assembled grid (ROS nav_msgs/OccupancyGrid's).
 G_UNKNOWN, G_FREE, G_OCCUPIED = -1, 0, 100
@@ -73,6 +73,8 @@ class GridImage:
     origin: tuple[float, float]
     map_to_grid: np.ndarray
     keyframes: int = 0
+    #: what was made of this image (REST's encoded answers), dropped with it when the grid changes
+    encoded: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def width(self) -> int:
@@ -161,12 +163,13 @@ class GlobalGrid:
         return ids[use], poses[use]
 
     def update(self, ids, poses, grids: Mapping[int, LocalGrid], known: np.ndarray | None = None,
-               good: np.ndarray | None = None) -> dict:
+               good: np.ndarray | None = None, on_plan: Callable[[int], None] | None = None) -> dict:
         """Bring the grid to these keyframes (ids ascending) at these poses (N, 4, 4); `grids`
         holds the local grid of each (those without one are left out). `known` (the sorted ids
         that have one) and `good` (per id: its up came from a floor or an accelerometer) save
-        looking each up (a 20k-keyframe map: ~40 ms). Returns counts of what it did; only the
-        keyframes new, moved or gone are touched one by one."""
+        looking each up (a 20k-keyframe map: ~40 ms); `on_plan` is told how many local grids
+        it is about to place or take out. Returns counts of what it did; only the keyframes
+        new, moved or gone are touched."""
         ids = np.asarray(ids, np.int64)
         poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
         if known is None:
@@ -206,19 +209,22 @@ class GlobalGrid:
             self._clear()
             self.rebuilds, self.map_to_grid, self._frame_key = rebuilds, frame, key
             stats["rebuilt"] = full = True
+        if on_plan is not None:
+            on_plan(len(ids) if full else len(gone) + 2 * int(moved.sum()) + int(fresh.sum()))
         placed = poses.copy()
         if full:
-            for i, n in enumerate(ids.tolist()):
-                self._place(n, poses[i], grids[n])
+            self._place(ids, poses, grids)
         else:
-            for n, i in zip(gone.tolist(), np.searchsorted(pids, gone).tolist()):
-                self._apply(pposes[i], self._grid_of.pop(n), -1)
-            for k in np.flatnonzero(moved).tolist():
-                n = int(common[k])
-                self._apply(pposes[i_old[k]], self._grid_of[n], -1)
-                self._place(n, poses[i_new[k]], grids[n])
-            for i in np.flatnonzero(fresh).tolist():
-                self._place(int(ids[i]), poses[i], grids[int(ids[i])])
+            if len(gone):
+                i = np.searchsorted(pids, gone)
+                self._apply(pposes[i], [self._grid_of.pop(n) for n in gone.tolist()], -1)
+            k = np.flatnonzero(moved)
+            if len(k):
+                self._apply(pposes[i_old[k]], [self._grid_of[int(n)] for n in common[k]], -1)
+                self._place(common[k], poses[i_new[k]], grids)
+            i = np.flatnonzero(fresh)
+            if len(i):
+                self._place(ids[i], poses[i], grids)
             still = ~moved  # moved too little to place again: they stay where they were placed
             placed[i_new[still]] = pposes[i_old[still]]
         self._pids, self._pposes = ids.copy(), placed
@@ -226,26 +232,31 @@ class GlobalGrid:
             self._image = None
         return stats
 
-    # -- placing one local grid -----------------------------------------------------------------------
-    def _patch(self, pose: np.ndarray, g: LocalGrid) -> tuple[int, int, np.ndarray]:
+    # -- placing local grids --------------------------------------------------------------------------
+    def _affines(self, poses: np.ndarray, gs: list[LocalGrid]) -> tuple[np.ndarray, np.ndarray]:
+        """For K keyframes at `poses` (K, 4, 4) with local grids `gs`: the 2×3 affine maps
+        (K, 2, 3) of each local grid's pixel (u, v) to its patch of absolute global cells,
+        and the patches' boxes (K, 4): x0, y0, x1, y1 (inclusive), all in one go."""
         assert self.map_to_grid is not None  # (`update` makes the frame before it places a keyframe)
-        T = self.map_to_grid @ pose @ g.T_cam_local
-        A, b = T[:2, :2], T[:2, 3]
-        r, cs = self.resolution, g.cell_size
+        K = len(gs)
+        Tcl = np.stack([g.T_cam_local for g in gs])
+        T = self.map_to_grid @ poses @ Tcl
+        A, b = T[:, :2, :2], T[:, :2, 3]
+        r = self.resolution
+        cs = np.array([g.cell_size for g in gs])
+        o = np.array([[(g.origin_x + 0.5) * g.cell_size, (g.origin_y + 0.5) * g.cell_size] for g in gs])
+        hw = np.array([g.shape if isinstance(g, StoredLocalGrid) else g.cells.shape for g in gs], np.float64)
+        M = np.empty((K, 2, 3))
+        M[:, :, :2] = A * (cs / r)[:, None, None]
+        M[:, :, 2] = np.einsum("kij,kj->ki", A, o) / r + b / r - 0.5
         # local pixel (u, v) -> absolute global cell coordinates (cell centres at integers)
-        M = np.empty((2, 3))
-        M[:, :2] = A * (cs / r)
-        M[:, 2] = A @ np.array([(g.origin_x + 0.5) * cs, (g.origin_y + 0.5) * cs]) / r + b / r - 0.5
-        h, w = g.cells.shape
-        corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [-0.5, h - 0.5, 1], [w - 0.5, h - 0.5, 1]])
-        c = corners @ M.T
-        x0, y0 = int(math.floor(c[:, 0].min() + 0.5)), int(math.floor(c[:, 1].min() + 0.5))
-        x1, y1 = int(math.floor(c[:, 0].max() + 0.5)), int(math.floor(c[:, 1].max() + 0.5))
-        M[0, 2] -= x0
-        M[1, 2] -= y0
-        patch = cv2.warpAffine(g.cells, M, (x1 - x0 + 1, y1 - y0 + 1), flags=cv2.INTER_NEAREST,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return x0, y0, patch
+        h, w = hw[:, 0], hw[:, 1]
+        cu = np.stack([np.full(K, -0.5), w - 0.5, np.full(K, -0.5), w - 0.5], axis=1)
+        cv = np.stack([np.full(K, -0.5), np.full(K, -0.5), h - 0.5, h - 0.5], axis=1)
+        cx = M[:, 0, :1] * cu + M[:, 0, 1:2] * cv + M[:, 0, 2:]
+        cy = M[:, 1, :1] * cu + M[:, 1, 1:2] * cv + M[:, 1, 2:]
+        box = np.floor(np.stack([cx.min(1), cy.min(1), cx.max(1), cy.max(1)], axis=1) + 0.5).astype(np.int64)
+        return M, box
 
     def _ensure(self, x0: int, y0: int, x1: int, y1: int) -> None:
         """Grow the arrays to hold absolute cells [x0, x1) × [y0, y1)."""
@@ -263,22 +274,36 @@ class GlobalGrid:
             misses[self.oy - ny0:self.oy - ny0 + H, self.ox - nx0:self.ox - nx0 + W] = self.misses
         self.hits, self.misses, self.ox, self.oy = hits, misses, nx0, ny0
 
-    def _apply(self, pose: np.ndarray, g: LocalGrid, sign: int) -> None:
-        x0, y0, patch = self._patch(pose, g)
-        h, w = patch.shape
-        self._ensure(x0, y0, x0 + w, y0 + h)
-        sy, sx = slice(y0 - self.oy, y0 - self.oy + h), slice(x0 - self.ox, x0 - self.ox + w)
-        if sign > 0:
-            self.hits[sy, sx] += patch == OCCUPIED
-            self.misses[sy, sx] += patch == FREE
-        else:
-            self.hits[sy, sx] -= patch == OCCUPIED
-            self.misses[sy, sx] -= patch == FREE
+    def _apply(self, poses: np.ndarray, gs: list[LocalGrid], sign: int) -> None:
+        """Add (sign +1) or take out (-1) the local grids `gs` at `poses`: the geometry of all at
+        once (`_affines`), the arrays grown once, then each grid's cell image warped (nearest
+        cell: no holes at any rotation, the same patch every time for the same pose) and
+        counted in."""
+        if not gs:
+            return
+        M, box = self._affines(np.asarray(poses, np.float64).reshape(-1, 4, 4), gs)
+        self._ensure(int(box[:, 0].min()), int(box[:, 1].min()), int(box[:, 2].max()) + 1, int(box[:, 3].max()) + 1)
+        M[:, 0, 2] -= box[:, 0]
+        M[:, 1, 2] -= box[:, 1]
+        box[:, 0::2] -= self.ox
+        box[:, 1::2] -= self.oy
+        hits, misses = self.hits, self.misses
+        warp, nearest, const = cv2.warpAffine, cv2.INTER_NEAREST, cv2.BORDER_CONSTANT
+        for g, Mk, (x0, y0, x1, y1) in zip(gs, M, box.tolist()):
+            patch = warp(g.cells, Mk, (x1 - x0 + 1, y1 - y0 + 1), flags=nearest, borderMode=const, borderValue=0)
+            sy, sx = slice(y0, y1 + 1), slice(x0, x1 + 1)
+            if sign > 0:
+                hits[sy, sx] += patch == OCCUPIED
+                misses[sy, sx] += patch == FREE
+            else:
+                hits[sy, sx] -= patch == OCCUPIED
+                misses[sy, sx] -= patch == FREE
 
-    def _place(self, n: int, pose: np.ndarray, g: LocalGrid) -> None:
-        self._apply(pose, g, +1)
-        self._grid_of[n] = g
-        self.placements += 1
+    def _place(self, ids: np.ndarray, poses: np.ndarray, grids: Mapping[int, LocalGrid]) -> None:
+        gs = [grids[n] for n in ids.tolist()]
+        self._apply(poses, gs, +1)
+        self._grid_of.update(zip(ids.tolist(), gs))
+        self.placements += len(gs)
 
     # -- the grid -------------------------------------------------------------------------------------
     @property

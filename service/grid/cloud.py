@@ -5,6 +5,9 @@ PLY. Keyframes without stored images (merged by rehearsal, storage.keep_images f
 nothing."""
 from __future__ import annotations
 
+import hashlib
+import threading
+
 import numpy as np
 
 from mnemoslam.client.kernel.frames import PinholeCamera
@@ -57,30 +60,116 @@ def voxel_filter(P: np.ndarray, C: np.ndarray, voxel: float) -> tuple[np.ndarray
     return out_p.astype(np.float32), np.rint(out_c).astype(np.uint8)
 
 
+class CloudCache:
+    """What `map_cloud` keeps between requests, within `max_bytes`: each keyframe's
+    voxel-filtered points in the map frame, by (node, voxel) with the pose they were placed
+    at (a keyframe that moved is made again), and the last whole cloud by voxel with the
+    keyframes and poses it was made of. A full cache admits no more keyframes (those it holds
+    stay hits; a least-recently-used cache would keep none of a map larger than it, read in
+    the same order at every request); a keyframe made again at a new pose takes its old
+    entry's place."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = int(max_bytes)
+        self._lock = threading.Lock()
+        self._kf: dict[tuple, tuple[bytes, np.ndarray, np.ndarray]] = {}  # (node, params) -> (pose, P, C)
+        self._whole: dict[tuple, tuple[bytes, np.ndarray, np.ndarray]] = {}  # params -> (key, P, C)
+        self.bytes = 0
+        self.hits = self.misses = 0
+
+    @staticmethod
+    def _size(P: np.ndarray, C: np.ndarray) -> int:
+        return P.nbytes + C.nbytes + 200
+
+    def get(self, node: int, params: tuple, pose: np.ndarray):
+        with self._lock:
+            e = self._kf.get((node, params))
+            if e is not None and e[0] == pose.tobytes():
+                self.hits += 1
+                return e[1], e[2]
+            self.misses += 1
+            return None
+
+    def put(self, node: int, params: tuple, pose: np.ndarray, P: np.ndarray, C: np.ndarray) -> None:
+        with self._lock:
+            old = self._kf.pop((node, params), None)
+            if old is not None:
+                self.bytes -= self._size(old[1], old[2])
+            size = self._size(P, C)
+            P.setflags(write=False)  # (shared by the requests that get them)
+            C.setflags(write=False)
+            if self.bytes + size <= self.max_bytes:
+                self._kf[(node, params)] = (pose.tobytes(), P, C)
+                self.bytes += size
+
+    def whole(self, params: tuple, key: bytes):
+        with self._lock:
+            e = self._whole.get(params)
+            return (e[1], e[2]) if e is not None and e[0] == key else None
+
+    def put_whole(self, params: tuple, key: bytes, P: np.ndarray, C: np.ndarray) -> None:
+        with self._lock:
+            for v in list(self._whole):  # the last two whole clouds (of different voxel sizes)
+                if v != params and len(self._whole) >= 2:
+                    self.bytes -= self._size(*self._whole.pop(v)[1:])
+            old = self._whole.pop(params, None)
+            if old is not None:
+                self.bytes -= self._size(old[1], old[2])
+            size = self._size(P, C)
+            P.setflags(write=False)
+            C.setflags(write=False)
+            if size <= self.max_bytes // 2:  # (the keyframes keep at least half)
+                self._whole[params] = (key, P, C)
+                self.bytes += size
+
+
 def map_cloud(store: GridStore, node_ids, poses, voxel: float = 0.02, decimation: int = 4,
-              max_depth: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+              max_depth: float = 5.0, cache: CloudCache | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The cloud of these keyframes at these poses (map frame), voxel-filtered. Keyframes are
-    filtered one by one as they come (bounded memory), then once more together."""
+    filtered one by one as they come (bounded memory), then once more together. With a
+    `cache`, keyframes it holds at the same pose and voxel are not read nor decoded again,
+    and the same keyframes at the same poses give the last cloud at once."""
+    voxel = float(voxel)
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    ids = np.asarray(node_ids, np.int64).reshape(-1)
+    params, key = (voxel, int(decimation), float(max_depth)), b""
+    if cache is not None:
+        key = hashlib.blake2b(ids.tobytes() + poses.tobytes(), digest_size=16).digest()
+        hit = cache.whole(params, key)
+        if hit is not None:
+            return hit
     cams: dict[int, PinholeCamera] = {}
-    sessions = {n.id: n.session_id for n in store.get_nodes([int(i) for i in node_ids])}
+    sessions: dict[int, int] | None = None
     parts_p, parts_c = [], []
-    for n, pose in zip(node_ids, poses):
-        color_b, depth_b = store.load_images(int(n))
-        if depth_b is None:
-            continue
-        sid = sessions[int(n)]  # (a node with stored images has a row)
-        if sid not in cams:
-            cams[sid] = store.calibration(sid).camera
-        color, depth = decode_images(color_b, depth_b)
-        assert depth is not None  # (decoded from depth_b, or it raised)
-        P, C = keyframe_points(color, depth, cams[sid], decimation, max_depth)
-        P = P @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
-        P, C = voxel_filter(P, C, voxel)
-        parts_p.append(P)
-        parts_c.append(C)
+    for n, pose in zip(ids.tolist(), poses):
+        got = cache.get(n, params, pose) if cache is not None else None
+        if got is None:
+            color_b, depth_b = store.load_images(n)
+            if depth_b is None:
+                got = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8))
+            else:
+                if sessions is None:
+                    sessions = {k.id: k.session_id for k in store.get_nodes(ids.tolist())}
+                sid = sessions[n]  # (a node with stored images has a row)
+                if sid not in cams:
+                    cams[sid] = store.calibration(sid).camera
+                color, depth = decode_images(color_b, depth_b)
+                assert depth is not None  # (decoded from depth_b, or it raised)
+                P, C = keyframe_points(color, depth, cams[sid], decimation, max_depth)
+                P = P @ pose[:3, :3].T.astype(np.float32) + pose[:3, 3].astype(np.float32)
+                got = voxel_filter(P, C, voxel)
+            if cache is not None:
+                cache.put(n, params, pose, *got)
+        if len(got[0]):
+            parts_p.append(got[0])
+            parts_c.append(got[1])
     if not parts_p:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-    return voxel_filter(np.concatenate(parts_p), np.concatenate(parts_c), voxel)
+        out = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+    else:
+        out = voxel_filter(np.concatenate(parts_p), np.concatenate(parts_c), voxel)
+    if cache is not None:
+        cache.put_whole(params, key, *out)
+    return out
 
 
 def ply_bytes(P: np.ndarray, C: np.ndarray) -> bytes:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import time
+import zlib
 from dataclasses import dataclass
 
 import cv2
@@ -94,18 +95,22 @@ class LocalGrid:
 
 
 class StoredLocalGrid(LocalGrid):
-    """A local grid read from the store: its cells stay PNG-encoded (~2 kB instead of ~10 kB
-    decoded) and are decoded each time they are read (~0.05 ms), so a map grid can keep
-    every keyframe's."""
+    """A local grid read from the store, kept small for a map grid that holds every keyframe's:
+    its PNG is decoded once and its cells kept zlib-compressed (~0.5 kB instead of ~7 kB
+    decoded, smaller than the PNG), decompressed each time they are read (~15 µs against the
+    PNG's ~75 µs: re-placing 20k keyframes after a loop closure reads every one)."""
 
     def __init__(self, rec):
         self.cell_size, self.T_cam_local = float(rec.cell_size), np.asarray(rec.transform, np.float64)
-        self.origin_x, self.origin_y, self.blob = int(rec.origin_x), int(rec.origin_y), bytes(rec.cells)
+        self.origin_x, self.origin_y = int(rec.origin_x), int(rec.origin_y)
         self.up_source, self.floor_points, self.floor_up = rec.up_source, int(rec.floor_points), None
+        cells = LocalGrid.decode_cells(bytes(rec.cells))
+        self.shape = cells.shape
+        self._packed = zlib.compress(cells.tobytes(), 1)
 
     @property
     def cells(self) -> np.ndarray:  # type: ignore[override]
-        return LocalGrid.decode_cells(self.blob)
+        return np.frombuffer(zlib.decompress(self._packed), np.uint8).reshape(self.shape)
 
 
 def _unit(v) -> np.ndarray:

@@ -21,9 +21,16 @@ from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import GridConfig
 from .assembly import GlobalGrid, GridImage
+from .cloud import CloudCache
 from .local import LocalGridMaker, StoredLocalGrid
 
 log = logging.getLogger("mnemoslam.grid")
+
+
+#: s; a map not asked for this long is no longer kept up to date in the background
+IDLE_AFTER = 60.0
+#: local grids to place or take out above which a request does not wait for the pass (~0.1 s of it)
+HEAVY = 1000
 
 
 class NoMap(LookupError):
@@ -35,7 +42,8 @@ class MapGrids:
 
     def __init__(self, store: GridStore, config: GridConfig):
         self.store, self.config = store, config
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the store reads, the links, the local grids
+        self._assembly = threading.Lock()  # the GlobalGrids' updates (seconds after a loop closure)
         self._links = MapConnectivity()
         self._grids: dict[int, GlobalGrid] = {}
         self._local: dict[int, StoredLocalGrid] = {}
@@ -44,6 +52,17 @@ class MapGrids:
         self._known_ids: tuple[np.ndarray, np.ndarray] | None = None
         self._roots: tuple | None = None  # (node ids, their parts' roots, their map ids) at the last look
         self.last_update: dict = {}
+        self._counter = None  # the store's change counter (PRAGMA data_version); False: none to be had
+        self._counted: dict[int, int] = {}  # map id -> the change counter when its grid was last brought up to date
+        self.clouds = CloudCache(max(0, config.cloud_cache_mb) * 2 ** 20)  # GET /maps/{map}/cloud's
+        # the background assembler (`latest`): maps asked for, their last grid, the passes
+        self._cond = threading.Condition()
+        self._asked: dict[int, float] = {}  # map id -> monotonic time of its last request
+        self._published: dict[int, GridImage] = {}
+        self._failed: dict[int, Exception] = {}
+        self._started = self._finished = 0  # background passes begun / ended
+        self._wake = self._closed = self._heavy = False
+        self._thread: threading.Thread | None = None
 
     def maps(self) -> dict[int, np.ndarray]:
         """{map id: its node ids ascending}, and refreshes the node poses (see `grid`)."""
@@ -83,9 +102,17 @@ class MapGrids:
         return out
 
     def grid(self, map_id: int) -> GridImage:
-        """The map's grid at its cell size (grid.cell_size), brought up to date."""
-        with self._lock:
+        """The map's grid at its cell size (grid.cell_size), brought up to date now (the caller
+        waits for it: seconds after a loop closure moved a large map; see `latest`)."""
+        with self._assembly, self._lock:
             t0 = time.perf_counter()
+            version = self._version()
+            if version is not None and self._counted.get(map_id) == version and map_id in self._grids:
+                # nothing committed to the file since: the same grid (no pose read, ~1 ms)
+                g = self._grids[map_id]
+                self.last_update = {"added": 0, "moved": 0, "removed": 0, "rebuilt": False, "unchanged": True,
+                                    "ms": (time.perf_counter() - t0) * 1e3, "keyframes": g.keyframes}
+                return g.image()
             parts = self._partition()
             if map_id not in parts:
                 raise NoMap(f"no map {map_id}" + (f" (maps: {', '.join(map(str, sorted(parts)))})" if parts else
@@ -99,9 +126,126 @@ class MapGrids:
                 raise NoMap(f"map {map_id} has no local grids (no keyframe with depth: a stereo map, or "
                             "grid.enabled was false and storage.keep_images too)")
             g = self._grids.setdefault(map_id, GlobalGrid(self.config))
-            stats = g.update(ids, poses, self._local, known=known, good=np.isin(ids, good, assume_unique=True))
+            self._lock.release()  # the store and the links free for others while it places
+            try:
+                stats = g.update(ids, poses, self._local, known=known, good=np.isin(ids, good, assume_unique=True),
+                                 on_plan=self._on_plan)
+            finally:
+                self._lock.acquire()
             self.last_update = {**stats, "ms": (time.perf_counter() - t0) * 1e3, "keyframes": g.keyframes}
+            if version is not None:
+                self._counted[map_id] = version
             return g.image()
+
+    def _version(self) -> int | None:
+        """The store file's change counter (None without one: an in-memory store)."""
+        if self._counter is None:
+            try:
+                self._counter = self.store.change_counter()
+            except Exception:  # (no file to count the changes of)
+                self._counter = False
+        if self._counter is False:
+            return None
+        try:
+            return self._counter()
+        except Exception:
+            return None
+
+    # -- the background assembler -------------------------------------------------------------------
+    def latest(self, map_id: int, max_wait: float | None = None) -> tuple[GridImage, bool]:
+        """(the map's grid, whether it is up to date) without making the caller pay a large
+        re-assembly: with `grid.refresh_interval` > 0 a thread keeps the grids of the maps asked
+        for (within the last IDLE_AFTER s) up to date, a pass every refresh_interval s and one
+        at each request; the request waits at most `max_wait` s (grid.max_wait) for the pass
+        it started, then gets the last grid assembled (False: a loop closure's re-placing is
+        still going on). The first request of a map waits for its first assembly. Without
+        the thread (refresh_interval 0) this is `grid`."""
+        if self.config.refresh_interval <= 0:
+            return self.grid(map_id), True
+        wait = self.config.max_wait if max_wait is None else float(max_wait)
+        with self._cond:
+            if self._closed:
+                raise NoMap("the service is stopping")
+            self._asked[map_id] = time.monotonic()
+            want = self._started + 1  # a pass begun after this request
+            self._wake = True
+            self._cond.notify_all()
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="grid-assembly", daemon=True)
+                self._thread.start()
+            deadline = time.monotonic() + wait
+            while self._finished < want and not self._closed:
+                left = deadline - time.monotonic()
+                if (left <= 0 or self._heavy) and (map_id in self._published or map_id in self._failed):
+                    break  # (a pass placing many keyframes: not worth waiting max_wait for)
+                self._cond.wait(left if left > 0 else None)
+            current = self._finished >= want
+            if map_id in self._failed:
+                raise self._failed[map_id]
+            if map_id not in self._published:
+                raise NoMap("the service is stopping")
+            return self._published[map_id], current
+
+    def _on_plan(self, n: int) -> None:
+        """The update about to place or take out `n` local grids: more than HEAVY and the
+        requests waiting for the thread's pass get the last grid at once."""
+        if threading.current_thread() is self._thread:
+            with self._cond:
+                self._heavy = n > HEAVY
+                if self._heavy:
+                    self._cond.notify_all()
+
+    def published(self, map_id: int) -> GridImage | None:
+        """The map's grid last assembled by the background thread (None before the first)."""
+        with self._cond:
+            return self._published.get(map_id)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._wake and not self._closed:
+                    recent = any(time.monotonic() - t < IDLE_AFTER for t in self._asked.values())
+                    if not self._cond.wait(self.config.refresh_interval) and recent:
+                        break  # a periodic pass while a planner asks
+                if self._closed:
+                    return
+                self._wake = False
+                self._started += 1
+                npass, now = self._started, time.monotonic()
+                maps = [m for m, t in self._asked.items() if now - t < IDLE_AFTER]
+            done: dict[int, GridImage | Exception] = {}
+            for m in maps:
+                try:
+                    done[m] = self.grid(m)
+                except NoMap as e:
+                    done[m] = e
+                except Exception as e:  # pragma: no cover - a bug: the requests see it, the thread lives on
+                    log.exception("assembling the grid of map %d", m)
+                    done[m] = e
+            with self._cond:
+                self._heavy = False
+                for m, r in done.items():
+                    if isinstance(r, Exception):
+                        self._failed[m] = r
+                        self._published.pop(m, None)
+                    else:
+                        self._published[m] = r
+                        self._failed.pop(m, None)
+                self._finished = npass
+                self._cond.notify_all()
+
+    def close(self) -> None:
+        """End the background thread (a pass under way finishes first)."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+            t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=30)
+        with self._assembly:
+            if self._counter:
+                self._counter.close()
+            self._counter = False
 
     def keyframes(self, map_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(node ids, their current poses) of a map (NoMap when there is no such map)."""
@@ -200,5 +344,12 @@ class GridHolder:
     def get(self, store: GridStore) -> MapGrids:
         with self._lock:
             if self._grids is None or self._store is not store:
+                if self._grids is not None:
+                    self._grids.close()
                 self._store, self._grids = store, MapGrids(store, self.config)
             return self._grids
+
+    def close(self) -> None:
+        with self._lock:
+            if self._grids is not None:
+                self._grids.close()

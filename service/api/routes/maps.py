@@ -1,10 +1,11 @@
 """The maps a planner can use (issue 25): GET /maps (the maps of the database),
 /maps/{map}/grid (the occupancy grid: JSON, PNG, PGM or map_server YAML), /maps/{map}/cloud
 (the coloured point cloud, PLY) and /path (a path on the grid from a robot to an object or a
-point). The grids are `service.grid.maps.MapGrids`', brought up to date at each request (new
-and moved keyframes only)."""
+point). The grids are `service.grid.maps.MapGrids`', kept up to date by a background thread
+(new and moved keyframes only) once asked for; a request waits at most grid.max_wait for it."""
 from __future__ import annotations
 
+import threading
 from typing import Annotated, Literal
 
 import numpy as np
@@ -49,29 +50,44 @@ def maps(request: Request, store: StoreDep):
     **error_responses(404), 200: {"content": {"image/png": {}, "image/x-portable-graymap": {}, "text/yaml": {}},
                                   "description": "the grid (json), or its image / map_server YAML"}})
 def map_grid(map_id: DbId, request: Request, store: StoreDep, resolution: Resolution = None,
-             format: Literal["json", "png", "pgm", "yaml"] = "json"):
+             format: Literal["json", "png", "pgm", "yaml"] = "json",
+             wait: Annotated[float | None, Query(ge=0.0, le=600.0, allow_inf_nan=False, description=(
+                 "s to wait for the grid to follow the latest poses (default grid.max_wait); then the last "
+                 "grid assembled, with X-Map-Current: false"))] = None):
     """The map's 2-D occupancy grid, assembled from its keyframes' local grids at their
     optimised poses (it follows loop closure). `json`: nav_msgs/OccupancyGrid's data with
     map_server's YAML fields and `map_to_grid` (grid ← map frame, row-major 4×4); `png` /
     `pgm`: map_server's image (0 occupied, 254 free, 205 unknown; top row = largest y) with
     the fields in headers (X-Map-Resolution, X-Map-Origin, X-Map-To-Grid); `yaml`: map_server's
-    YAML for an image saved as grid.pgm."""
+    YAML for an image saved as grid.pgm. A thread keeps the grid up to date; the request waits
+    at most `wait` s for it (after a loop closure of a large map the re-placing takes seconds),
+    else gets the last grid assembled (X-Map-Current: false)."""
     try:
-        grid = _grids(request, store).grid(map_id)
+        grid, current = _grids(request, store).latest(map_id, wait)
     except NoMap as e:
         raise HTTPException(404, str(e)) from None
-    if resolution is not None:
-        grid = grid.resampled(resolution)
-    f = files.map_yaml_fields(grid, "grid.pgm")
-    headers = {"X-Map-Resolution": f"{grid.resolution:.9g}", "X-Map-Origin": ",".join(f"{v:.9g}" for v in f["origin"]),
-               "X-Map-To-Grid": ",".join(f"{v:.9g}" for v in f["map_to_grid"]), "X-Map-Keyframes": str(grid.keyframes)}
-    if format == "png":
-        return Response(files.png_bytes(grid), media_type="image/png", headers=headers)
-    if format == "pgm":
-        return Response(files.pgm_bytes(grid), media_type="image/x-portable-graymap", headers=headers)
-    if format == "yaml":
-        return Response(files.map_yaml(grid), media_type="text/yaml", headers=headers)
-    return Response(_grid_json(grid), media_type="application/json", headers=headers)
+    # the answer's bytes are kept with the grid image (a new image when the grid changes): a
+    # planner polling a map gets them without encoding its ~10^6 cells again
+    key = (format, None if resolution is None else float(resolution))
+    with _ENCODED_LOCK:
+        kept = grid.encoded.get(key)
+    if kept is None:
+        g = grid if resolution is None else grid.resampled(resolution)
+        f = files.map_yaml_fields(g, "grid.pgm")
+        fields = {"X-Map-Resolution": f"{g.resolution:.9g}", "X-Map-Origin": ",".join(f"{v:.9g}" for v in f["origin"]),
+                  "X-Map-To-Grid": ",".join(f"{v:.9g}" for v in f["map_to_grid"]), "X-Map-Keyframes": str(g.keyframes)}
+        body = {"png": files.png_bytes, "pgm": files.pgm_bytes, "yaml": files.map_yaml}.get(format, _grid_json)(g)
+        kept = (body, fields)
+        with _ENCODED_LOCK:
+            if len(grid.encoded) >= 8:  # (a few formats and resolutions)
+                grid.encoded.clear()
+            grid.encoded[key] = kept
+    body, fields = kept
+    media = {"png": "image/png", "pgm": "image/x-portable-graymap", "yaml": "text/yaml"}.get(format, "application/json")
+    return Response(body, media_type=media, headers={**fields, "X-Map-Current": "true" if current else "false"})
+
+
+_ENCODED_LOCK = threading.Lock()
 
 
 def _grid_json(grid) -> bytes:
@@ -99,11 +115,12 @@ def map_cloud(map_id: DbId, request: Request, store: StoreDep, voxel: Voxel = 0.
     """The map's coloured point cloud in the map frame: every keyframe's stored depth and
     colour at its optimised pose, voxel-filtered (`voxel` m). PLY by default (binary, as
     rtabmap-export writes it); `json` for small maps."""
+    grids = _grids(request, store)
     try:
-        ids, poses = _grids(request, store).keyframes(map_id)
+        ids, poses = grids.keyframes(map_id)
     except NoMap as e:
         raise HTTPException(404, str(e)) from None
-    P, C = grid_cloud.map_cloud(store, ids, poses, voxel)
+    P, C = grid_cloud.map_cloud(store, ids, poses, voxel, cache=grids.clouds)
     if len(P) == 0:
         raise HTTPException(404, f"map {map_id} has no stored depth (storage.keep_images false, or a stereo map)")
     if format == "json":
@@ -148,7 +165,7 @@ def grid_path(request: Request, service: ServiceDep, store: StoreDep,
     else:
         goal = np.array([x, y, z], np.float64)
     try:
-        grid = grids.grid(map_id)
+        grid, _ = grids.latest(map_id)
         start_g, goal_g = grid.to_grid(np.asarray(at.position, np.float64)), grid.to_grid(goal)
         p = plan(grid, start_g[:2], goal_g[:2], cfg.robot_radius, cfg.path_unknown)
     except (NoMap, NoPath) as e:
