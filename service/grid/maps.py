@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from mnemoslam.storage import GridStore
+from mnemoslam.storage.connection import ChangeCounter
 from mnemoslam.storage.connectivity import MapConnectivity
 
 from ..config import GridConfig
@@ -52,7 +53,8 @@ class MapGrids:
         self._known_ids: tuple[np.ndarray, np.ndarray] | None = None
         self._roots: tuple | None = None  # (node ids, their parts' roots, their map ids) at the last look
         self.last_update: dict = {}
-        self._counter = None  # the store's change counter (PRAGMA data_version); False: none to be had
+        # the store's change counter (PRAGMA data_version); False: none to be had
+        self._counter: ChangeCounter | bool | None = None
         self._counted: dict[int, int] = {}  # map id -> the change counter when its grid was last brought up to date
         self.clouds = CloudCache(max(0, config.cloud_cache_mb) * 2 ** 20)  # GET /maps/{map}/cloud's
         # the background assembler (`latest`): maps asked for, their last grid, the passes
@@ -144,7 +146,7 @@ class MapGrids:
                 self._counter = self.store.change_counter()
             except Exception:  # (no file to count the changes of)
                 self._counter = False
-        if self._counter is False:
+        if not isinstance(self._counter, ChangeCounter):
             return None
         try:
             return self._counter()
@@ -243,7 +245,7 @@ class MapGrids:
         if t is not None and t is not threading.current_thread():
             t.join(timeout=30)
         with self._assembly:
-            if self._counter:
+            if isinstance(self._counter, ChangeCounter):
                 self._counter.close()
             self._counter = False
 
