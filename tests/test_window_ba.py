@@ -119,3 +119,53 @@ def test_window_ba_feeds_refined_points_and_anchors_single_views():
     moved = M[:3, :3] @ points[n] + M[:3, 3]
     assert np.linalg.norm(points[n] - lone_truth) > 0.02
     assert np.linalg.norm(moved - lone_truth) < 0.005
+
+
+def test_odometry_feeds_the_window_back_into_tracking():
+    """With `odometry.window_ba` the tracker keeps one record per map update, adjusts every
+    `window_ba_every`, continues from the newest record's refined pose (the frame's reported
+    pose is that one) and tracks against the refined points; off, it keeps no records."""
+    from mnemoslam.client.kernel.frames import PinholeCamera
+    from mnemoslam.service.config import load_config
+    from mnemoslam.service.tracking.features import FrameFeatures
+    from mnemoslam.service.tracking.odometry import Odometry
+
+    cam = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
+    rng = np.random.default_rng(4)
+    world = np.c_[rng.uniform(-2, 2, 600), rng.uniform(-1.5, 1.5, 600), rng.uniform(2, 5, 600)]
+    desc = rng.integers(0, 256, (600, 32), dtype=np.uint8)
+
+    def frame(pose):
+        T_cw = invert(pose)
+        pc = world @ T_cw[:3, :3].T + T_cw[:3, 3]
+        uv = pc[:, :2] / pc[:, 2:] * 525.0 + [319.5, 239.5] + rng.normal(0, 0.5, (600, 2))
+        pc = pc * (1 + rng.normal(0, 0.01, (600, 1)))  # depth noise along the ray
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+        return FrameFeatures(uv[ok].astype(np.float32), desc[ok], pc[ok].astype(np.float32),
+                             np.zeros(ok.sum(), np.int8), depth_sigma=(0.01 * pc[ok, 2]).astype(np.float32))
+
+    def run(window_ba):
+        cfg = load_config(overrides={"odometry": {"window_ba": window_ba, "window_ba_size": 4, "window_ba_fixed": 2,
+                                                  "window_ba_every": 2}})
+        odo = Odometry(cam, cfg.odometry)
+        errors, refined = [], 0
+        for i in range(14):
+            truth = make_pose(np.eye(3), [0.03 * i, 0.0, 0.0])
+            res = odo.track(frame(truth), i / 30)
+            assert res.tracked
+            errors.append(np.linalg.norm(res.pose[:3, 3] - truth[:3, 3]))
+            if window_ba and odo.window_ba.records:
+                newest = invert(odo.window_ba.records[-1].T_cw)
+                if not np.allclose(newest, res.pose, atol=1e-12):
+                    continue
+                if odo.window_ba._last and odo.window_ba._last[-1] is odo.window_ba.records[-1] \
+                        and odo.window_ba._since == 0:
+                    refined += 1
+                    assert np.allclose(odo.pose, newest)
+        return odo, np.array(errors), refined
+
+    odo, err_on, refined = run(True)
+    assert len(odo.window_ba.records) == 6 and refined >= 4
+    off, err_off, _ = run(False)
+    assert off.window_ba is None
+    assert err_on.max() < 0.02 and err_off.max() < 0.02

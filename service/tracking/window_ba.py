@@ -52,6 +52,21 @@ def _scatter(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+def _inv3(A: np.ndarray) -> np.ndarray:
+    """Inverses of (n, 3, 3) matrices (adjugate over determinant; a singular one gives zeros:
+    its point does not move)."""
+    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 0], A[:, 1, 1], A[:, 1, 2]
+    g, h, i = A[:, 2, 0], A[:, 2, 1], A[:, 2, 2]
+    adj = np.empty_like(A)
+    adj[:, 0, 0], adj[:, 0, 1], adj[:, 0, 2] = e * i - f * h, c * h - b * i, b * f - c * e
+    adj[:, 1, 0], adj[:, 1, 1], adj[:, 1, 2] = f * g - d * i, a * i - c * g, c * d - a * f
+    adj[:, 2, 0], adj[:, 2, 1], adj[:, 2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
+    det = a * adj[:, 0, 0] + b * adj[:, 1, 0] + c * adj[:, 2, 0]
+    ok = np.abs(det) > 1e-300
+    return np.where(ok[:, None, None], adj / np.where(ok, det, 1.0)[:, None, None], 0.0)
+
+
 def _exp(xi: np.ndarray) -> np.ndarray:
     R, _ = cv2.Rodrigues(xi[:3].reshape(3, 1))
     return make_pose(R, xi[3:])
@@ -120,6 +135,7 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
     chi2_max = np.where(has_z, CHI2_DEPTH, CHI2_PX)
     free = cam >= n_fixed
     vc = cam - n_fixed
+    unique_pairs = len(np.unique(pt[free] * max(C, 1) + cam[free])) == int(free.sum())
 
     def cost(T_, X_):
         r, _, _, front = _terms(T_, X_, bounds, pt, pixels, z_meas, K, jacobians=False)
@@ -143,35 +159,35 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
         bp = _scatter(pt, (WJpT @ r[:, :, None])[:, :, 0], P)
         Hcc = np.zeros((V, 6, 6))
         bc = np.zeros((V, 6))
-        B = np.zeros((P, V, 6, 3))
+        B = np.zeros((V, 6, P, 3))  # ∂²/∂camera∂point, camera-major: (6V, 3P) as one matrix
         if V:
             WJcT = (W[:, :, None] * Jc)[free].transpose(0, 2, 1)
             Hcc = _scatter(vc[free], WJcT @ Jc[free], V)
             bc = _scatter(vc[free], (WJcT @ r[free][:, :, None])[:, :, 0], V)
-            B = _scatter(pt[free] * V + vc[free], WJcT @ Jp[free], P * V).reshape(P, V, 6, 3)
+            if unique_pairs:
+                B[vc[free], :, pt[free], :] = WJcT @ Jp[free]
+            else:  # a point observed twice by one camera
+                np.add.at(B, (vc[free], slice(None), pt[free], slice(None)), WJcT @ Jp[free])
         improved = False
         for _attempt in range(4):
             Hpp_d = Hpp + lam * (np.trace(Hpp, axis1=1, axis2=2)[:, None, None] / 3 + 1e-9) * np.eye(3)
-            try:
-                Cinv = np.linalg.inv(Hpp_d)
-            except np.linalg.LinAlgError:
-                return T, X, np.zeros(len(cam), bool)
+            Cinv = _inv3(Hpp_d)
             dc = np.zeros((V, 6))
             if V:
-                Bf = B.reshape(P, 6 * V, 3)
-                Y = Bf @ Cinv  # (P, 6V, 3)
+                Bm = B.reshape(6 * V, 3 * P)
+                Y = (B.reshape(6 * V, P, 3, 1) * Cinv[None]).sum(axis=2).reshape(6 * V, 3 * P)  # B·C⁻¹
                 S = np.zeros((6 * V, 6 * V))
                 for v in range(V):
                     S[6 * v:6 * v + 6, 6 * v:6 * v + 6] = Hcc[v]
-                Yt = Y.transpose(1, 0, 2).reshape(6 * V, -1)
-                S -= Yt @ Bf.transpose(1, 0, 2).reshape(6 * V, -1).T
+                # (einsum, not BLAS: OpenBLAS's threads spin on a loaded machine and slow every later step)
+                S -= np.einsum("ak,bk->ab", Y, Bm)
                 S += lam * np.diag(np.diag(S).clip(min=1e-9))
-                rhs = -bc.reshape(-1) + Yt @ bp.reshape(-1)
+                rhs = -bc.reshape(-1) + np.einsum("ak,k->a", Y, bp.reshape(-1))
                 try:
                     dc = np.linalg.solve(S, rhs).reshape(V, 6)
                 except np.linalg.LinAlgError:
                     return T, X, np.zeros(len(cam), bool)
-                dX = -(Cinv @ (bp + Bf.transpose(0, 2, 1) @ dc.reshape(-1))[:, :, None])[:, :, 0]
+                dX = -(Cinv @ (bp + np.einsum("a,ak->k", dc.reshape(-1), Bm).reshape(P, 3))[:, :, None])[:, :, 0]
             else:
                 dX = -(Cinv @ bp[:, :, None])[:, :, 0]
             T_new = T.copy()
