@@ -124,7 +124,8 @@ def test_window_ba_feeds_refined_points_and_anchors_single_views():
 def test_odometry_feeds_the_window_back_into_tracking():
     """With `odometry.window_ba` the tracker keeps one record per map update, adjusts every
     `window_ba_every`, continues from the newest record's refined pose (the frame's reported
-    pose is that one) and tracks against the refined points; off, it keeps no records."""
+    pose is that one) and tracks against the refined points; off, it keeps no records; a
+    stereo tracker (its points re-placed by the disparity offset) does not adjust."""
     from mnemoslam.client.kernel.frames import PinholeCamera
     from mnemoslam.service.config import load_config
     from mnemoslam.service.tracking.features import FrameFeatures
@@ -147,7 +148,7 @@ def test_odometry_feeds_the_window_back_into_tracking():
     def run(window_ba):
         cfg = load_config(overrides={"odometry": {"window_ba": window_ba, "window_ba_size": 4, "window_ba_fixed": 2,
                                                   "window_ba_every": 2}})
-        odo = Odometry(cam, cfg.odometry)
+        odo = Odometry(cam, cfg.odometry, stereo=cfg.stereo)  # as the pipeline builds it (RGB-D: no baseline)
         errors, refined = [], 0
         for i in range(14):
             truth = make_pose(np.eye(3), [0.03 * i, 0.0, 0.0])
@@ -168,4 +169,6 @@ def test_odometry_feeds_the_window_back_into_tracking():
     assert len(odo.window_ba.records) == 6 and refined >= 4
     off, err_off, _ = run(False)
     assert off.window_ba is None
+    stereo = load_config(overrides={"odometry": {"window_ba": True}})
+    assert Odometry(cam, stereo.odometry, stereo=stereo.stereo, baseline=0.12).window_ba is None  # stereo: not built
     assert err_on.max() < 0.02 and err_off.max() < 0.02

@@ -233,7 +233,7 @@ class Odometry:
         # RGB-D: windowed BA of the map updates' poses and points (ORB-SLAM's local mapping)
         self.window_ba = WindowBA(self.K, config.window_ba_size, config.window_ba_fixed, config.window_ba_every,
                                   config.window_ba_iterations, config.window_ba_history) \
-            if config.window_ba and stereo is None else None
+            if config.window_ba and not baseline else None
 
     @property
     def disparity_offset(self) -> float | None:
