@@ -59,6 +59,11 @@ def test_bundle_adjust_recovers_poses_and_points_with_fixed_gauge():
     assert np.median(np.linalg.norm(X - truth_X, axis=1)) < 0.01
     assert np.array_equal(T[:2], T0[:2])
     assert inl[::97].mean() < 0.1 and inl.mean() > 0.9  # (an outlier of a point seen once is fitted)
+    # a second observation of a point by one camera is left out (not an inlier), the rest unchanged
+    d = np.arange(10)
+    Td, Xd, inl_d = bundle_adjust(T0, 2, X0, np.r_[cam, cam[d]], np.r_[pt, pt[d]], np.r_[pix, pix[d] + 3.0],
+                                  np.ones(len(cam) + 10), np.r_[dep, dep[d]], np.r_[sz, sz[d]], K, iterations=10)
+    assert np.allclose(Td, T) and np.allclose(Xd, X) and not inl_d[-10:].any()
     # without the depth residual (NaN depth) the solve still converges (pixels alone, gauge held by 2)
     T2, _, _ = bundle_adjust(T0, 2, X0, cam, pt, pix, np.ones(len(cam)), np.full(len(cam), np.nan), sz, K, 10)
     assert _centre_error(T2, truth_T) < 0.01

@@ -123,7 +123,9 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
     T = np.array(T_cw, np.float64)
     X = np.array(X, np.float64)
     C, P = len(T), len(X)
-    order = np.argsort(cam, kind="stable")
+    n_obs = len(cam)
+    # sorted by camera; a second observation of a point by one camera is left out
+    _, order = np.unique(np.asarray(cam, np.int64) * max(P, 1) + pt, return_index=True)
     cam, pt, pixels, sigma_px, depth, sigma_z = (a[order] for a in (cam, pt, pixels, sigma_px, depth, sigma_z))
     bounds = np.searchsorted(cam, np.arange(C + 1))
     V = C - n_fixed  # cameras optimised
@@ -134,8 +136,17 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
     z_meas = np.where(has_z, depth, np.nan)
     chi2_max = np.where(has_z, CHI2_DEPTH, CHI2_PX)
     free = cam >= n_fixed
-    vc = cam - n_fixed
-    unique_pairs = len(np.unique(pt[free] * max(C, 1) + cam[free])) == int(free.sum())
+    vc_f, pt_f = cam[free] - n_fixed, pt[free]
+    # the pairs of free cameras that see a point (each point is seen by few of them):
+    # (v, w, v's observations, w's observations of the points both see)
+    slot = np.full((P, V), -1)
+    slot[pt_f, vc_f] = np.arange(len(pt_f))
+    pairs = []
+    for v in range(V):
+        for w in range(v, V):
+            both = np.nonzero((slot[:, v] >= 0) & (slot[:, w] >= 0))[0]
+            if len(both):
+                pairs.append((v, w, slot[both, v], slot[both, w]))
 
     def cost(T_, X_):
         r, _, _, front = _terms(T_, X_, bounds, pt, pixels, z_meas, K, jacobians=False)
@@ -159,35 +170,36 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
         bp = _scatter(pt, (WJpT @ r[:, :, None])[:, :, 0], P)
         Hcc = np.zeros((V, 6, 6))
         bc = np.zeros((V, 6))
-        B = np.zeros((V, 6, P, 3))  # ∂²/∂camera∂point, camera-major: (6V, 3P) as one matrix
         if V:
             WJcT = (W[:, :, None] * Jc)[free].transpose(0, 2, 1)
-            Hcc = _scatter(vc[free], WJcT @ Jc[free], V)
-            bc = _scatter(vc[free], (WJcT @ r[free][:, :, None])[:, :, 0], V)
-            if unique_pairs:
-                B[vc[free], :, pt[free], :] = WJcT @ Jp[free]
-            else:  # a point observed twice by one camera
-                np.add.at(B, (vc[free], slice(None), pt[free], slice(None)), WJcT @ Jp[free])
+            Hcc = _scatter(vc_f, WJcT @ Jc[free], V)
+            bc = _scatter(vc_f, (WJcT @ r[free][:, :, None])[:, :, 0], V)
+            Bo = WJcT @ Jp[free]  # (n_free, 6, 3): ∂²/∂camera∂point per free observation
         improved = False
         for _attempt in range(4):
             Hpp_d = Hpp + lam * (np.trace(Hpp, axis1=1, axis2=2)[:, None, None] / 3 + 1e-9) * np.eye(3)
             Cinv = _inv3(Hpp_d)
             dc = np.zeros((V, 6))
             if V:
-                Bm = B.reshape(6 * V, 3 * P)
-                Y = (B.reshape(6 * V, P, 3, 1) * Cinv[None]).sum(axis=2).reshape(6 * V, 3 * P)  # B·C⁻¹
+                # Schur complement S = Hcc − Σ_p B_p C_p⁻¹ B_pᵀ over the pairs of free cameras
+                # that see a point (each point is seen by few of them)
+                Yo = Bo @ Cinv[pt_f]  # (n_free, 6, 3)
                 S = np.zeros((6 * V, 6 * V))
                 for v in range(V):
                     S[6 * v:6 * v + 6, 6 * v:6 * v + 6] = Hcc[v]
-                # (einsum, not BLAS: OpenBLAS's threads spin on a loaded machine and slow every later step)
-                S -= np.einsum("ak,bk->ab", Y, Bm)
+                for v, w, ov, ow in pairs:
+                    block = np.einsum("nki,nli->kl", Yo[ov], Bo[ow])
+                    S[6 * v:6 * v + 6, 6 * w:6 * w + 6] -= block
+                    if v != w:
+                        S[6 * w:6 * w + 6, 6 * v:6 * v + 6] -= block.T
                 S += lam * np.diag(np.diag(S).clip(min=1e-9))
-                rhs = -bc.reshape(-1) + np.einsum("ak,k->a", Y, bp.reshape(-1))
+                rhs = -bc + _scatter(vc_f, (Yo @ bp[pt_f][:, :, None])[:, :, 0], V)
                 try:
-                    dc = np.linalg.solve(S, rhs).reshape(V, 6)
+                    dc = np.linalg.solve(S, rhs.reshape(-1)).reshape(V, 6)
                 except np.linalg.LinAlgError:
-                    return T, X, np.zeros(len(cam), bool)
-                dX = -(Cinv @ (bp + np.einsum("a,ak->k", dc.reshape(-1), Bm).reshape(P, 3))[:, :, None])[:, :, 0]
+                    return T, X, np.zeros(n_obs, bool)
+                Bdc = _scatter(pt_f, (Bo.transpose(0, 2, 1) @ dc[vc_f][:, :, None])[:, :, 0], P)
+                dX = -(Cinv @ (bp + Bdc)[:, :, None])[:, :, 0]
             else:
                 dX = -(Cinv @ bp[:, :, None])[:, :, 0]
             T_new = T.copy()
@@ -203,7 +215,7 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
             lam *= 10
         if not improved or (np.abs(dc).max(initial=0.0) < 1e-6 and np.abs(dX).max(initial=0.0) < 1e-6):
             break
-    inliers = np.empty(len(cam), bool)
+    inliers = np.zeros(n_obs, bool)
     inliers[order] = front & (e2 <= chi2_max)
     return T, X, inliers
 
