@@ -174,7 +174,7 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
             WJcT = (W[:, :, None] * Jc)[free].transpose(0, 2, 1)
             Hcc = _scatter(vc_f, WJcT @ Jc[free], V)
             bc = _scatter(vc_f, (WJcT @ r[free][:, :, None])[:, :, 0], V)
-            Bo = WJcT @ Jp[free]  # (n_free, 6, 3): ∂²/∂camera∂point per free observation
+            BoT = WJp[free].transpose(0, 2, 1) @ Jc[free]  # (n_free, 3, 6): ∂²/∂point∂camera per free observation
         improved = False
         for _attempt in range(4):
             Hpp_d = Hpp + lam * (np.trace(Hpp, axis1=1, axis2=2)[:, None, None] / 3 + 1e-9) * np.eye(3)
@@ -183,22 +183,22 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
             if V:
                 # Schur complement S = Hcc − Σ_p B_p C_p⁻¹ B_pᵀ over the pairs of free cameras
                 # that see a point (each point is seen by few of them)
-                Yo = Bo @ Cinv[pt_f]  # (n_free, 6, 3)
+                YoT = Cinv[pt_f] @ BoT  # (n_free, 3, 6): (B·C⁻¹)ᵀ
                 S = np.zeros((6 * V, 6 * V))
                 for v in range(V):
                     S[6 * v:6 * v + 6, 6 * v:6 * v + 6] = Hcc[v]
                 for v, w, ov, ow in pairs:
-                    block = np.einsum("nki,nli->kl", Yo[ov], Bo[ow])
+                    block = YoT[ov].reshape(-1, 6).T @ BoT[ow].reshape(-1, 6)
                     S[6 * v:6 * v + 6, 6 * w:6 * w + 6] -= block
                     if v != w:
                         S[6 * w:6 * w + 6, 6 * v:6 * v + 6] -= block.T
                 S += lam * np.diag(np.diag(S).clip(min=1e-9))
-                rhs = -bc + _scatter(vc_f, (Yo @ bp[pt_f][:, :, None])[:, :, 0], V)
+                rhs = -bc + _scatter(vc_f, (bp[pt_f][:, None, :] @ YoT)[:, 0, :], V)
                 try:
                     dc = np.linalg.solve(S, rhs.reshape(-1)).reshape(V, 6)
                 except np.linalg.LinAlgError:
                     return T, X, np.zeros(n_obs, bool)
-                Bdc = _scatter(pt_f, (Bo.transpose(0, 2, 1) @ dc[vc_f][:, :, None])[:, :, 0], P)
+                Bdc = _scatter(pt_f, (BoT @ dc[vc_f][:, :, None])[:, :, 0], P)
                 dX = -(Cinv @ (bp + Bdc)[:, :, None])[:, :, 0]
             else:
                 dX = -(Cinv @ bp[:, :, None])[:, :, 0]
