@@ -97,7 +97,10 @@ class OdometryConfig:
     # and the points they observe are refined jointly (reprojection and measured depth, Huber;
     # window_ba_fixed older map updates held), the points written back into the local map, a
     # point seen once moved with its map update's pose, and tracking continues from the refined
-    # pose (ORB-SLAM's local mapping feeding tracking; service/tracking/window_ba.py)
+    # pose (ORB-SLAM's local mapping feeding tracking; service/tracking/window_ba.py). Off: on
+    # fr1/desk (window 5, 10 held, every 2) odometry 3.21 / 3.21 / 4.16 -> 2.80 / 2.80 / 2.72 cm
+    # and with loops 2.55 -> 2.46, but 7-Scenes odometry 3.68 -> 4.18 and tracking frames/s
+    # 0.71x (issue 26, docs/benchmarks.md)
     window_ba: bool = False  # RGB-D: windowed BA of the local map's map updates (poses and points) fed back to tracking
     window_ba_size: int = 10  # map updates whose poses are adjusted
     window_ba_fixed: int = 3  # older map updates held fixed (their observations still constrain the points)
