@@ -97,13 +97,13 @@ class OdometryConfig:
     # and the points they observe are refined jointly (reprojection and measured depth, Huber;
     # window_ba_fixed older map updates held), the points written back into the local map, a
     # point seen once moved with its map update's pose, and tracking continues from the refined
-    # pose (ORB-SLAM's local mapping feeding tracking; service/tracking/window_ba.py). Off: on
-    # fr1/desk (window 5, 10 held, every 2) odometry 3.21 / 3.21 / 4.16 -> 2.80 / 2.80 / 2.72 cm
-    # and with loops 2.55 -> 2.46, but 7-Scenes odometry 3.68 -> 4.18 and tracking frames/s
-    # 0.71x (issue 26, docs/benchmarks.md)
+    # pose (ORB-SLAM's local mapping feeding tracking; service/tracking/window_ba.py). Off: with
+    # these defaults fr1/desk odometry 3.21 / 3.21 / 4.16 -> 2.77 / 2.58 / 2.64 cm (three RANSAC
+    # draws) and with loops 2.55 -> 2.47, 7-Scenes 3.68 / 3.22 -> 3.53 / 3.07, cabinet 2.59 / 2.11
+    # -> 2.70 / 2.15, but tracking frames/s 0.74x (issue 26, docs/benchmarks.md)
     window_ba: bool = False  # RGB-D: windowed BA of the local map's map updates (poses and points) fed back to tracking
-    window_ba_size: int = 10  # map updates whose poses are adjusted
-    window_ba_fixed: int = 3  # older map updates held fixed (their observations still constrain the points)
+    window_ba_size: int = 5  # map updates whose poses are adjusted
+    window_ba_fixed: int = 10  # older map updates held fixed (their observations still constrain the points)
     window_ba_history: int = 0  # > 0: the held ones are those of the last this many map updates before the window that see its points most (ORB-SLAM's); 0: the ones just before the window
     window_ba_every: int = 3  # map updates between two adjustments
     window_ba_iterations: int = 5  # Levenberg–Marquardt iterations per adjustment
