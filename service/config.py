@@ -107,6 +107,7 @@ class OdometryConfig:
     window_ba_history: int = 0  # > 0: the held ones are those of the last this many map updates before the window that see its points most (ORB-SLAM's); 0: the ones just before the window
     window_ba_every: int = 3  # map updates between two adjustments
     window_ba_iterations: int = 5  # Levenberg–Marquardt iterations per adjustment
+    window_ba_points: int = 0  # > 0: at most this many points per adjustment, those seen most often; 0: all
     lost_frames_reset: int = 3  # lost frames in a row before a new segment starts (Odom/ResetCountdown)
 
 

@@ -177,3 +177,27 @@ def test_odometry_feeds_the_window_back_into_tracking():
     stereo = load_config(overrides={"odometry": {"window_ba": True}})
     assert Odometry(cam, stereo.odometry, stereo=stereo.stereo, baseline=0.12).window_ba is None  # stereo: not built
     assert err_on.max() < 0.02 and err_off.max() < 0.02
+
+
+def test_window_ba_point_cap_keeps_the_longest_tracks():
+    """`window_ba_points`: an adjustment takes at most that many points, those seen by the most
+    map updates (a point seen once, or by held map updates alone, is never adjusted)."""
+    rng = np.random.default_rng(2)
+    truth_T, X = _cameras(6), _world(300, rng)
+    X[:, 0] *= 0.3  # every camera sees every point
+    cam, pt, pix, dep = _observe(truth_T, X, rng)
+    # point j is seen by the first 1 + j % 6 cameras
+    keep = cam < 1 + pt % 6
+    cam, pt, pix, dep = cam[keep], pt[keep], pix[keep], dep[keep]
+    wba = WindowBA(K, size=4, fixed=2, every=1, iterations=2, max_points=50)
+    for c in range(6):
+        o = cam == c
+        wba.add(KeyframeRecord(truth_T[c].copy(), pt[o], pix[o], np.ones(o.sum()), dep[o], 0.003 * dep[o] ** 2,
+                               0, 0))
+    _, _, adjusted, _ = wba.run(np.arange(len(X)), X)
+    seen = 1 + adjusted % 6
+    assert len(adjusted) == 50 and seen.min() >= 5  # 50 points seen by all six cameras exist
+    wba.max_points = 0
+    _, _, adjusted, _ = wba.run(np.arange(len(X)), X)
+    # all points seen twice or more and by an adjusted camera (2-5; 0 and 1 are held)
+    assert (1 + adjusted % 6).min() == 3 and len(adjusted) > 0.95 * np.sum(1 + np.arange(300) % 6 >= 3)

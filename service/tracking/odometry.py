@@ -232,7 +232,8 @@ class Odometry:
             if stereo is not None and stereo.self_calibrate and baseline else None
         # RGB-D: windowed BA of the map updates' poses and points (ORB-SLAM's local mapping)
         self.window_ba = WindowBA(self.K, config.window_ba_size, config.window_ba_fixed, config.window_ba_every,
-                                  config.window_ba_iterations, config.window_ba_history) \
+                                  config.window_ba_iterations, config.window_ba_history,
+                                  config.window_ba_points) \
             if config.window_ba and not baseline else None
 
     @property

@@ -223,10 +223,11 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
 class WindowBA:
     """The tracker's keyframe records and the windowed BA over them (`odometry.window_ba`)."""
 
-    def __init__(self, K: np.ndarray, size: int, fixed: int, every: int, iterations: int = 5, history: int = 0):
+    def __init__(self, K: np.ndarray, size: int, fixed: int, every: int, iterations: int = 5, history: int = 0,
+                 max_points: int = 0):
         self.K = K
         self.size, self.fixed, self.every, self.iterations = size, fixed, every, iterations
-        self.history = history
+        self.history, self.max_points = history, max_points
         self.records: list[KeyframeRecord] = []
         self._last: list[KeyframeRecord] = []  # the records of the last adjustment, fixed first
         self._since = 0
@@ -279,6 +280,15 @@ class WindowBA:
         free_seen = np.zeros(len(uniq), bool)
         free_seen[inv[cam >= n_fixed]] = True
         ok &= (counts[inv] >= 2) & free_seen[inv]
+        if self.max_points > 0:
+            # the points seen most often (the longest tracks constrain the poses most; ties: newest)
+            eligible = np.zeros(len(uniq), bool)
+            eligible[inv[ok]] = True
+            cand = np.nonzero(eligible)[0]
+            if len(cand) > self.max_points:
+                keep = np.zeros(len(uniq), bool)
+                keep[cand[np.lexsort((-uniq[cand], -counts[cand]))[: self.max_points]]] = True
+                ok &= keep[inv]
         if ok.sum() < 30:
             return None
         cam, oid, midx = cam[ok], oid[ok], idx[ok]
