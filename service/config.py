@@ -100,7 +100,8 @@ class OdometryConfig:
     # pose (ORB-SLAM's local mapping feeding tracking; service/tracking/window_ba.py). Off: with
     # these defaults fr1/desk odometry 3.21 / 3.21 / 4.16 -> 2.77 / 2.58 / 2.64 cm (three RANSAC
     # draws) and with loops 2.55 -> 2.47, 7-Scenes 3.68 / 3.22 -> 3.53 / 3.07, cabinet 2.59 / 2.11
-    # -> 2.70 / 2.15, but tracking frames/s 0.74x (issue 26, docs/benchmarks.md)
+    # -> 2.70 / 2.15, but tracking frames/s 0.74x; with window_ba_points 400 0.9x but 7-Scenes
+    # odometry 4.90 (issue 26, docs/benchmarks.md)
     window_ba: bool = False  # RGB-D: windowed BA of the local map's map updates (poses and points) fed back to tracking
     window_ba_size: int = 5  # map updates whose poses are adjusted
     window_ba_fixed: int = 10  # older map updates held fixed (their observations still constrain the points)
