@@ -93,6 +93,22 @@ class OdometryConfig:
     map_point_fusion: bool = False  # RGB-D: refine local-map points with the depth readings of later map updates
     fusion_gate: float = 3.0  # a reading farther than this (Mahalanobis, point's and reading's covariance) is left out
     fusion_readings: int = 10  # readings fused into a point after its first, at most
+    # RGB-D: every window_ba_every map updates, the poses of the last window_ba_size map updates
+    # and the points they observe are refined jointly (reprojection and measured depth, Huber;
+    # window_ba_fixed older map updates held), the points written back into the local map, a
+    # point seen once moved with its map update's pose, and tracking continues from the refined
+    # pose (ORB-SLAM's local mapping feeding tracking; service/tracking/window_ba.py). Off: with
+    # these defaults fr1/desk odometry 3.21 / 3.21 / 4.16 -> 2.77 / 2.58 / 2.64 cm (three RANSAC
+    # draws) and with loops 2.55 -> 2.47, 7-Scenes 3.68 / 3.22 -> 3.53 / 3.07, cabinet 2.59 / 2.11
+    # -> 2.70 / 2.15, but tracking frames/s 0.74x; with window_ba_points 400 0.9x but 7-Scenes
+    # odometry 4.90 (issue 26, docs/benchmarks.md)
+    window_ba: bool = False  # RGB-D: windowed BA of the local map's map updates (poses and points) fed back to tracking
+    window_ba_size: int = 5  # map updates whose poses are adjusted
+    window_ba_fixed: int = 10  # older map updates held fixed (their observations still constrain the points)
+    window_ba_history: int = 0  # > 0: the held ones are those of the last this many map updates before the window that see its points most (ORB-SLAM's); 0: the ones just before the window
+    window_ba_every: int = 3  # map updates between two adjustments
+    window_ba_iterations: int = 5  # Levenberg–Marquardt iterations per adjustment
+    window_ba_points: int = 0  # > 0: at most this many points per adjustment, those seen most often; 0: all
     lost_frames_reset: int = 3  # lost frames in a row before a new segment starts (Odom/ResetCountdown)
 
 

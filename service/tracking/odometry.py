@@ -25,6 +25,7 @@ from .features import FrameFeatures
 from .matching import match_descriptors
 from .refinement import mahalanobis2, offset_information, refine_pose, sigma_from_hessian
 from .stereo_calibration import DisparityOffsetEstimator
+from .window_ba import KeyframeRecord, WindowBA
 
 
 class _DepthReference:
@@ -229,6 +230,11 @@ class Odometry:
         # stereo: online estimate of the disparity offset (the pipeline hands it to the extractor)
         self.calibration = DisparityOffsetEstimator(stereo, camera.fx * baseline) \
             if stereo is not None and stereo.self_calibrate and baseline else None
+        # RGB-D: windowed BA of the map updates' poses and points (ORB-SLAM's local mapping)
+        self.window_ba = WindowBA(self.K, config.window_ba_size, config.window_ba_fixed, config.window_ba_every,
+                                  config.window_ba_iterations, config.window_ba_history,
+                                  config.window_ba_points) \
+            if config.window_ba and not baseline else None
 
     @property
     def disparity_offset(self) -> float | None:
@@ -264,7 +270,8 @@ class Odometry:
             self._calibrate(features, pose, np.where(inliers, map_index, -1))
         inlier_index = np.where(inliers, map_index, -1)
         point_ids = np.where(inlier_index >= 0, self.map.ids[np.maximum(inlier_index, 0)], -1)
-        if self._needs_map_update(pose, int(inliers.sum())):
+        updated = self._needs_map_update(pose, int(inliers.sum()))
+        if updated:
             if self.config.map_point_fusion:
                 self.map.fuse(features, pose, inlier_index, self.config.fusion_gate, self.config.fusion_readings)
             point_ids = self._update_map(features, pose, inlier_index, int(inliers.sum()))
@@ -274,6 +281,8 @@ class Odometry:
             self.map.place_stereo_points(cal.offset, cal.fb, cal.config.disparity_sigma)
         self.velocity = invert(self.pose) @ pose  # motion over the last interval ...
         self._last_dt = self._dt(stamp)  # ... of this length, rescaled in _predict
+        if updated and self.window_ba is not None and self.window_ba.due():
+            pose = self._adjust_window(pose)
         self.pose, self.last_stamp, self.lost_in_row = pose, stamp, 0
         return TrackResult("ok", pose, int(inliers.sum()), int((map_index >= 0).sum()), self.segment, map_index,
                            inliers, point_ids)
@@ -299,8 +308,15 @@ class Odometry:
     def _update_map(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray, inliers: int) -> np.ndarray:
         """The frame's features into the local map; returns their stable point ids."""
         self._updates += 1
+        first_new = self.map._next_id
         ids = self.map.update(self._updates, features, pose, map_index)
         self._map_pose, self._map_inliers = pose, inliers
+        if self.window_ba is not None:
+            seen = ids >= 0
+            self.window_ba.add(KeyframeRecord(
+                invert(pose), ids[seen], features.keypoints[seen].astype(np.float64), features.pixel_sigmas()[seen],
+                features.points[seen, 2].astype(np.float64), features.depth_sigmas(nan=True)[seen],
+                first_new, self.map._next_id))
         if features.depth is not None:
             pending = self._pending_reference  # this frame's pyramid, if ICP already built it
             ref = pending if pending is not None and pending.depth is features.depth else \
@@ -308,6 +324,31 @@ class Odometry:
             ref.pose = pose
             self._reference = ref
         return ids
+
+    def _adjust_window(self, pose: np.ndarray) -> np.ndarray:
+        """Run the windowed BA (`odometry.window_ba`) and feed it back into tracking: the adjusted
+        points take their refined positions, a point created by a map update whose pose moved
+        moves with it, and the tracker continues from the newest map update's refined pose
+        (this frame's), which it returns."""
+        wba = self.window_ba
+        assert wba is not None
+        out = wba.run(self.map.ids, self.map.points)
+        if out is None:
+            return pose
+        old, new, pts, X = out
+        mp = self.map
+        for lo, hi, M in wba.corrections(old, new):
+            a, b = np.searchsorted(mp.ids, [lo, hi])
+            if b > a:
+                mp.points[a:b] = mp.points[a:b] @ M[:3, :3].T + M[:3, 3]
+                mp.origins[a:b] = mp.origins[a:b] @ M[:3, :3].T + M[:3, 3]
+                mp.rays[a:b] = mp.rays[a:b] @ M[:3, :3].T
+        mp.points[pts] = X
+        pose = invert(new[-1])
+        self._map_pose = pose
+        if self._reference is not None:
+            self._reference.pose = pose
+        return pose
 
     def _calibrate(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> None:
         """Feed the disparity-offset estimate with this frame: its inliers' information on the
@@ -349,6 +390,8 @@ class Odometry:
         if new_segment:
             self.segment += 1
         self.map.clear()
+        if self.window_ba is not None:
+            self.window_ba.clear()
         self.pose = np.eye(4) if self.pose is None else self.pose
         self.velocity = np.eye(4)
         self.last_stamp, self.lost_in_row = stamp, 0
