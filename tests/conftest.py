@@ -441,32 +441,62 @@ def _check_slow_names():
 # (`synthetic`), which a second worker would compute again ("walk-a": the walk_a frames played
 # three times, tracked once for test_rehearsal and test_memory_revisits, rendered once for
 # test_startup too). The groups and modules in XDIST_FIRST start first, longest first
-# (measured), so that no long one is left for the end while the other worker idles; the rest
-# follow in collection order.
+# (measured: fresh-clone CI's --durations and each module's --durations=0), so that no long one
+# is left for the end while the other worker idles; the rest follow in collection order. The
+# scheduler hands a worker its next unit when its current one has 2 tests left, in this order.
 XDIST_GROUPS = {
     "test_loop_closure.py": "shared-runs", "test_synthetic_run.py": "shared-runs",
     "test_mapping_process.py": "shared-runs", "test_semantics.py": "shared-runs",
     "test_working_memory.py": "shared-runs",
     "test_rehearsal.py": "walk-a", "test_memory_revisits.py": "walk-a", "test_startup.py": "walk-a",
 }
-XDIST_FIRST = ["shared-runs", "test_recovery.py", "test_sequences.py", "test_service.py", "test_semantic_service.py",
-               "walk-a", "test_viewer.py", "test_memory_crash.py", "test_cli.py"]
+# Long tests of a grouped module that share none of its runs or frames' tracking (each plays a
+# sequence no other test of the group plays): a unit of their own (`module::test`), which either
+# worker takes, instead of lengthening the group's worker by their time.
+XDIST_ALONE = {"test_synthetic_run.py::test_synthetic_loop_noise_free",
+               "test_loop_closure.py::test_repeated_texture_walk_makes_no_false_link"}
+XDIST_FIRST = ["shared-runs", "test_sequences.py", "test_recovery.py", "test_multisession.py", "test_service.py",
+               "walk-a", "test_semantic_service.py", "test_viewer.py", "test_api.py",
+               "test_synthetic_run.py::test_synthetic_loop_noise_free", "test_semantic_model_service.py",
+               "test_loop_closure.py::test_repeated_texture_walk_makes_no_false_link", "test_memory_crash.py",
+               "test_cli.py"]
 
 
-def _xdist_group(path: Path) -> str:
-    return XDIST_GROUPS.get(path.name, path.name)
+def _check_xdist_names():
+    """Each module and test the xdist units name exists (a renamed one would otherwise fall back
+    to its module's unit unnoticed)."""
+    here = Path(__file__).parent
+    units = set(XDIST_GROUPS.values())
+    for name in [*XDIST_GROUPS, *XDIST_ALONE, *(n for n in XDIST_FIRST if n not in units)]:
+        module, _, test = name.partition("::")
+        path = here / module
+        if not path.is_file() or (test and f"def {test}(" not in path.read_text()):
+            raise pytest.UsageError(f"tests/conftest.py's xdist units name {name}, which does not exist")
+
+
+def _xdist_group(module: str, test: str = "") -> str:
+    """The unit of work of a test (its module's name, `test` its function's name): its group
+    in XDIST_GROUPS, itself when XDIST_ALONE names it, else its module."""
+    alone = f"{module}::{test}"
+    return alone if alone in XDIST_ALONE else XDIST_GROUPS.get(module, module)
+
+
+def _nodeid_group(nodeid: str) -> str:
+    path, _, rest = nodeid.partition("::")
+    return _xdist_group(Path(path).name, rest.split("[", 1)[0])
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
-    """`--dist loadfile` with the modules of an XDIST_GROUPS group as one file."""
+    """`--dist loadfile` with the modules of an XDIST_GROUPS group as one file (and the tests
+    XDIST_ALONE names as units of their own)."""
     if config.getvalue("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadScopeScheduling
 
     class _ByGroup(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            return _xdist_group(Path(nodeid.split("::", 1)[0]))
+            return _nodeid_group(nodeid)
 
     config.option.loadscopereorder = False  # the collection's order: XDIST_FIRST first
     return _ByGroup(config, log)
@@ -474,10 +504,11 @@ def pytest_xdist_make_scheduler(config, log):
 
 def pytest_collection_modifyitems(config, items):
     _check_slow_names()
+    _check_xdist_names()
     for item in items:
         names = SLOW.get(item.path.name)
         if names == "*" or (names and getattr(item, "originalname", item.name) in names):
             item.add_marker(pytest.mark.slow)
     if hasattr(config, "workerinput"):  # an xdist worker: the long groups first (a stable sort)
         rank = {g: i for i, g in enumerate(XDIST_FIRST)}
-        items.sort(key=lambda item: rank.get(_xdist_group(item.path), len(rank)))
+        items.sort(key=lambda item: rank.get(_nodeid_group(item.nodeid), len(rank)))
