@@ -314,6 +314,12 @@ def run_tracked_once(dataset, config, out_dir=None, key: tuple | None = None, **
 # ------------------------------------------------------------------------------------------
 # Runs several test modules read
 
+# The session's runs with semantics and the occupancy grid off (`slam_config` turns semantics off):
+# what their tests check is the map's links, poses and outputs, which neither changes (the same
+# trajectory.tum and keyframes.tum, byte for byte, on the noisy figure-8 and the noise-free loop),
+# and they cost a third of a run's wall time (the figure-8: 40.3 -> 25.8 s). The grids are
+# tests/test_grid*.py's, the objects tests/test_semantics.py's.
+LEAN = {"grid": {"enabled": False}}
 LOOP_NOISY = dict(rate=10, noise=True)  # the synthetic loop (60 s) at 10 Hz with depth noise: 601 frames
 # the figure-8 walked in 40 s at 10 Hz with depth noise (401 frames): its second lap revisits the
 # first. Several modules play it; its frames are rendered once (`synthetic`).
@@ -323,31 +329,29 @@ FIGURE8 = dict(rate=10, noise=True, duration=40)
 @pytest.fixture(scope="session")
 def loop_run(tmp_path_factory):
     """The synthetic loop at 10 Hz with depth noise through the offline runner once per session,
-    default configuration (loop closure on): `(dataset, RunOutput, config, out_dir)`.
-    tests/test_loop_closure.py (loop closure) and tests/test_synthetic_run.py (tracking,
-    outputs) check the same run instead of each playing the loop again; its tracking is recorded
-    (`run_tracked_once`) for tests/test_semantics.py's run of the same frames. Read-only."""
-    from mnemoslam.service.config import load_config
-
+    default configuration (loop closure on) with semantics and the occupancy grid off (`LEAN`):
+    `(dataset, RunOutput, config, out_dir)`. tests/test_loop_closure.py (loop closure) and
+    tests/test_synthetic_run.py (tracking, outputs) check the same run instead of each playing
+    the loop again; its tracking is recorded (`run_tracked_once`) for tests/test_semantics.py's
+    run of the same frames. Read-only."""
     out_dir = tmp_path_factory.mktemp("loop_run")
     ds = synthetic("loop", **LOOP_NOISY)  # the frames tests/test_semantics.py's run plays too
-    cfg = load_config()
+    cfg = slam_config(LEAN)
     return ds, run_tracked_once(ds, cfg, out_dir, progress=False), cfg, out_dir
 
 
 @pytest.fixture(scope="session")
 def figure8_run(tmp_path_factory):
     """FIGURE8 through the offline runner once per session, default configuration (loop
-    closure on, the map update inline in this process): `(dataset, RunOutput, config, out_dir)`.
+    closure on, the map update inline in this process) with semantics and the occupancy grid off
+    (`LEAN`): `(dataset, RunOutput, config, out_dir)`.
     tests/test_loop_closure.py checks its loops, tests/test_mapping_process.py compares the
     mapping process with it. Its tracking is recorded (`run_tracked_once`) for the other runs
     of these frames that vary the map update (link refinement off, the mapping process, a
     bounded working memory). Read-only."""
-    from mnemoslam.service.config import load_config
-
     out_dir = tmp_path_factory.mktemp("figure8_run")
     ds = synthetic("figure8", **FIGURE8)
-    cfg = load_config()
+    cfg = slam_config(LEAN)
     return ds, run_tracked_once(ds, cfg, out_dir, progress=False), cfg, out_dir
 
 

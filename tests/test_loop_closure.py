@@ -20,10 +20,10 @@ from conftest import FIGURE8, recorded_frames, run_tracked_once, slam_config, sy
 def _run(out_dir, trajectory, enabled=True, dataset=None, rendered_once=False, **loop):
     """A run with these loop settings, no occupancy grid and semantics off (what these tests check
     is the map's links and poses, which the grids and the objects never change; the grids are
-    tests/test_grid*.py's, the objects tests/test_semantics.py's, and the session's runs make both:
-    tests/conftest.py `slam_config`); `rendered_once`: the session's frames (tests/conftest.py `synthetic`) and the
-    tracking the session's run of them recorded (`run_tracked_once`: these runs differ from it
-    in the map update only)."""
+    tests/test_grid*.py's, the objects tests/test_semantics.py's: tests/conftest.py `LEAN`, as
+    the session's runs); `rendered_once`: the session's frames
+    (tests/conftest.py `synthetic`) and the tracking the session's run of them recorded
+    (`run_tracked_once`: these runs differ from it in the map update only)."""
     from mnemoslam.service.runner import run_dataset
 
     options = dataset or dict(rate=10, noise=True)

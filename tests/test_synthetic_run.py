@@ -2,12 +2,11 @@
 import numpy as np
 
 from mnemoslam.client.datasets import open_dataset
-from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.service.runner import run_dataset
 from mnemoslam.storage import MapStore
 
-from conftest import slam_config
+from conftest import LEAN, slam_config
 
 
 def _check(ds, out, out_dir, bound):
@@ -33,7 +32,7 @@ def _check(ds, out, out_dir, bound):
 # labels into objects, the keyframes' local grids and the run's map files)
 def test_synthetic_loop_noise_free(tmp_path):
     ds = open_dataset("synthetic:loop", rate=5, noise=False)
-    out = run_dataset(ds, slam_config({"grid": {"enabled": False}}), tmp_path, progress=False)
+    out = run_dataset(ds, slam_config(LEAN), tmp_path, progress=False)
     _check(ds, out, tmp_path, 0.01)
 
 
@@ -41,5 +40,5 @@ def test_synthetic_loop_noise_free(tmp_path):
 # tests/test_loop_closure.py checks too (tests/conftest.py `loop_run`)
 def test_synthetic_loop_with_depth_noise(loop_run):
     ds, out, cfg, out_dir = loop_run
-    assert ds.noise and cfg == load_config()
+    assert ds.noise and cfg == slam_config(LEAN)  # the default configuration, semantics and grid off
     _check(ds, out, out_dir, 0.03)

@@ -143,7 +143,7 @@ def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(t
 
     ds = synthetic("figure8", **FIGURE8, max_frames=260)  # rendered once for the session (conftest)
     # no occupancy grid and semantics off (conftest `slam_config`): the map update never reads
-    # either (the session's figure8_run makes these frames' grids and objects); the tracking of
+    # either (the grids are tests/test_grid*.py's, the objects tests/test_semantics.py's); the tracking of
     # that run (conftest `figure8_run`), replayed when this module runs beside it: a bounded
     # working memory changes the map update only
     cfg = slam_config({"memory": {"max_wm_nodes": 20}, "grid": {"enabled": False}})
