@@ -314,6 +314,12 @@ def run_tracked_once(dataset, config, out_dir=None, key: tuple | None = None, **
 # ------------------------------------------------------------------------------------------
 # Runs several test modules read
 
+# The session's runs with semantics and the occupancy grid off (`slam_config` turns semantics off):
+# what their tests check is the map's links, poses and outputs, which neither changes (the same
+# trajectory.tum and keyframes.tum, byte for byte, on the noisy figure-8 and the noise-free loop),
+# and they cost a third of a run's wall time (the figure-8: 40.3 -> 25.8 s). The grids are
+# tests/test_grid*.py's, the objects tests/test_semantics.py's.
+LEAN = {"grid": {"enabled": False}}
 LOOP_NOISY = dict(rate=10, noise=True)  # the synthetic loop (60 s) at 10 Hz with depth noise: 601 frames
 # the figure-8 walked in 40 s at 10 Hz with depth noise (401 frames): its second lap revisits the
 # first. Several modules play it; its frames are rendered once (`synthetic`).
@@ -323,31 +329,29 @@ FIGURE8 = dict(rate=10, noise=True, duration=40)
 @pytest.fixture(scope="session")
 def loop_run(tmp_path_factory):
     """The synthetic loop at 10 Hz with depth noise through the offline runner once per session,
-    default configuration (loop closure on): `(dataset, RunOutput, config, out_dir)`.
-    tests/test_loop_closure.py (loop closure) and tests/test_synthetic_run.py (tracking,
-    outputs) check the same run instead of each playing the loop again; its tracking is recorded
-    (`run_tracked_once`) for tests/test_semantics.py's run of the same frames. Read-only."""
-    from mnemoslam.service.config import load_config
-
+    default configuration (loop closure on) with semantics and the occupancy grid off (`LEAN`):
+    `(dataset, RunOutput, config, out_dir)`. tests/test_loop_closure.py (loop closure) and
+    tests/test_synthetic_run.py (tracking, outputs) check the same run instead of each playing
+    the loop again; its tracking is recorded (`run_tracked_once`) for tests/test_semantics.py's
+    run of the same frames. Read-only."""
     out_dir = tmp_path_factory.mktemp("loop_run")
     ds = synthetic("loop", **LOOP_NOISY)  # the frames tests/test_semantics.py's run plays too
-    cfg = load_config()
+    cfg = slam_config(LEAN)
     return ds, run_tracked_once(ds, cfg, out_dir, progress=False), cfg, out_dir
 
 
 @pytest.fixture(scope="session")
 def figure8_run(tmp_path_factory):
     """FIGURE8 through the offline runner once per session, default configuration (loop
-    closure on, the map update inline in this process): `(dataset, RunOutput, config, out_dir)`.
+    closure on, the map update inline in this process) with semantics and the occupancy grid off
+    (`LEAN`): `(dataset, RunOutput, config, out_dir)`.
     tests/test_loop_closure.py checks its loops, tests/test_mapping_process.py compares the
     mapping process with it. Its tracking is recorded (`run_tracked_once`) for the other runs
     of these frames that vary the map update (link refinement off, the mapping process, a
     bounded working memory). Read-only."""
-    from mnemoslam.service.config import load_config
-
     out_dir = tmp_path_factory.mktemp("figure8_run")
     ds = synthetic("figure8", **FIGURE8)
-    cfg = load_config()
+    cfg = slam_config(LEAN)
     return ds, run_tracked_once(ds, cfg, out_dir, progress=False), cfg, out_dir
 
 
@@ -441,32 +445,62 @@ def _check_slow_names():
 # (`synthetic`), which a second worker would compute again ("walk-a": the walk_a frames played
 # three times, tracked once for test_rehearsal and test_memory_revisits, rendered once for
 # test_startup too). The groups and modules in XDIST_FIRST start first, longest first
-# (measured), so that no long one is left for the end while the other worker idles; the rest
-# follow in collection order.
+# (measured: fresh-clone CI's --durations and each module's --durations=0), so that no long one
+# is left for the end while the other worker idles; the rest follow in collection order. The
+# scheduler hands a worker its next unit when its current one has 2 tests left, in this order.
 XDIST_GROUPS = {
     "test_loop_closure.py": "shared-runs", "test_synthetic_run.py": "shared-runs",
     "test_mapping_process.py": "shared-runs", "test_semantics.py": "shared-runs",
     "test_working_memory.py": "shared-runs",
     "test_rehearsal.py": "walk-a", "test_memory_revisits.py": "walk-a", "test_startup.py": "walk-a",
 }
-XDIST_FIRST = ["shared-runs", "test_recovery.py", "test_sequences.py", "test_service.py", "test_semantic_service.py",
-               "walk-a", "test_viewer.py", "test_memory_crash.py", "test_cli.py"]
+# Long tests of a grouped module that share none of its runs or frames' tracking (each plays a
+# sequence no other test of the group plays): a unit of their own (`module::test`), which either
+# worker takes, instead of lengthening the group's worker by their time.
+XDIST_ALONE = {"test_synthetic_run.py::test_synthetic_loop_noise_free",
+               "test_loop_closure.py::test_repeated_texture_walk_makes_no_false_link"}
+XDIST_FIRST = ["shared-runs", "test_sequences.py", "test_recovery.py", "test_multisession.py", "test_service.py",
+               "walk-a", "test_semantic_service.py", "test_viewer.py", "test_api.py",
+               "test_synthetic_run.py::test_synthetic_loop_noise_free", "test_semantic_model_service.py",
+               "test_loop_closure.py::test_repeated_texture_walk_makes_no_false_link", "test_memory_crash.py",
+               "test_cli.py"]
 
 
-def _xdist_group(path: Path) -> str:
-    return XDIST_GROUPS.get(path.name, path.name)
+def _check_xdist_names():
+    """Each module and test the xdist units name exists (a renamed one would otherwise fall back
+    to its module's unit unnoticed)."""
+    here = Path(__file__).parent
+    units = set(XDIST_GROUPS.values())
+    for name in [*XDIST_GROUPS, *XDIST_ALONE, *(n for n in XDIST_FIRST if n not in units)]:
+        module, _, test = name.partition("::")
+        path = here / module
+        if not path.is_file() or (test and f"def {test}(" not in path.read_text()):
+            raise pytest.UsageError(f"tests/conftest.py's xdist units name {name}, which does not exist")
+
+
+def _xdist_group(module: str, test: str = "") -> str:
+    """The unit of work of a test (its module's name, `test` its function's name): its group
+    in XDIST_GROUPS, itself when XDIST_ALONE names it, else its module."""
+    alone = f"{module}::{test}"
+    return alone if alone in XDIST_ALONE else XDIST_GROUPS.get(module, module)
+
+
+def _nodeid_group(nodeid: str) -> str:
+    path, _, rest = nodeid.partition("::")
+    return _xdist_group(Path(path).name, rest.split("[", 1)[0])
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
-    """`--dist loadfile` with the modules of an XDIST_GROUPS group as one file."""
+    """`--dist loadfile` with the modules of an XDIST_GROUPS group as one file (and the tests
+    XDIST_ALONE names as units of their own)."""
     if config.getvalue("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadScopeScheduling
 
     class _ByGroup(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            return _xdist_group(Path(nodeid.split("::", 1)[0]))
+            return _nodeid_group(nodeid)
 
     config.option.loadscopereorder = False  # the collection's order: XDIST_FIRST first
     return _ByGroup(config, log)
@@ -474,10 +508,11 @@ def pytest_xdist_make_scheduler(config, log):
 
 def pytest_collection_modifyitems(config, items):
     _check_slow_names()
+    _check_xdist_names()
     for item in items:
         names = SLOW.get(item.path.name)
         if names == "*" or (names and getattr(item, "originalname", item.name) in names):
             item.add_marker(pytest.mark.slow)
     if hasattr(config, "workerinput"):  # an xdist worker: the long groups first (a stable sort)
         rank = {g: i for i, g in enumerate(XDIST_FIRST)}
-        items.sort(key=lambda item: rank.get(_xdist_group(item.path), len(rank)))
+        items.sort(key=lambda item: rank.get(_nodeid_group(item.nodeid), len(rank)))

@@ -14,20 +14,21 @@ from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate, evaluate_map_loops
 from mnemoslam.storage import LinkType, MapStore
 
-from conftest import FIGURE8, recorded_frames, run_tracked_once, synthetic
+from conftest import FIGURE8, recorded_frames, run_tracked_once, slam_config, synthetic
 
 
 def _run(out_dir, trajectory, enabled=True, dataset=None, rendered_once=False, **loop):
-    """A run with these loop settings and no occupancy grid (what these tests check is the map's
-    links and poses, which the grids never change; the grids are tests/test_grid*.py's and the
-    session's runs make them); `rendered_once`: the session's frames (tests/conftest.py `synthetic`) and the
-    tracking the session's run of them recorded (`run_tracked_once`: these runs differ from it
-    in the map update only)."""
+    """A run with these loop settings, no occupancy grid and semantics off (what these tests check
+    is the map's links and poses, which the grids and the objects never change; the grids are
+    tests/test_grid*.py's, the objects tests/test_semantics.py's: tests/conftest.py `LEAN`, as
+    the session's runs); `rendered_once`: the session's frames
+    (tests/conftest.py `synthetic`) and the tracking the session's run of them recorded
+    (`run_tracked_once`: these runs differ from it in the map update only)."""
     from mnemoslam.service.runner import run_dataset
 
     options = dataset or dict(rate=10, noise=True)
     ds = synthetic(trajectory, **options) if rendered_once else open_dataset(f"synthetic:{trajectory}", **options)
-    cfg = load_config(overrides={"loop": {"enabled": enabled, **loop}, "grid": {"enabled": False}})
+    cfg = slam_config({"loop": {"enabled": enabled, **loop}, "grid": {"enabled": False}})
     out = (run_tracked_once if rendered_once else run_dataset)(ds, cfg, out_dir, progress=False)
     return ds, out, cfg
 

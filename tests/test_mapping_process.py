@@ -31,7 +31,8 @@ def mapped(tmp_path_factory, figure8_run):
     ds = synthetic("figure8", **FIGURE8)  # rendered once for the session (tests/conftest.py)
     # every keyframe goes to the child with its images however far behind it falls (frames are fed
     # as fast as tracking goes): the comparison with the inline run needs them all
-    cfg = load_config(overrides={"loop": {"backlog_images": 10**9}})
+    # (no occupancy grid: the keyframes' local grids are stored beside them and never read by the map update)
+    cfg = load_config(overrides={"loop": {"backlog_images": 10**9}, "grid": {"enabled": False}})
     db = tmp_path_factory.mktemp("mp") / "map.db"
     store = MapStore(db)
     events = []

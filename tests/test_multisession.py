@@ -377,7 +377,10 @@ def test_run_db_negative_control_and_frames(tmp_path):
 def test_service_walk_b_after_walk_a_relocalizes_once_and_maps_show_it(tmp_path):
     """`serve`, walk_a as robot A, restart, walk_b as robot B: one `relocalized` event naming
     map 0 with B's frame in it, /maps one map with both sessions, /robots and /robots/B agree,
-    /sessions says when B joined, and B's keyframes over REST lie in A's frame."""
+    /sessions says when B joined, and B's keyframes over REST lie in A's frame. The first
+    LIVE_FRAMES of each walk (as the live test below): A walks the shared stretch at its frames
+    17-25, B enters it at its frame ~55 and joins there (the whole walks' accuracy in A's frame is
+    `two_walks`' offline tests')."""
     from mnemoslam.client.kernel import protocol
     from mnemoslam.client.streamer import stream_dataset
     from mnemoslam.client.transport import ZenohSettings, open_session
@@ -392,7 +395,7 @@ def test_service_walk_b_after_walk_a_relocalizes_once_and_maps_show_it(tmp_path)
     svc = ServiceProcess(db, conf).start()
     try:
         stats = stream_dataset(walks["walk_a"], "A", ZenohSettings(connect=[svc.endpoint]), rate=None,
-                               progress=False, wait_for_subscriber=10.0)
+                               progress=False, wait_for_subscriber=10.0, max_frames=LIVE_FRAMES)
         svc.wait_processed("A", stats.frames)
         svc.wait_mapped("A")
         traj_a = keyframe_trajectory(svc.api, svc.session_of("A"))
@@ -406,7 +409,7 @@ def test_service_walk_b_after_walk_a_relocalizes_once_and_maps_show_it(tmp_path)
                                    lambda s: events.append(protocol.decode_event(s.payload.to_bytes())))
         try:
             stats = stream_dataset(walks["walk_b"], "B", ZenohSettings(connect=[svc.endpoint]), rate=None,
-                                   progress=False, wait_for_subscriber=10.0)
+                                   progress=False, wait_for_subscriber=10.0, max_frames=LIVE_FRAMES)
             svc.wait_processed("B", stats.frames)
             svc.wait_mapped("B")
             import time
@@ -441,11 +444,15 @@ def test_service_walk_b_after_walk_a_relocalizes_once_and_maps_show_it(tmp_path)
         to_truth = gt_a.poses[np.searchsorted(gt_a.stamps, traj_a.stamps[0])] @ invert(traj_a.poses[0])
         k = np.searchsorted(gt_b.stamps, traj_b.stamps)
         err = np.linalg.norm(np.einsum("ij,njk->nik", to_truth, traj_b.poses)[:, :3, 3] - gt_b.poses[k, :3, 3], axis=1)
-        # measured 0.30 cm (the issue asks for <= 1.5 cm)
-        assert np.sqrt(np.mean(err ** 2)) < 0.009, np.sqrt(np.mean(err ** 2))
         T = np.reshape(b["T_map_session"], (4, 4))
+        print(f"B in A's frame: keyframes RMSE {np.sqrt(np.mean(err ** 2)) * 100:.2f} cm, its first keyframe "
+              f"{np.linalg.norm((to_truth @ T)[:3, 3] - gt_b.poses[k[0], :3, 3]) * 100:.2f} cm off")
+        # measured 0.12 cm on the first LIVE_FRAMES of each walk (0.30 cm on the whole walks; the issue asks
+        # for <= 1.5 cm)
+        assert np.sqrt(np.mean(err ** 2)) < 0.004, np.sqrt(np.mean(err ** 2))
         assert np.allclose(np.reshape(e["T_map_session"], (4, 4)), T, atol=0.01)
-        assert np.linalg.norm((to_truth @ T)[:3, 3] - gt_b.poses[k[0], :3, 3]) < 0.015  # measured 0.45 cm
+        # measured 0.13 cm (0.45 cm on the whole walks)
+        assert np.linalg.norm((to_truth @ T)[:3, 3] - gt_b.poses[k[0], :3, 3]) < 0.004
     finally:
         svc.stop()
 

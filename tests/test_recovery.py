@@ -23,10 +23,9 @@ from mnemoslam.service.mapping.mapper import Mapper
 from mnemoslam.service.memory.keyframes import KeyframeWriter
 from mnemoslam.service.pipeline import Pipeline
 from mnemoslam.service.recovery import recover
-from mnemoslam.service.runner import run_dataset
 from mnemoslam.storage import LinkType, MapStore
 
-from conftest import service_config, slam_config, synthetic
+from conftest import run_tracked_once, sequence_key, service_config, slam_config, synthetic, tracked_once
 
 LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE)
 # figure-8 at 10 Hz: the second lap revisits the first; its first 260 frames give ~200
@@ -119,12 +118,20 @@ def uninterrupted(tmp_path_factory):
     return reference
 
 
+def _streamed_key(ds, skip: int) -> tuple:
+    """The frames `_AsStreamed(ds, skip)` plays, as tests/conftest.py's tracking record knows them:
+    the reference run records its tracking, the in-process recovery test replays it."""
+    return ("as-streamed", sequence_key(ds), skip)
+
+
 def _uninterrupted_run(ds, out_dir: Path, skip: int = 0) -> dict:
     # (semantics off, as in the service runs: `_AsStreamed` frames carry no labels, so the default
     # would run the segmentation model on every keyframe of the reference run; no occupancy grid:
-    # the reference is its loops and poses, which the grids never change)
-    out = run_dataset(_AsStreamed(ds, skip), slam_config({**NO_REHEARSAL, "grid": {"enabled": False}}), out_dir,
-                      progress=False)
+    # the reference is its loops and poses, which the grids never change). Its tracking is
+    # recorded (tests/conftest.py `run_tracked_once`) for the in-process recovery test's run of the
+    # same frames, which differs from it in the map update only.
+    out = run_tracked_once(_AsStreamed(ds, skip), slam_config({**NO_REHEARSAL, "grid": {"enabled": False}}), out_dir,
+                           key=_streamed_key(ds, skip), progress=False)
     stamps, loops = _loops_by_stamp(out_dir / "map.db")
     np.testing.assert_array_equal(stamps, out.keyframes.stamps)
     return dict(stamps=stamps, loops=loops, poses=dict(zip(stamps, out.keyframes.poses)), skip=skip)
@@ -222,7 +229,12 @@ def test_recovery_maps_the_backlog_as_the_uninterrupted_mapper_would(tmp_path, u
     memory = KeyframeWriter(store, "r1", ds.calibration, cfg)
     stored = Mapper(ds.calibration.camera, cfg.loop, store, memory=cfg.memory)
     pipeline = Pipeline(ds.calibration, cfg, memory, _Crash(stored, cut))
+    # the reference run's tracking of these frames, replayed (tests/conftest.py `tracked_once`:
+    # tracking never reads the map update; tests/test_loop_closure.py checks that a replayed run is
+    # a fresh one, bit for bit): what this test compares is the map update and its recovery
+    keep = tracked_once(pipeline, frames, cfg, _streamed_key(ds, uninterrupted["skip"]))
     results = [pipeline.process(frames.frame(i)) for i in range(len(frames))]
+    keep()
     ids = [r.node_id for r in results if r.node_id is not None]
     # the same keyframes as the uninterrupted run (tracking never reads the map update)
     np.testing.assert_array_equal([r.stamp for r in results if r.node_id is not None], uninterrupted["stamps"])

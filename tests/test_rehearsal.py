@@ -6,12 +6,11 @@ import numpy as np
 import pytest
 
 from mnemoslam.client.datasets.passes import Passes
-from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.service.mapping.mapper import Mapper
 from mnemoslam.storage import LinkType, MapStore, UnknownIdError
 
-from conftest import run_tracked_once, synthetic
+from conftest import run_tracked_once, slam_config, synthetic
 
 PASSES = 3
 
@@ -24,7 +23,9 @@ def walked(tmp_path_factory):
     base = synthetic("walk_a", rate=10, noise=True, duration=12, width=320, height=240)
     ds = Passes(base, PASSES)
     out_dir = tmp_path_factory.mktemp("rehearsal")
-    cfg = load_config(None, {"memory": {"rehearsal": True}})
+    # semantics and the occupancy grid off (tests/conftest.py `slam_config`): what these tests
+    # check is the map's nodes, merges, links and poses, which neither changes
+    cfg = slam_config({"memory": {"rehearsal": True}, "grid": {"enabled": False}})
     out = run_tracked_once(ds, cfg, out_dir, progress=False)  # tracking recorded once (conftest)
     rows = list(csv.DictReader(open(out_dir / "updates.csv")))
     first_pass_end = ds.stamps[len(base) - 1]

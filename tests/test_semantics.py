@@ -60,7 +60,7 @@ def camera_run(tmp_path_factory):
     """The synthetic loop with the camera's labels, a small working memory (anchors go to LTM).
     Its tracking is the session's `loop_run`'s (the same frames and tracking configuration,
     recorded once: tests/conftest.py `run_tracked_once`); no occupancy grid (the objects are
-    fused from labels and depth, never from the grids; `loop_run` makes these frames' grids)."""
+    fused from labels and depth, never from the grids)."""
     out_dir = tmp_path_factory.mktemp("semantics")
     ds = _Recording("loop", **LOOP)
     cfg = load_config(None, {**CAMERA, "grid": {"enabled": False}})

@@ -5,13 +5,12 @@ import numpy as np
 import pytest
 
 from mnemoslam.service.builder import build_pipeline
-from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.service.mapping.mapper import Mapper
 from mnemoslam.service.memory.vocabulary import Vocabulary
 from mnemoslam.storage import LinkType, MapStore
 
-from conftest import synthetic
+from conftest import slam_config, synthetic
 
 WM = 5
 LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.MERGED)  # merged: rehearsal into an old node
@@ -31,12 +30,15 @@ def first(tmp_path_factory):
     # rendered once for the session (tests/conftest.py): tests/test_rehearsal.py plays the same frames
     ds = synthetic("walk_a", rate=10, noise=True, duration=12, width=320, height=240)
     db = tmp_path_factory.mktemp("startup") / "map.db"
-    sid, ids = _session(db, ds, load_config())
+    sid, ids = _session(db, ds, _cfg())
     return {"ds": ds, "db": db, "sid": sid, "ids": ids}
 
 
 def _cfg(**memory):
-    return load_config(None, {"memory": memory} if memory else None)
+    """The default configuration with semantics and the occupancy grid off (tests/conftest.py
+    `slam_config`): these tests check the memory's tiers, words, links and poses, which neither
+    changes."""
+    return slam_config({"memory": memory, "grid": {"enabled": False}})
 
 
 def test_a_new_session_starts_with_the_last_nodes_in_wm_and_the_others_in_ltm(first):

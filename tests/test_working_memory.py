@@ -136,17 +136,17 @@ def test_a_bounded_working_memory_retrieves_old_nodes_and_closes_loops_to_them(t
     0.18 cm; all 401 frames: 240, 0.21 cm)."""
     import csv
 
-    from mnemoslam.service.config import load_config
     from mnemoslam.service.evaluation import evaluate
     from mnemoslam.storage import MapStore
 
-    from conftest import FIGURE8, run_tracked_once, synthetic
+    from conftest import FIGURE8, run_tracked_once, slam_config, synthetic
 
     ds = synthetic("figure8", **FIGURE8, max_frames=260)  # rendered once for the session (conftest)
-    # no occupancy grid: the map update never reads it (the session's figure8_run makes these
-    # frames' grids); the tracking of that run (conftest `figure8_run`), replayed when this
-    # module runs beside it: a bounded working memory changes the map update only
-    cfg = load_config(None, {"memory": {"max_wm_nodes": 20}, "grid": {"enabled": False}})
+    # no occupancy grid and semantics off (conftest `slam_config`): the map update never reads
+    # either (the grids are tests/test_grid*.py's, the objects tests/test_semantics.py's); the tracking of
+    # that run (conftest `figure8_run`), replayed when this module runs beside it: a bounded
+    # working memory changes the map update only
+    cfg = slam_config({"memory": {"max_wm_nodes": 20}, "grid": {"enabled": False}})
     out = run_tracked_once(ds, cfg, tmp_path, progress=False)
     rows = list(csv.DictReader(open(tmp_path / "updates.csv")))
     assert len(rows) == out.summary.keyframes
