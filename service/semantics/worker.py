@@ -80,7 +80,10 @@ class SemanticKeyframe:
 
 
 _STOP = object()
-MERGE_AFTER_JOIN = 10  # keyframes after a join of two parts of the map that merge twin objects in theirs
+MERGE_AFTER_JOIN = 10.0  # s after a join of two parts of the map (or after the last link read since) that the
+# worker merges twin objects in them, at each keyframe and each look (a count of looks ran out in a
+# second of fast back-fill while the map update, behind tracking, had not yet written the joined
+# robot's corrected poses: twins stayed)
 WAITING_LABELS = 512  # deferred keyframes whose camera labels wait in RAM for the back-fill (~5-50 kB each)
 WAIT_POLL = 0.02  # s between two looks at the tracking probe while tracking is busy
 
@@ -107,7 +110,7 @@ class SemanticWorker:
         self._waiting: collections.OrderedDict[int, tuple] = collections.OrderedDict()
         self._cameras: dict[int, PinholeCamera] = {}  # session id -> camera (back-fill)
         self._last_keyframe = -float("inf")  # time.monotonic() of the last keyframe handed over
-        self._merge_after_join = 0  # keyframes that still look for twin objects after parts joined
+        self._merge_until = -float("inf")  # time.monotonic() until which twin objects are merged after a join
         self.dynamic = 0  # keyframes processed that showed a dynamic-class thing (left out of the map)
         self._per_robot: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
         self.last_error: str | None = None
@@ -272,18 +275,18 @@ class SemanticWorker:
         """Between keyframes: when links stored since the last look joined parts of the map
         (robots mapping at the same time: the map update, behind tracking, may join them after
         their last keyframe was fused), the twin objects of every part are merged, and written.
-        Again at each look while the map update stores links, and MERGE_AFTER_JOIN looks after
-        its last: the map update runs behind tracking, so the keyframes the joining robot made
+        Again at each look while the map update stores links, and for MERGE_AFTER_JOIN seconds
+        after its last: the map update runs behind tracking, so the keyframes the joining robot made
         after the joining one get their poses in the joined map's frame only as it catches up."""
         try:
             with self._lock:
                 joins = self.connectivity.joins
                 read = self.connectivity.refresh(self.store)
-                if self.connectivity.joins > joins or (read and self._merge_after_join > 0):
-                    self._merge_after_join = MERGE_AFTER_JOIN
-                if self._merge_after_join <= 0:
+                now = time.monotonic()
+                if self.connectivity.joins > joins or (read and now < self._merge_until):
+                    self._merge_until = now + MERGE_AFTER_JOIN
+                if now >= self._merge_until:
                     return
-                self._merge_after_join -= 1
                 anchors = np.array(sorted(self.fusion.anchors()), np.int64)
                 if not len(anchors):
                     return
@@ -355,17 +358,17 @@ class SemanticWorker:
             self._yield_to_tracking(kf, waited)  # the fusion (Python: it holds the GIL tracking needs)
             with self._lock:
                 joins = self.connectivity.joins
-                self.connectivity.refresh(self.store)  # the links stored since the last keyframe
-                if self.connectivity.joins > joins:  # parts of the map joined: their objects' twins merge
-                    self._merge_after_join = MERGE_AFTER_JOIN
+                read = self.connectivity.refresh(self.store)  # the links stored since the last keyframe
+                now = time.monotonic()
+                if self.connectivity.joins > joins or (read and now < self._merge_until):
+                    self._merge_until = now + MERGE_AFTER_JOIN  # parts joined: their objects' twins merge
                 anchors = np.array(sorted(self.fusion.anchors()), np.int64)
                 anchors = anchors[self.connectivity.roots(anchors) == self.connectivity.find(kf.node_id)].tolist()
                 poses = {n.id: n.pose for n in self.store.get_nodes(anchors)} if anchors else {}
                 self.fusion.fuse(kf.node_id, kf.pose, labels, kf.depth, kf.camera, poses)
                 moving = self.fusion.dynamic_segments
-                if self._merge_after_join > 0:
+                if time.monotonic() < self._merge_until:
                     # (over the next keyframes too: the join's corrected poses reach the store after its link)
-                    self._merge_after_join -= 1
                     self.fusion.merge_duplicates(poses)
             self.flush()
             self.store.mark_segmented([kf.node_id], source, "fused")
