@@ -31,7 +31,7 @@ IMU = "sensor_msgs/msg/Imu"
 #: The camera's optical axes from REP 103 body axes (x forward, y left, z up): optical x = -body y,
 #: optical y = -body z, optical z = body x.
 BODY_TO_OPTICAL = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
-#: s; a frame farther than this from every reading gets none (TUM's player: the same)
+#: s; a frame farther than this from every reading gets none (the TUM player's, a bag's, a live robot's)
 MAX_GAP = 0.05
 _AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -86,12 +86,21 @@ def reading(msg) -> tuple[np.ndarray, str] | None:
 
 
 def accel_at(readings: np.ndarray, stamp: float, max_gap: float = MAX_GAP) -> np.ndarray | None:
-    """The reading at `stamp` from (N, 4) rows (stamp, x, y, z; sorted by stamp): linear
-    between the readings either side, the nearest one at the ends; None when the nearest is
-    more than `max_gap` away (the TUM player's rule)."""
-    from .datasets.tum import accel_at as at
-
-    return at(readings, stamp, max_gap)
+    """The reading at `stamp` from (N, 4) rows (stamp, x, y, z; sorted by stamp; the TUM
+    player's `accelerometer.txt`, a bag's or a live robot's Imu): linear between the readings
+    either side, the nearest one at the ends; None when the nearest is more than `max_gap` away."""
+    if not len(readings):
+        return None
+    t = readings[:, 0]
+    j = int(np.searchsorted(t, stamp))
+    if j == 0 or j == len(t):
+        k = min(j, len(t) - 1)
+        return readings[k, 1:].copy() if abs(t[k] - stamp) <= max_gap else None
+    t0, t1 = t[j - 1], t[j]
+    if min(stamp - t0, t1 - stamp) > max_gap:
+        return None
+    w = (stamp - t0) / (t1 - t0) if t1 > t0 else 0.0
+    return (1.0 - w) * readings[j - 1, 1:] + w * readings[j, 1:]
 
 
 class ImuBuffer:

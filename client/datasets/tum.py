@@ -4,7 +4,7 @@
 
 Frames are the rgb images that have a depth image within 20 ms (one-to-one), stamped with the
 rgb stamp; with an `accelerometer.txt` each frame carries the reading at its stamp (linear
-between the two nearest readings, none when the nearer is more than `ACCEL_MAX_GAP` away) in
+between the two nearest readings, none when the nearer is more than `client.imu.MAX_GAP` away) in
 the camera's axes as `frame.extras["accel"]` (x right, y down, z forward; the specific force:
 +g along up when still). Intrinsics and lens distortion come from the sequence name (freiburg1/2/3, as
 published by TUM); the images are delivered raw (depth is registered to the raw colour image)
@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..imu import accel_at
 from ..kernel.frames import Calibration, DatasetError, Frame
 from ..kernel.trajectory import read_tum
 from ._io import (
@@ -53,8 +54,6 @@ DISTORTION = {  # k1, k2, p1, p2, k3 of the TUM colour cameras (freiburg3's imag
 #: tests/test_grid_real.py): of the 48 signed axis permutations the one that makes gravity
 #: steadiest in the ground truth's world, and the floor seen in depth agrees with it.
 ACCEL_TO_CAMERA = np.diag([-1.0, -1.0, 1.0])
-#: s; a frame farther than this from every accelerometer reading gets none
-ACCEL_MAX_GAP = 0.05
 
 
 def read_accelerometer(path: Path) -> np.ndarray:
@@ -65,23 +64,6 @@ def read_accelerometer(path: Path) -> np.ndarray:
     v = v[np.argsort(v[:, 0], kind="stable")]
     v[:, 1:] = v[:, 1:] @ ACCEL_TO_CAMERA.T
     return v
-
-
-def accel_at(accel: np.ndarray, stamp: float, max_gap: float = ACCEL_MAX_GAP) -> np.ndarray | None:
-    """The reading at `stamp` from `read_accelerometer`'s rows: linear between the readings
-    either side, the nearest one at the ends; None when the nearest is more than `max_gap` away."""
-    if not len(accel):
-        return None
-    t = accel[:, 0]
-    j = int(np.searchsorted(t, stamp))
-    if j == 0 or j == len(t):
-        k = min(j, len(t) - 1)
-        return accel[k, 1:].copy() if abs(t[k] - stamp) <= max_gap else None
-    t0, t1 = t[j - 1], t[j]
-    if min(stamp - t0, t1 - stamp) > max_gap:
-        return None
-    w = (stamp - t0) / (t1 - t0) if t1 > t0 else 0.0
-    return (1.0 - w) * accel[j - 1, 1:] + w * accel[j, 1:]
 
 
 def associate(a_stamps, b_stamps, max_dt: float = MAX_DT) -> tuple[np.ndarray, np.ndarray]:

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from ..config import GridConfig
-from .local import FREE, OCCUPIED, LocalGrid, StoredLocalGrid
+from .local import FREE, OCCUPIED, LocalGrid
 
 #: State values of an assembled grid (ROS nav_msgs/OccupancyGrid's).
 G_UNKNOWN, G_FREE, G_OCCUPIED = -1, 0, 100
@@ -245,7 +245,7 @@ class GlobalGrid:
         r = self.resolution
         cs = np.array([g.cell_size for g in gs])
         o = np.array([[(g.origin_x + 0.5) * g.cell_size, (g.origin_y + 0.5) * g.cell_size] for g in gs])
-        hw = np.array([g.shape if isinstance(g, StoredLocalGrid) else g.cells.shape for g in gs], np.float64)
+        hw = np.array([g.shape for g in gs], np.float64)
         M = np.empty((K, 2, 3))
         M[:, :, :2] = A * (cs / r)[:, None, None]
         M[:, :, 2] = np.einsum("kij,kj->ki", A, o) / r + b / r - 0.5

@@ -71,6 +71,11 @@ class LocalGrid:
         return self.T_cam_local[:3, 2].copy()
 
     @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of `cells` (a stored grid: without decompressing them)."""
+        return self.cells.shape
+
+    @property
     def camera_height(self) -> float:
         """The camera above the floor (m)."""
         return float(-self.T_cam_local[:3, 3] @ self.T_cam_local[:3, 2])
@@ -105,12 +110,16 @@ class StoredLocalGrid(LocalGrid):
         self.origin_x, self.origin_y = int(rec.origin_x), int(rec.origin_y)
         self.up_source, self.floor_points, self.floor_up = rec.up_source, int(rec.floor_points), None
         cells = LocalGrid.decode_cells(bytes(rec.cells))
-        self.shape = cells.shape
+        self._shape = cells.shape
         self._packed = zlib.compress(cells.tobytes(), 1)
 
     @property
+    def shape(self) -> tuple[int, int]:
+        return self._shape
+
+    @property
     def cells(self) -> np.ndarray:  # type: ignore[override]
-        return np.frombuffer(zlib.decompress(self._packed), np.uint8).reshape(self.shape)
+        return np.frombuffer(zlib.decompress(self._packed), np.uint8).reshape(self._shape)
 
 
 def _unit(v) -> np.ndarray:

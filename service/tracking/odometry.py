@@ -89,6 +89,11 @@ class LocalMap:
     def __len__(self) -> int:
         return len(self.points)
 
+    @property
+    def next_id(self) -> int:
+        """The id the next new point gets (ids are never reused)."""
+        return self._next_id
+
     def clear(self) -> None:
         next_id = self._next_id  # ids stay unique over segments
         LocalMap.__init__(self, self.capacity, self.focal)
@@ -308,7 +313,7 @@ class Odometry:
     def _update_map(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray, inliers: int) -> np.ndarray:
         """The frame's features into the local map; returns their stable point ids."""
         self._updates += 1
-        first_new = self.map._next_id
+        first_new = self.map.next_id
         ids = self.map.update(self._updates, features, pose, map_index)
         self._map_pose, self._map_inliers = pose, inliers
         if self.window_ba is not None:
@@ -316,7 +321,7 @@ class Odometry:
             self.window_ba.add(KeyframeRecord(
                 invert(pose), ids[seen], features.keypoints[seen].astype(np.float64), features.pixel_sigmas()[seen],
                 features.points[seen, 2].astype(np.float64), features.depth_sigmas(nan=True)[seen],
-                first_new, self.map._next_id))
+                first_new, self.map.next_id))
         if features.depth is not None:
             pending = self._pending_reference  # this frame's pyramid, if ICP already built it
             ref = pending if pending is not None and pending.depth is features.depth else \
