@@ -24,3 +24,33 @@ def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float, max_di
     first[1:] = ti[order][1:] != ti[order][:-1]
     keep = np.sort(order[first])
     return qi[keep], ti[keep]
+
+
+
+
+def match_map_points(query: np.ndarray, train: np.ndarray, ratio: float, max_dist: int):
+    """Nearest-neighbour matching the other way round, as ORB-SLAM's search by projection:
+    each train point (a map point) takes its nearest query (a keypoint) under the ratio test
+    against its second nearest query; duplicates of one surface point in the map (points of
+    several passes over it) all find that keypoint, where a ratio test among map points would
+    refuse it. Returns (query indices, train indices, distances), several train points per query
+    possible (`one_per_query`)."""
+    if len(query) < 2 or len(train) == 0:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    dist, nearest = cv2.batchDistance(train, query, -1, normType=cv2.NORM_HAMMING, K=2, update=0, crosscheck=False)
+    ti = np.arange(len(train))
+    qi, d1, d2 = nearest[:, 0].astype(int), dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
+    ok = (d1 <= max_dist) & (d1 < ratio * d2)
+    return qi[ok], ti[ok], d1[ok]
+
+
+def one_per_query(qi: np.ndarray, ti: np.ndarray, dist: np.ndarray, prefer: np.ndarray | None = None):
+    """Of several train points matched to one query keep the one with the lowest `prefer` (e.g.
+    the oldest map point), the closest among equals (or the closest when `prefer` is None).
+    Returns (query indices, train indices) in train order."""
+    key = dist if prefer is None else prefer
+    o = np.lexsort((dist, key, qi))
+    first = np.ones(len(o), bool)
+    first[1:] = qi[o][1:] != qi[o][:-1]
+    keep = np.sort(o[first])
+    return qi[keep], ti[keep]
