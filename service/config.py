@@ -128,6 +128,8 @@ class OdometryConfig:
     # points keeps the oldest (duplicates of one surface point all find it, where the ratio test
     # among map points refuses the keypoint); off: each keypoint takes its nearest map point
     match_from_map: bool = False  # ratio test per map point over the frame's keypoints, the oldest map point kept per keypoint
+    match_tile: float = 0.0  # px; > 0 with match_from_map: gated matching by projection, a map point compared only with the keypoints within guided_radius of its tile of this size; 0: with every keypoint
+    map_reuse_replace: bool = False  # with match_from_map: a newer map point that took a keypoint an older one took as a PnP inlier is removed (a duplicate)
     lost_frames_reset: int = 3  # lost frames in a row before a new segment starts (Odom/ResetCountdown)
 
 

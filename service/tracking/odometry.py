@@ -22,7 +22,7 @@ from mnemoslam.client.kernel.geometry import invert, make_pose, rotation_angle
 from ..config import OdometryConfig, StereoConfig
 from . import icp
 from .features import FrameFeatures
-from .matching import match_descriptors, match_map_points, one_per_query
+from .matching import match_descriptors, match_map_points, match_map_points_tiled, one_per_query
 from .refinement import mahalanobis2, offset_information, refine_pose, sigma_from_hessian
 from .stereo_calibration import DisparityOffsetEstimator
 from .window_ba import KeyframeRecord, WindowBA
@@ -241,6 +241,15 @@ class LocalMap:
         for f in _POINT_FIELDS:
             setattr(self, f, getattr(self, f)[keep])
 
+    def remove(self, idx: np.ndarray, map_index: np.ndarray) -> np.ndarray:
+        """Remove points `idx` (not archived); returns `map_index` (points' indices, -1 for
+        none, none of them removed) under the new indexing."""
+        keep = np.ones(len(self.points), bool)
+        keep[idx] = False
+        self._select(np.nonzero(keep)[0])
+        new = np.cumsum(keep) - 1
+        return np.where(map_index >= 0, new[np.maximum(map_index, 0)], -1)
+
     def readmit(self, pose: np.ndarray, camera: PinholeCamera, stamp_id: int, distance_ratio: float,
                 max_angle_deg: float, max_points: int = 0) -> int:
         """Bring the archived points that the camera at `pose` would see back into the local map
@@ -370,6 +379,8 @@ class Odometry:
                 return self._start_segment(features, stamp, new_segment=True)
             return TrackResult("lost", None, segment=self.segment, map_index=np.full(len(features), -1))
         pose, map_index, inliers = result[:3]
+        if len(result) > 4 and len(result[4]):  # `map_reuse_replace`: duplicates of older points leave the map
+            map_index = self.map.remove(result[4], map_index)
         offset = self.disparity_offset
         if self.calibration is not None and features.disparity is not None:
             self._calibrate(features, pose, np.where(inliers, map_index, -1))
@@ -542,12 +553,18 @@ class Odometry:
         if len(cand) < c.min_inliers or len(features) < c.min_inliers:
             return None
         if c.match_from_map:  # ORB-SLAM's direction: each map point takes a keypoint, the oldest point wins
-            q_idx, m_idx, dist = match_map_points(features.descriptors, self.map.descriptors[cand], c.match_ratio,
-                                                  c.max_hamming)
+            if gated and c.match_tile > 0:  # by projection: keypoints near each map point's tile only
+                q_idx, m_idx, dist = match_map_points_tiled(
+                    features.descriptors, features.keypoints.astype(np.float64), self.map.descriptors[cand], uv[cand],
+                    c.guided_radius, c.match_ratio, c.max_hamming, c.match_tile)
+            else:
+                q_idx, m_idx, dist = match_map_points(features.descriptors, self.map.descriptors[cand],
+                                                      c.match_ratio, c.max_hamming)
             m_idx = cand[m_idx]
             if gated:
                 near = np.linalg.norm(uv[m_idx] - features.keypoints[q_idx], axis=1) <= c.guided_radius
                 q_idx, m_idx, dist = q_idx[near], m_idx[near], dist[near]
+            q_all, m_all = q_idx, m_idx
             q_idx, m_idx = one_per_query(q_idx, m_idx, dist, self.map.ids[m_idx])
         else:
             q_idx, m_idx = match_descriptors(features.descriptors, self.map.descriptors[cand], c.match_ratio,
@@ -572,6 +589,11 @@ class Odometry:
         map_index[q_idx] = m_idx
         inliers = np.zeros(len(features), bool)
         inliers[q_idx[inl]] = True
+        if c.match_from_map and c.map_reuse_replace:
+            # the newer map points that took a keypoint an older point took as a PnP inlier:
+            # duplicates of that point (ORB-SLAM replaces them by the one observed most)
+            lost = ~np.isin(m_all, m_idx)
+            return pose, map_index, inliers, sigma, np.unique(m_all[lost & inliers[q_all]])
         return pose, map_index, inliers, sigma
 
     def _plausible(self, pose: np.ndarray, predicted: np.ndarray) -> bool:
