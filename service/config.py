@@ -115,7 +115,11 @@ class OdometryConfig:
     # being dropped, and archived points inside the predicted view (in front, inside the image,
     # at a distance within map_reuse_distance_ratio of and seen within map_reuse_angle of their
     # first sighting: ORB-SLAM's isInFrustum) come back into the local map, so a revisit tracks
-    # against the old points again (issue 26, docs/benchmarks.md "Map reuse on revisits")
+    # against the old points again (issue 26, docs/benchmarks.md "Map reuse on revisits"). Off:
+    # with match_from_map, match_tile 160, map_reuse_min_observations 3 and at map updates,
+    # fr1/desk odometry 3.34 -> 2.62 cm (mean of six RANSAC draws, lower on each), tracking no
+    # slower, but with loops 2.52-2.55 -> 2.52-2.63; cabinet 2.59 / 2.11 -> 2.43 / 2.19, 7-Scenes
+    # 3.68 / 3.22 -> 3.76 / 3.21
     map_reuse: bool = False  # keep trimmed local-map points in an archive and bring them back when in view again
     map_reuse_archive: int = 50000  # points kept in the archive, at most
     map_reuse_min_observations: int = 1  # a trimmed point goes to the archive only when observed at this many map updates (its first included; fewer: dropped, as ORB-SLAM culls points seen by few keyframes)

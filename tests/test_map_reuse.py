@@ -8,6 +8,12 @@ from mnemoslam.client.kernel.frames import PinholeCamera
 from mnemoslam.client.kernel.geometry import invert, make_pose
 from mnemoslam.service.config import load_config
 from mnemoslam.service.tracking.features import FrameFeatures
+from mnemoslam.service.tracking.matching import (
+    match_descriptors,
+    match_map_points,
+    match_map_points_tiled,
+    one_per_query,
+)
 from mnemoslam.service.tracking.odometry import Odometry
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
@@ -76,3 +82,23 @@ def test_trimmed_points_come_back_when_the_camera_looks_at_them_again(reuse):
         assert len(odo.map.archive) > 0
     else:
         assert reused == 0.0 and odo.map.archive is None
+
+
+def test_matching_from_the_map_keeps_the_oldest_of_duplicate_points():
+    """Two map points of one surface point (made on two passes) and one keypoint: the ratio test
+    among map points (today's direction) refuses the keypoint, the ratio test per map point over
+    the keypoints takes it, and the older map point keeps it; by projection (tiles) the same."""
+    rng = np.random.default_rng(3)
+    query = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    xy = rng.uniform(0, 640, (50, 2)) * [1, 0.75]
+    train = np.concatenate([query[:10], query[:10]])  # ids 0-9 old, 10-19 their newer duplicates
+    train[:, 0] ^= 0xFF  # the newer 8 bits from the keypoint's descriptor, the older 9 (the
+    train[:10, 1] ^= 1  # closest is not the one kept)
+    uv = np.concatenate([xy[:10], xy[:10]]) + 1.0
+    q, _ = match_descriptors(query, train, 0.8, 80)
+    assert len(q) == 0
+    for qi, ti, d in (match_map_points(query, train, 0.8, 80),
+                      match_map_points_tiled(query, xy, train, uv, 20.0, 0.8, 80)):
+        assert len(qi) == 20
+        qk, tk = one_per_query(qi, ti, d, prefer=np.arange(20))
+        assert np.array_equal(np.sort(qk), np.arange(10)) and np.array_equal(tk[np.argsort(qk)], np.arange(10))
