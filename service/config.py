@@ -109,6 +109,31 @@ class OdometryConfig:
     window_ba_every: int = 3  # map updates between two adjustments
     window_ba_iterations: int = 5  # Levenberg–Marquardt iterations per adjustment
     window_ba_points: int = 0  # > 0: at most this many points per adjustment, those seen most often; 0: all
+    # Map reuse on revisits (ORB-SLAM tracks against the points of the keyframes covisible with
+    # the current one, old ones included): points trimmed from the local map go to an archive
+    # (at most map_reuse_archive points, the least recently seen dropped beyond) instead of
+    # being dropped, and archived points inside the predicted view (in front, inside the image,
+    # at a distance within map_reuse_distance_ratio of and seen within map_reuse_angle of their
+    # first sighting: ORB-SLAM's isInFrustum) come back into the local map, so a revisit tracks
+    # against the old points again (issue 26, docs/benchmarks.md "Map reuse on revisits"). Off:
+    # with match_from_map, match_tile 160, map_reuse_min_observations 3 and at map updates,
+    # fr1/desk odometry 3.34 -> 2.62 cm (mean of six RANSAC draws, lower on each), tracking no
+    # slower, but with loops 2.52-2.55 -> 2.52-2.63; cabinet 2.59 / 2.11 -> 2.43 / 2.19, 7-Scenes
+    # 3.68 / 3.22 -> 3.76 / 3.21
+    map_reuse: bool = False  # keep trimmed local-map points in an archive and bring them back when in view again
+    map_reuse_archive: int = 50000  # points kept in the archive, at most
+    map_reuse_min_observations: int = 1  # a trimmed point goes to the archive only when observed at this many map updates (its first included; fewer: dropped, as ORB-SLAM culls points seen by few keyframes)
+    map_reuse_each_frame: bool = True  # bring archived points back at every tracked frame (false: at map updates only)
+    map_reuse_distance_ratio: float = 2.0  # an archived point comes back only seen from within [1/r, r] × its first sighting's distance ...
+    map_reuse_angle: float = 60.0  # deg; ... and within this angle of its first sighting's viewing direction
+    map_reuse_points: int = 0  # > 0: archived points come back only while the local map holds fewer than this (those observed most first); 0: all in view
+    # Matching in ORB-SLAM's direction: each map point in view takes its nearest keypoint under
+    # the ratio test against its second nearest keypoint, and a keypoint taken by several map
+    # points keeps the oldest (duplicates of one surface point all find it, where the ratio test
+    # among map points refuses the keypoint); off: each keypoint takes its nearest map point
+    match_from_map: bool = False  # ratio test per map point over the frame's keypoints, the oldest map point kept per keypoint
+    match_tile: float = 0.0  # px; > 0 with match_from_map: gated matching by projection, a map point compared only with the keypoints within guided_radius of its tile of this size; 0: with every keypoint
+    map_reuse_replace: bool = False  # with match_from_map: a newer map point that took a keypoint an older one took as a PnP inlier is removed (a duplicate)
     lost_frames_reset: int = 3  # lost frames in a row before a new segment starts (Odom/ResetCountdown)
 
 

@@ -22,7 +22,7 @@ from mnemoslam.client.kernel.geometry import invert, make_pose, rotation_angle
 from ..config import OdometryConfig, StereoConfig
 from . import icp
 from .features import FrameFeatures
-from .matching import match_descriptors
+from .matching import match_descriptors, match_map_points, match_map_points_tiled, one_per_query
 from .refinement import mahalanobis2, offset_information, refine_pose, sigma_from_hessian
 from .stereo_calibration import DisparityOffsetEstimator
 from .window_ba import KeyframeRecord, WindowBA
@@ -62,11 +62,74 @@ class TrackResult:
         return self.status != "lost"
 
 
+# every per-point array of LocalMap (and of its archive), in one place
+_POINT_FIELDS = ("points", "descriptors", "observations", "last_seen", "rays", "sigma", "origins", "disparity",
+                 "cos0", "ids", "info", "info_x", "fused")
+
+
+class PointArchive:
+    """Points trimmed from the local map, with everything the map keeps per point, at most
+    `capacity` of them (the least recently seen go first): `odometry.map_reuse`."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.arrays: dict[str, np.ndarray] | None = None
+
+    def __len__(self) -> int:
+        return 0 if self.arrays is None else len(self.arrays["ids"])
+
+    def add(self, arrays: dict[str, np.ndarray]) -> None:
+        if self.arrays is None:
+            self.arrays = arrays
+        else:
+            self.arrays = {f: np.concatenate([self.arrays[f], arrays[f]]) for f in _POINT_FIELDS}
+        if len(self) > self.capacity:
+            keep = np.sort(np.argsort(-self.arrays["last_seen"], kind="stable")[: self.capacity])
+            self.arrays = {f: v[keep] for f, v in self.arrays.items()}
+
+    def pop(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """Remove points `idx` and return their arrays."""
+        assert self.arrays is not None
+        out = {f: v[idx] for f, v in self.arrays.items()}
+        rest = np.ones(len(self), bool)
+        rest[idx] = False
+        self.arrays = {f: v[rest] for f, v in self.arrays.items()}
+        return out
+
+    def in_view(self, pose: np.ndarray, camera: PinholeCamera, distance_ratio: float,
+                max_angle_deg: float) -> np.ndarray:
+        """Indices of the archived points a camera at `pose` (camera-to-world) sees, as ORB-SLAM's
+        `isInFrustum`: in front of it, projecting inside the image, at a distance within
+        [1/distance_ratio, distance_ratio] × that of their first sighting, and seen within
+        `max_angle_deg` of their first sighting's viewing direction."""
+        a = self.arrays
+        if a is None:
+            return np.zeros(0, int)
+        X = a["points"]
+        T_cw = invert(pose)
+        pc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
+        z = pc[:, 2]
+        front = z > 0.05
+        zs = np.where(front, z, 1.0)
+        u = pc[:, 0] / zs * camera.fx + camera.cx
+        v = pc[:, 1] / zs * camera.fy + camera.cy
+        view = X - pose[:3, 3]
+        dist = np.linalg.norm(view, axis=1)
+        first = np.linalg.norm(X - a["origins"], axis=1)
+        cos = np.einsum("ij,ij->i", view, X - a["origins"]) / np.maximum(dist * first, 1e-12)
+        ok = (front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+              & (dist >= first / distance_ratio) & (dist <= first * distance_ratio)
+              & (cos >= np.cos(np.radians(max_angle_deg))))
+        return np.nonzero(ok)[0]
+
+
 class LocalMap:
     """A bounded set of world points with descriptors, refreshed by keyframes."""
 
-    def __init__(self, capacity: int, focal: float = 525.0):
+    def __init__(self, capacity: int, focal: float = 525.0, archive: int = 0, archive_min_observations: int = 1):
         self.capacity = capacity
+        self.archive_capacity = archive
+        self.archive_min_observations = archive_min_observations
         self.focal = focal  # px: a pixel σ across a reading's ray is z·σ/focal metres
         self.points = np.zeros((0, 3), np.float64)
         self.descriptors = np.zeros((0, 32), np.uint8)
@@ -85,6 +148,8 @@ class LocalMap:
         self.info_x = np.zeros((0, 3), np.float64)
         self.fused = np.zeros(0, np.int32)  # depth readings fused into the point after its first
         self._next_id = 0
+        # `odometry.map_reuse`: the points trimmed from the map, brought back when in view again
+        self.archive: PointArchive | None = PointArchive(archive) if archive > 0 else None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -96,7 +161,7 @@ class LocalMap:
 
     def clear(self) -> None:
         next_id = self._next_id  # ids stay unique over segments
-        LocalMap.__init__(self, self.capacity, self.focal)
+        LocalMap.__init__(self, self.capacity, self.focal, self.archive_capacity, self.archive_min_observations)
         self._next_id = next_id
 
     def update(self, stamp_id: int, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray) -> np.ndarray:
@@ -162,12 +227,52 @@ class LocalMap:
     def _trim(self) -> None:
         if len(self.points) > self.capacity:
             keep = np.sort(np.argsort(-self.last_seen, kind="stable")[: self.capacity])
-            self.points, self.descriptors = self.points[keep], self.descriptors[keep]
-            self.observations, self.last_seen = self.observations[keep], self.last_seen[keep]
-            self.rays, self.sigma = self.rays[keep], self.sigma[keep]
-            self.origins, self.disparity, self.cos0 = self.origins[keep], self.disparity[keep], self.cos0[keep]
-            self.ids = self.ids[keep]
-            self.info, self.info_x, self.fused = self.info[keep], self.info_x[keep], self.fused[keep]
+            if self.archive is not None:  # the points observed often enough go to the archive
+                kept = self.observations >= self.archive_min_observations
+                kept[keep] = False
+                self.archive.add(self._take(np.nonzero(kept)[0]))
+            self._select(keep)
+
+    def _take(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """The per-point arrays of points `idx` (copies)."""
+        return {f: getattr(self, f)[idx] for f in _POINT_FIELDS}
+
+    def _select(self, keep: np.ndarray) -> None:
+        for f in _POINT_FIELDS:
+            setattr(self, f, getattr(self, f)[keep])
+
+    def remove(self, idx: np.ndarray, map_index: np.ndarray) -> np.ndarray:
+        """Remove points `idx` (not archived); returns `map_index` (points' indices, -1 for
+        none, none of them removed) under the new indexing."""
+        keep = np.ones(len(self.points), bool)
+        keep[idx] = False
+        self._select(np.nonzero(keep)[0])
+        new = np.cumsum(keep) - 1
+        return np.where(map_index >= 0, new[np.maximum(map_index, 0)], -1)
+
+    def readmit(self, pose: np.ndarray, camera: PinholeCamera, stamp_id: int, distance_ratio: float,
+                max_angle_deg: float, max_points: int = 0) -> int:
+        """Bring the archived points that the camera at `pose` would see back into the local map
+        (`odometry.map_reuse`), as seen at map update `stamp_id`, up to `max_points` in the map
+        (0: no bound; those observed most, then the oldest, first); the map keeps its points in
+        the order of their ids. Returns how many came back."""
+        if self.archive is None or not len(self.archive):
+            return 0
+        idx = self.archive.in_view(pose, camera, distance_ratio, max_angle_deg)
+        if max_points > 0 and len(self) + len(idx) > max_points:
+            assert self.archive.arrays is not None
+            a = self.archive.arrays
+            room = max(max_points - len(self), 0)
+            idx = np.sort(idx[np.lexsort((a["ids"][idx], -a["observations"][idx]))[:room]])
+        if not len(idx):
+            return 0
+        back = self.archive.pop(idx)
+        back["last_seen"][:] = stamp_id
+        merged = {f: np.concatenate([getattr(self, f), back[f]]) for f in _POINT_FIELDS}
+        order = np.argsort(merged["ids"], kind="stable")
+        for f in _POINT_FIELDS:
+            setattr(self, f, merged[f][order])
+        return int(len(idx))
 
     def fuse(self, features: FrameFeatures, pose: np.ndarray, map_index: np.ndarray, gate: float,
              max_readings: int) -> int:
@@ -219,7 +324,8 @@ class Odometry:
         self.camera = camera
         self.config = config
         self.K = camera.K
-        self.map = LocalMap(config.local_map_size, camera.fx)
+        self.map = LocalMap(config.local_map_size, camera.fx, config.map_reuse_archive if config.map_reuse else 0,
+                            config.map_reuse_min_observations)
         self.pose: np.ndarray | None = None  # last tracked pose
         self.velocity = np.eye(4)  # last inter-frame motion, camera frame
         self.last_stamp: float | None = None
@@ -258,6 +364,9 @@ class Odometry:
             return self._start_segment(features, stamp)
         predicted = self._predict(stamp)
         c = self.config
+        if c.map_reuse and c.map_reuse_each_frame:  # archived points in the predicted view come back
+            self.map.readmit(predicted, self.camera, self._updates, c.map_reuse_distance_ratio, c.map_reuse_angle,
+                             c.map_reuse_points)
         result = self._register(features, predicted, gated=True) if c.motion_model else None
         if _support(result) < c.confident_inliers:  # wide baseline or bad prediction: search everywhere
             result = max(result, self._register(features, predicted, gated=False), key=_support)
@@ -270,6 +379,8 @@ class Odometry:
                 return self._start_segment(features, stamp, new_segment=True)
             return TrackResult("lost", None, segment=self.segment, map_index=np.full(len(features), -1))
         pose, map_index, inliers = result[:3]
+        if len(result) > 4 and len(result[4]):  # `map_reuse_replace`: duplicates of older points leave the map
+            map_index = self.map.remove(result[4], map_index)
         offset = self.disparity_offset
         if self.calibration is not None and features.disparity is not None:
             self._calibrate(features, pose, np.where(inliers, map_index, -1))
@@ -280,6 +391,9 @@ class Odometry:
             if self.config.map_point_fusion:
                 self.map.fuse(features, pose, inlier_index, self.config.fusion_gate, self.config.fusion_readings)
             point_ids = self._update_map(features, pose, inlier_index, int(inliers.sum()))
+            if self.config.map_reuse and not self.config.map_reuse_each_frame:
+                self.map.readmit(pose, self.camera, self._updates, self.config.map_reuse_distance_ratio,
+                                 self.config.map_reuse_angle, self.config.map_reuse_points)
 
         cal = self.calibration
         if cal is not None and cal.offset != offset:  # the map follows the new estimate (the frames will)
@@ -438,11 +552,27 @@ class Odometry:
         cand = np.nonzero(visible)[0]
         if len(cand) < c.min_inliers or len(features) < c.min_inliers:
             return None
-        q_idx, m_idx = match_descriptors(features.descriptors, self.map.descriptors[cand], c.match_ratio, c.max_hamming)
-        m_idx = cand[m_idx]
-        if gated:
-            near = np.linalg.norm(uv[m_idx] - features.keypoints[q_idx], axis=1) <= c.guided_radius
-            q_idx, m_idx = q_idx[near], m_idx[near]
+        if c.match_from_map:  # ORB-SLAM's direction: each map point takes a keypoint, the oldest point wins
+            if gated and c.match_tile > 0:  # by projection: keypoints near each map point's tile only
+                q_idx, m_idx, dist = match_map_points_tiled(
+                    features.descriptors, features.keypoints.astype(np.float64), self.map.descriptors[cand], uv[cand],
+                    c.guided_radius, c.match_ratio, c.max_hamming, c.match_tile)
+            else:
+                q_idx, m_idx, dist = match_map_points(features.descriptors, self.map.descriptors[cand],
+                                                      c.match_ratio, c.max_hamming)
+            m_idx = cand[m_idx]
+            if gated:
+                near = np.linalg.norm(uv[m_idx] - features.keypoints[q_idx], axis=1) <= c.guided_radius
+                q_idx, m_idx, dist = q_idx[near], m_idx[near], dist[near]
+            q_all, m_all = q_idx, m_idx
+            q_idx, m_idx = one_per_query(q_idx, m_idx, dist, self.map.ids[m_idx])
+        else:
+            q_idx, m_idx = match_descriptors(features.descriptors, self.map.descriptors[cand], c.match_ratio,
+                                             c.max_hamming)
+            m_idx = cand[m_idx]
+            if gated:
+                near = np.linalg.norm(uv[m_idx] - features.keypoints[q_idx], axis=1) <= c.guided_radius
+                q_idx, m_idx = q_idx[near], m_idx[near]
         if len(q_idx) < c.min_inliers:
             return None
         sigma_px = features.pixel_sigmas()[q_idx]
@@ -459,6 +589,11 @@ class Odometry:
         map_index[q_idx] = m_idx
         inliers = np.zeros(len(features), bool)
         inliers[q_idx[inl]] = True
+        if c.match_from_map and c.map_reuse_replace:
+            # the newer map points that took a keypoint an older point took as a PnP inlier:
+            # duplicates of that point (ORB-SLAM replaces them by the one observed most)
+            lost = ~np.isin(m_all, m_idx)
+            return pose, map_index, inliers, sigma, np.unique(m_all[lost & inliers[q_all]])
         return pose, map_index, inliers, sigma
 
     def _plausible(self, pose: np.ndarray, predicted: np.ndarray) -> bool:
