@@ -9,13 +9,15 @@ import numpy as np
 # (1,000 frame features against 3,000 map points, one core: bench/bench_matching.py), and it
 # releases the GIL as OpenCV does. One thread: a tracker per robot, the map update and the
 # semantic worker already share the cores; OpenMP's spinning threads would take them.
-faiss.omp_set_num_threads(1)
 
 
 def two_nearest(query: np.ndarray, train: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact nearest and second-nearest train descriptor of each query (uint8 rows, Hamming):
     (index of the nearest, its distance, the second distance). Among train descriptors at the
     same smallest distance the index is any of them (then the two distances are equal)."""
+    # OpenMP's thread count is each calling thread's own setting (a tracker's thread would get
+    # one OpenMP thread per core): set it for this thread, every call (it costs nothing)
+    faiss.omp_set_num_threads(1)
     index = faiss.IndexBinaryFlat(8 * train.shape[1])
     index.add(np.ascontiguousarray(train, np.uint8))
     dist, nearest = index.search(np.ascontiguousarray(query, np.uint8), 2)
@@ -40,8 +42,6 @@ def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float, max_di
     return qi[keep], ti[keep]
 
 
-
-
 def match_map_points(query: np.ndarray, train: np.ndarray, ratio: float, max_dist: int):
     """Nearest-neighbour matching the other way round, as ORB-SLAM's search by projection:
     each train point (a map point) takes its nearest query (a keypoint) under the ratio test
@@ -51,9 +51,8 @@ def match_map_points(query: np.ndarray, train: np.ndarray, ratio: float, max_dis
     possible (`one_per_query`)."""
     if len(query) < 2 or len(train) == 0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    dist, nearest = cv2.batchDistance(train, query, -1, normType=cv2.NORM_HAMMING, K=2, update=0, crosscheck=False)
+    qi, d1, d2 = two_nearest(train, query)
     ti = np.arange(len(train))
-    qi, d1, d2 = nearest[:, 0].astype(int), dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
     ok = (d1 <= max_dist) & (d1 < ratio * d2)
     return qi[ok], ti[ok], d1[ok]
 
@@ -86,11 +85,9 @@ def match_map_points_tiled(query: np.ndarray, query_xy: np.ndarray, train: np.nd
             out_t.append(t[ok])
             out_d.append(d[ok].astype(np.float64))
             continue
-        dist, nearest = cv2.batchDistance(train[t], query[q], -1, normType=cv2.NORM_HAMMING, K=2, update=0,
-                                          crosscheck=False)
-        d1, d2 = dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
+        nearest, d1, d2 = two_nearest(train[t], query[q])
         ok = (d1 <= max_dist) & (d1 < ratio * d2)
-        out_q.append(q[nearest[ok, 0]])
+        out_q.append(q[nearest[ok]])
         out_t.append(t[ok])
         out_d.append(d1[ok])
     return np.concatenate(out_q), np.concatenate(out_t), np.concatenate(out_d)
