@@ -90,11 +90,6 @@ def hamming_matrix(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
     return d
 
 
-def hamming(a64: np.ndarray, b64: np.ndarray) -> np.ndarray:
-    """Row-wise Hamming distance of two (n, 4) uint64 arrays (broadcasting)."""
-    return np.bitwise_count(np.bitwise_xor(a64, b64)).sum(axis=-1, dtype=np.int32)
-
-
 class Vocabulary:
     def __init__(self, nndr: float = 0.8, max_distance: int = 70, n_tables: int = 16,
                  key_bits: int = 16, max_chain: int = 40, capacity: int = 1 << 21, seed: int = 7):
@@ -367,7 +362,8 @@ class Vocabulary:
         if Q == 0 or self._n_live == 0:
             return w1, d1, d2
         keys = self._keys(q64)  # (Q, L)
-        tables = np.broadcast_to(np.arange(self.n_tables), keys.shape)
+        tables = np.arange(self.n_tables)
+        nxt = self._nxt.reshape(-1)  # (flat takes: ~3x faster than 2-D fancy indexing)
         cur = self._head[keys]
         cands = np.zeros((Q, self.n_tables, self.max_chain), np.int32)
         for step in range(self.max_chain):
@@ -375,7 +371,7 @@ class Vocabulary:
             if not nz.any():
                 break
             cands[:, :, step] = cur
-            cur = np.where(nz, self._nxt[np.maximum(cur - 1, 0), tables], 0)
+            cur = np.where(nz, nxt.take(np.maximum(cur - 1, 0) * self.n_tables + tables), 0)
         C = cands.reshape(Q, -1)
         # Deduplicate (a word found by several tables) so that the second-nearest is a
         # different word and each distance is computed once.
@@ -389,7 +385,9 @@ class Vocabulary:
             return w1, d1, d2
         slots = C[qi, ci] - 1
         D = np.full(C.shape, _NONE_DIST, np.int32)
-        D[qi, ci] = hamming(self._desc[slots], q64[qi])
+        x = self._desc.take(slots, axis=0)  # the candidates' descriptors, xor-ed in place
+        x ^= q64.take(qi, axis=0)
+        D[qi, ci] = np.bitwise_count(x).sum(axis=1, dtype=np.int32)
         j1 = np.argmin(D, axis=1)
         rows = np.arange(Q)
         d1 = D[rows, j1]
