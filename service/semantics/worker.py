@@ -360,8 +360,11 @@ class SemanticWorker:
                 joins = self.connectivity.joins
                 read = self.connectivity.refresh(self.store)  # the links stored since the last keyframe
                 now = time.monotonic()
-                if self.connectivity.joins > joins or (read and now < self._merge_until):
-                    self._merge_until = now + MERGE_AFTER_JOIN  # parts joined: their objects' twins merge
+                # parts joined: their objects' twins merge; after a join, each keyframe fused opens the
+                # window again (a keyframe fused, or a pose corrected, after a window that the links
+                # alone kept open left twins when the worker ran behind the map update)
+                if self.connectivity.joins > joins or (read and now < self._merge_until) or self.connectivity.joins:
+                    self._merge_until = now + MERGE_AFTER_JOIN
                 anchors = np.array(sorted(self.fusion.anchors()), np.int64)
                 anchors = anchors[self.connectivity.roots(anchors) == self.connectivity.find(kf.node_id)].tolist()
                 poses = {n.id: n.pose for n in self.store.get_nodes(anchors)} if anchors else {}
