@@ -33,13 +33,9 @@ def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float, max_di
     qi = np.arange(len(query))
     # (a tie at the smallest distance fails the ratio test whichever index the search kept)
     ok = (d1 <= max_dist) & (d1 < ratio * d2)
-    qi, ti, d1 = qi[ok], ti[ok], d1[ok]
     # One query per train point: keep the closest.
-    order = np.lexsort((d1, ti))
-    first = np.ones(len(order), bool)
-    first[1:] = ti[order][1:] != ti[order][:-1]
-    keep = np.sort(order[first])
-    return qi[keep], ti[keep]
+    ti, qi = one_per_query(ti[ok], qi[ok], d1[ok])
+    return qi, ti
 
 
 def match_map_points(query: np.ndarray, train: np.ndarray, ratio: float, max_dist: int):
