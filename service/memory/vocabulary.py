@@ -447,19 +447,25 @@ class Vocabulary:
         """New words for descriptors that matched nothing; descriptors of the batch close to
         an earlier one of the batch share its word."""
         # Exact duplicates first (so that they do not spoil each other's ratio test).
-        _, first, inv = np.unique(n64, axis=0, return_index=True, return_inverse=True)
-        inv = inv.ravel()
-        if len(first) < len(n64):
-            order = np.sort(first)
+        # (rows sorted by value, stably: a run of equal rows starts with its first occurrence;
+        # np.unique(axis=0) gives the same and costs ~10x)
+        by_value = np.lexsort(n64.T[::-1])
+        s = n64[by_value]
+        starts = np.ones(len(s), bool)
+        starts[1:] = (s[1:] != s[:-1]).any(axis=1)
+        if not starts.all():
+            first_of = np.empty(len(n64), np.int64)  # each descriptor's first occurrence
+            first_of[by_value] = by_value[starts][np.cumsum(starts) - 1]
+            order = np.sort(by_value[starts])
             rank = np.empty(len(n64), np.int64)
             rank[order] = np.arange(len(order))
             ids = self._create_words(n64[order], d_existing[order])
-            return ids[rank[first[inv]]]
+            return ids[rank[first_of]]
         m = len(n64)
         parent = np.arange(m)
         if m > 1:
             D = hamming_matrix(n64, n64)  # (m, m), bounded by the batch size
-            D[np.triu_indices(m)] = _NONE_DIST  # only earlier descriptors
+            D[np.arange(m)[:, None] <= np.arange(m)] = _NONE_DIST  # only earlier descriptors
             j = np.argmin(D, axis=1)
             dj = D[np.arange(m), j]
             D[np.arange(m), j] = _NONE_DIST
