@@ -271,6 +271,20 @@ class SemanticWorker:
             if duty < 1.0 and mapping:  # rest in proportion: busy at most `max_duty` of the time (a stop waits)
                 time.sleep((time.perf_counter() - t) * (1.0 / duty - 1.0))
 
+    def _read_links(self, fusing: bool) -> float:
+        """The links stored since the last look (under `_lock`); opens the twin-merge window
+        (MERGE_AFTER_JOIN from now) when they joined parts of the map, or while links come within
+        it, or, for a keyframe being fused (`fusing`), once any join was seen: a keyframe fused,
+        or a pose corrected, after a window the links alone kept open left twins when the worker
+        ran behind the map update. Returns now (time.monotonic)."""
+        joins = self.connectivity.joins
+        read = self.connectivity.refresh(self.store)
+        now = time.monotonic()
+        joined = self.connectivity.joins > joins or (fusing and self.connectivity.joins > 0)
+        if joined or (read and now < self._merge_until):
+            self._merge_until = now + MERGE_AFTER_JOIN
+        return now
+
     def _merge_joined(self) -> None:
         """Between keyframes: when links stored since the last look joined parts of the map
         (robots mapping at the same time: the map update, behind tracking, may join them after
@@ -280,11 +294,7 @@ class SemanticWorker:
         after the joining one get their poses in the joined map's frame only as it catches up."""
         try:
             with self._lock:
-                joins = self.connectivity.joins
-                read = self.connectivity.refresh(self.store)
-                now = time.monotonic()
-                if self.connectivity.joins > joins or (read and now < self._merge_until):
-                    self._merge_until = now + MERGE_AFTER_JOIN
+                now = self._read_links(fusing=False)
                 if now >= self._merge_until:
                     return
                 anchors = np.array(sorted(self.fusion.anchors()), np.int64)
@@ -357,14 +367,7 @@ class SemanticWorker:
                 return
             self._yield_to_tracking(kf, waited)  # the fusion (Python: it holds the GIL tracking needs)
             with self._lock:
-                joins = self.connectivity.joins
-                read = self.connectivity.refresh(self.store)  # the links stored since the last keyframe
-                now = time.monotonic()
-                # parts joined: their objects' twins merge; after a join, each keyframe fused opens the
-                # window again (a keyframe fused, or a pose corrected, after a window that the links
-                # alone kept open left twins when the worker ran behind the map update)
-                if self.connectivity.joins > joins or (read and now < self._merge_until) or self.connectivity.joins:
-                    self._merge_until = now + MERGE_AFTER_JOIN
+                self._read_links(fusing=True)  # the links stored since the last keyframe
                 anchors = np.array(sorted(self.fusion.anchors()), np.int64)
                 anchors = anchors[self.connectivity.roots(anchors) == self.connectivity.find(kf.node_id)].tolist()
                 poses = {n.id: n.pose for n in self.store.get_nodes(anchors)} if anchors else {}
