@@ -28,6 +28,12 @@ from .stereo_calibration import DisparityOffsetEstimator
 from .window_ba import KeyframeRecord, WindowBA
 
 
+def _within(predicted: np.ndarray, keypoints: np.ndarray, radius: float) -> np.ndarray:
+    """Which matches keep their keypoint within `radius` px of where the motion model
+    projects their map point (the gated search's check)."""
+    return np.linalg.norm(predicted - keypoints, axis=1) <= radius
+
+
 class _DepthReference:
     """A frame's depth (and grey) image, its pyramid built once on first use: for the frame
     being registered and, when that frame updates the map, as the next reference."""
@@ -562,7 +568,7 @@ class Odometry:
                                                       c.match_ratio, c.max_hamming)
             m_idx = cand[m_idx]
             if gated:
-                near = np.linalg.norm(uv[m_idx] - features.keypoints[q_idx], axis=1) <= c.guided_radius
+                near = _within(uv[m_idx], features.keypoints[q_idx], c.guided_radius)
                 q_idx, m_idx, dist = q_idx[near], m_idx[near], dist[near]
             q_all, m_all = q_idx, m_idx
             q_idx, m_idx = one_per_query(q_idx, m_idx, dist, self.map.ids[m_idx])
@@ -571,7 +577,7 @@ class Odometry:
                                              c.max_hamming)
             m_idx = cand[m_idx]
             if gated:
-                near = np.linalg.norm(uv[m_idx] - features.keypoints[q_idx], axis=1) <= c.guided_radius
+                near = _within(uv[m_idx], features.keypoints[q_idx], c.guided_radius)
                 q_idx, m_idx = q_idx[near], m_idx[near]
         if len(q_idx) < c.min_inliers:
             return None
