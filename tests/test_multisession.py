@@ -476,7 +476,7 @@ def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(t
     robot the service admitted second) joins the older once both walk the shared stretch, by two
     agreeing verified links. One `relocalized` event, for the newer; /maps one map with both
     sessions; both trajectories over REST in the older map's frame; the objects of both merged
-    (no two same-label objects within 0.4 m)."""
+    (no same-label pair within 0.4 m anchored one in each robot's session)."""
     import threading
     import time
 
@@ -554,9 +554,18 @@ def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(t
               {r: round(v * 100, 2) for r, v in rmse.items()})
         # the issue asks for 2 cm; measured 0.13 / 0.12 cm (in-process, interleaved: 0.19 / 0.23)
         assert rmse["A"] < 0.006 and rmse["B"] < 0.006, rmse
-        # objects: B's fused into A's where both saw the same things
+        # objects: B's fused into A's where both saw the same things: no thing kept twice, once in
+        # each robot's part (same-label objects within 0.4 m anchored in the two sessions; with the
+        # merge switched off, paintings anchored in both were). Two objects anchored in one session are
+        # parts of one thing its robot saw segmented apart: in the failing run examined (this check failed
+        # 2 in 19 runs when it took any pair) a chair's legs 0.37 m from its seat, both A's.
         objects = api.objects(limit=1000)["objects"]
         assert len({o["label"] for o in objects}) >= 2, objects
-        assert not _twins(objects), _twins(objects)
+        svc.stop()  # (the map file read by the test alone)
+        with MapStore(tmp_path / "map.db", create=False) as store:
+            session_of = {n.id: n.session_id for n in store.nodes(limit=None, merged=None)}
+        anchored_in = {o["id"]: session_of[o["node_id"]] for o in objects}
+        twins = [(a, b, label) for a, b, label in _twins(objects) if anchored_in[a] != anchored_in[b]]
+        assert not twins, (twins, _twins(objects))
     finally:
         svc.stop()
