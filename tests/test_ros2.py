@@ -370,7 +370,7 @@ def test_ros_robots_map_exactly_as_the_native_robot(tmp_path):
             compressed(i)
             if i == 1:  # its info, and its slot before the next frame (callbacks of two keys are not ordered)
                 put(CMP["info"], info[stamps_ns[1]])
-                _wait("roscmp admitted", lambda: any(r["robot"] == "roscmp" for r in svc.api.robots()))
+                _wait("roscmp admitted", lambda: received("roscmp", 0))
             _wait(f"frame {i} paired", lambda i=i: received("rosraw", i + 1) and (i < 1 or received("roscmp", i + 1)))
         stats = stream_dataset(_Frames(frames, ds.calibration), "native", settings, rate=None, color="png",
                                depth="png", progress=False, wait_for_subscriber=10.0)

@@ -401,8 +401,7 @@ class Vocabulary:
         d[slots == w1[qi]] = _NONE_DIST
         second = np.full(Q, _NONE_DIST, np.int64)
         np.minimum.at(second, qi, d)
-        d2[:] = second
-        return w1, d1, d2
+        return w1, d1, second.astype(np.int32)
 
     def _accept(self, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         return (d1 <= self.max_distance) & (d1 <= self.nndr * d2)
