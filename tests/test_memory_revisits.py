@@ -10,9 +10,8 @@ from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.storage import MapStore
 
-from conftest import run_tracked_once, synthetic
+from conftest import WALK_A, WALK_A_PASSES, run_tracked_once, synthetic
 
-PASSES = 3
 MAX_WM = 20
 
 
@@ -21,8 +20,8 @@ def bounded(tmp_path_factory):
     """walk_a there, back and there again (the frames of tests/test_rehearsal.py) with at
     most 20 nodes in WM: the first pass alone has ~90 nodes, so the later passes find most of
     their places in LTM."""
-    base = synthetic("walk_a", rate=10, noise=True, duration=12, width=320, height=240)
-    ds = Passes(base, PASSES)
+    base = synthetic("walk_a", **WALK_A)
+    ds = Passes(base, WALK_A_PASSES)
     out_dir = tmp_path_factory.mktemp("revisits")
     cfg = load_config(None, {"memory": {"max_wm_nodes": MAX_WM}, "semantics": {"enabled": False}})
     out = run_tracked_once(ds, cfg, out_dir, progress=False)  # tracking recorded once (conftest)
@@ -34,9 +33,12 @@ def bounded(tmp_path_factory):
             "pass1": [r for r in rows if float(r["stamp"]) <= first_pass_end]}
 
 
-def test_revisits_merge_into_places_in_ltm_and_add_few_nodes(bounded):
+def test_revisits_merge_into_places_in_ltm_and_add_few_nodes(bounded, walked):
     """Measured: 274 keyframes, 103 nodes (the unbounded run's too), 171 merged, 0.35 moves
-    per update, ATE 2.70 cm (unbounded 2.69). Before: 129 nodes, 2.26 moves per update."""
+    per update, ATE 2.70 cm (unbounded 2.69). Before: 129 nodes, 2.26 moves per update. On
+    the AVX2 machine of 2026-11-28 (other floating-point sums, other keyframes): ATE 3.58 cm,
+    unbounded 3.65, odometry alone 4.84. A bounded memory that fails to bring its places back
+    closes fewer loops: its ATE goes toward odometry's."""
     rows = bounded["rows"]
     assert max(int(r["wm"]) for r in rows) <= MAX_WM
     nodes_pass1 = sum(r["merged"] == "0" for r in bounded["pass1"])
@@ -45,7 +47,9 @@ def test_revisits_merge_into_places_in_ltm_and_add_few_nodes(bounded):
     # places found in LTM: merged with their stored words, they stay there
     in_ltm = [s for s in bounded["stats"] if s["rehearsal"].get("ltm") and s["rehearsal"]["decision"] == "merged"]
     assert len(in_ltm) >= 20, len(in_ltm)
-    assert evaluate(bounded["ds"].ground_truth, bounded["out"].trajectory).ate_rmse < 0.03
+    ate = evaluate(bounded["ds"].ground_truth, bounded["out"].trajectory).ate_rmse
+    unbounded = evaluate(walked["ds"].ground_truth, walked["out"].trajectory).ate_rmse
+    assert ate < 0.05 and ate <= unbounded + 0.005, (ate, unbounded)
 
 
 def test_no_churn_between_working_and_long_term_memory(bounded):

@@ -10,7 +10,7 @@ from mnemoslam.service.mapping.mapper import Mapper
 from mnemoslam.service.memory.vocabulary import Vocabulary
 from mnemoslam.storage import LinkType, MapStore
 
-from conftest import slam_config, synthetic
+from conftest import WALK_A, slam_config, synthetic
 
 WM = 5
 LOOPS = (LinkType.GLOBAL_CLOSURE, LinkType.LOCAL_SPACE, LinkType.MERGED)  # merged: rehearsal into an old node
@@ -28,7 +28,7 @@ def _session(db, ds, cfg):
 def first(tmp_path_factory):
     """One walk of walk_a (unlimited WM), the map closed: yesterday's map."""
     # rendered once for the session (tests/conftest.py): tests/test_rehearsal.py plays the same frames
-    ds = synthetic("walk_a", rate=10, noise=True, duration=12, width=320, height=240)
+    ds = synthetic("walk_a", **WALK_A)
     db = tmp_path_factory.mktemp("startup") / "map.db"
     sid, ids = _session(db, ds, _cfg())
     return {"ds": ds, "db": db, "sid": sid, "ids": ids}
