@@ -9,10 +9,9 @@ from mnemoslam.storage import LinkType, MapStore, UnknownIdError
 
 
 def test_a_path_walked_again_adds_few_nodes_and_stays_accurate(walked):
-    """`walked` (tests/conftest.py). Measured ATE: 2.70 cm on the machines of the earlier
+    """`walked` (tests/conftest.py). Measured ATE: 2.69 cm on the machines of the earlier
     sessions, 3.65 cm on the AVX2 machine of 2026-11-28 (its floating-point sums differ, so
-    the run takes other keyframes and links; odometry alone there 4.84 cm); a frozen tracker,
-    or a keyframe merged into a node elsewhere, is off by decimetres."""
+    the run takes other keyframes and links; odometry alone there 4.84 cm)."""
     rows, out = walked["rows"], walked["out"]
     nodes_pass1 = sum(r["merged"] == "0" for r in walked["pass1"])
     nodes = sum(r["merged"] == "0" for r in rows)
