@@ -359,26 +359,29 @@ WALK_A = dict(rate=10, noise=True, duration=12, width=320, height=240)  # walk_a
 WALK_A_PASSES = 3
 
 
-@pytest.fixture(scope="session")
-def walked(tmp_path_factory):
-    """walk_a there, back and there again (`WALK_A_PASSES`) with rehearsal on (the default)
-    and an unbounded working memory, semantics and the occupancy grid off:
-    `{"ds", "out", "dir", "cfg", "rows" (updates.csv), "pass1" (the first pass's rows)}`.
-    tests/test_rehearsal.py checks its merges, tests/test_memory_revisits.py compares a bounded
-    working memory with it; its tracking is recorded (`run_tracked_once`) for that run. Read-only."""
+def walk_a_passes(cfg, out_dir) -> dict:
+    """walk_a there, back and there again (`WALK_A_PASSES`) through the offline runner with
+    `cfg`, its tracking recorded once for the session (`run_tracked_once`): `{"ds", "out",
+    "dir", "cfg", "rows" (updates.csv), "pass1" (the first pass's rows)}`."""
     import csv
 
     from mnemoslam.client.datasets.passes import Passes
 
     base = synthetic("walk_a", **WALK_A)  # tests/test_startup.py plays the same frames
     ds = Passes(base, WALK_A_PASSES)
-    out_dir = tmp_path_factory.mktemp("rehearsal")
-    cfg = slam_config({"memory": {"rehearsal": True}, **LEAN})
     out = run_tracked_once(ds, cfg, out_dir, progress=False)
     rows = list(csv.DictReader(open(out_dir / "updates.csv")))
     first_pass_end = ds.stamps[len(base) - 1]
     return {"ds": ds, "out": out, "dir": out_dir, "cfg": cfg, "rows": rows,
             "pass1": [r for r in rows if float(r["stamp"]) <= first_pass_end]}
+
+
+@pytest.fixture(scope="session")
+def walked(tmp_path_factory):
+    """`walk_a_passes` with rehearsal on (the default) and an unbounded working memory,
+    semantics and the occupancy grid off. tests/test_rehearsal.py checks its merges,
+    tests/test_memory_revisits.py compares a bounded working memory with it. Read-only."""
+    return walk_a_passes(slam_config({"memory": {"rehearsal": True}, **LEAN}), tmp_path_factory.mktemp("rehearsal"))
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,16 +1,14 @@
 """Long-term memory under revisits (issue 23): with working memory bounded, a path walked
 again merges into the places mapped the first time, also those in LTM (nodes grow with new
 space, not with time), and nodes do not churn between WM and LTM."""
-import csv
 
 import pytest
 
-from mnemoslam.client.datasets.passes import Passes
 from mnemoslam.service.config import load_config
 from mnemoslam.service.evaluation import evaluate
 from mnemoslam.storage import MapStore
 
-from conftest import WALK_A, WALK_A_PASSES, run_tracked_once, synthetic
+from conftest import walk_a_passes
 
 MAX_WM = 20
 
@@ -20,17 +18,11 @@ def bounded(tmp_path_factory):
     """walk_a there, back and there again (the frames of tests/test_rehearsal.py) with at
     most 20 nodes in WM: the first pass alone has ~90 nodes, so the later passes find most of
     their places in LTM."""
-    base = synthetic("walk_a", **WALK_A)
-    ds = Passes(base, WALK_A_PASSES)
-    out_dir = tmp_path_factory.mktemp("revisits")
     cfg = load_config(None, {"memory": {"max_wm_nodes": MAX_WM}, "semantics": {"enabled": False}})
-    out = run_tracked_once(ds, cfg, out_dir, progress=False)  # tracking recorded once (conftest)
-    rows = list(csv.DictReader(open(out_dir / "updates.csv")))
-    first_pass_end = ds.stamps[len(base) - 1]
-    with MapStore(out_dir / "map.db") as store:
-        stats = [store.statistics(int(r["keyframe"])) for r in rows]
-    return {"ds": ds, "out": out, "rows": rows, "stats": stats,
-            "pass1": [r for r in rows if float(r["stamp"]) <= first_pass_end]}
+    run = walk_a_passes(cfg, tmp_path_factory.mktemp("revisits"))
+    with MapStore(run["dir"] / "map.db") as store:
+        run["stats"] = [store.statistics(int(r["keyframe"])) for r in run["rows"]]
+    return run
 
 
 def test_revisits_merge_into_places_in_ltm_and_add_few_nodes(bounded, walked):
