@@ -91,7 +91,7 @@ class FeatureExtractor:
     # -- public -------------------------------------------------------------------------
     def extract(self, frame: Frame) -> FrameFeatures:
         grey = frame.grey
-        _, desc, raw, octave = self._detect(grey)
+        desc, raw, octave = self._detect(grey)
         # Distortion: the keypoints' coordinates are undistorted (one vectorised call), the
         # depth is read at the raw pixel it is registered to (ORB-SLAM's mvKeysUn).
         xy = self.calibration.camera.undistort_points(raw)
@@ -112,24 +112,25 @@ class FeatureExtractor:
 
     # -- detection ----------------------------------------------------------------------
     def _detect(self, grey: np.ndarray):
-        kps = self._orb.detect(grey, None)
+        # One pass over the image pyramid: every detected keypoint gets its descriptor (the
+        # same bits `compute` gives the kept ones alone; the pyramid is then built once, not
+        # twice), and the spread keeps the rows of the ones it keeps.
+        kps, desc = self._orb.detectAndCompute(grey, None)
         if len(kps) < self.max_features // 2:
-            kps = self._orb_low.detect(grey, None)  # low-texture image: lower FAST threshold
-        kps = self._spread(kps, grey.shape)
-        kps, desc = self._orb.compute(grey, kps)
+            kps, desc = self._orb_low.detectAndCompute(grey, None)  # low-texture image: lower FAST threshold
         if desc is None or not len(kps):
-            return [], np.zeros((0, 32), np.uint8), np.zeros((0, 2), np.float32), np.zeros(0, np.int8)
-        xy, _, octave = _keypoint_arrays(kps)
-        return kps, desc, xy.astype(np.float32), octave
+            return np.zeros((0, 32), np.uint8), np.zeros((0, 2), np.float32), np.zeros(0, np.int8)
+        xy, response, octave = _keypoint_arrays(kps)
+        keep = self._spread(xy, response, grey.shape)
+        return desc[keep], xy[keep].astype(np.float32), octave[keep]
 
-    def _spread(self, kps, shape):
-        """Keep the strongest max_features/(rows*cols) keypoints of every grid cell (cells
-        with fewer donate their quota to the global ranking)."""
+    def _spread(self, xy: np.ndarray, response: np.ndarray, shape) -> np.ndarray:
+        """Indices (ascending) of the keypoints kept: the strongest max_features/(rows*cols)
+        of every grid cell (cells with fewer donate their quota to the global ranking)."""
         c = self.config
         n = self.max_features
-        if len(kps) <= n:
-            return kps
-        xy, response, _ = _keypoint_arrays(kps)
+        if len(xy) <= n:
+            return np.arange(len(xy))
         h, w = shape[:2]
         cell = (np.minimum((xy[:, 1] * c.grid_rows / h).astype(int), c.grid_rows - 1) * c.grid_cols
                 + np.minimum((xy[:, 0] * c.grid_cols / w).astype(int), c.grid_cols - 1))
@@ -144,7 +145,7 @@ class FeatureExtractor:
             rest = rest[np.argsort(-response[rest], kind="stable")][: n - len(keep)]
             keep = np.concatenate([keep, rest])
         keep.sort()
-        return [kps[i] for i in keep]
+        return keep
 
     # -- 3-D from depth -----------------------------------------------------------------
     def _depth_points(self, depth: np.ndarray, raw: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -182,8 +183,7 @@ class FeatureExtractor:
         out = np.full((len(xy_l), 3), np.nan, np.float32)
         measured = np.full(len(xy_l), np.nan, np.float32)
         right = right if right.ndim == 2 else cv2.cvtColor(right, cv2.COLOR_BGR2GRAY)
-        kps_r = self._orb_low.detect(right, None)
-        kps_r, desc_r = self._orb.compute(right, kps_r)
+        kps_r, desc_r = self._orb_low.detectAndCompute(right, None)  # (one pass over the pyramid)
         if desc_r is None or not len(kps_r) or not len(xy_l):
             return out, measured
         xy_r, _, _ = _keypoint_arrays(kps_r)

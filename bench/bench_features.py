@@ -1,0 +1,69 @@
+"""Feature extraction's ORB pass, today's (one `detectAndCompute` over the image pyramid, the
+grid spread keeping the rows of the keypoints it keeps: service/tracking/features.py) against the
+code before it (`detect`, the spread, then `compute` on the kept keypoints: the pyramid built
+twice), in one process on the same images.
+
+    python bench/bench_features.py [--sequence rgbd_dataset_freiburg1_desk] [--frames 200]
+
+Prints ms per frame of each (best of three, alternated), the ratio, and whether the two give the
+same keypoints and descriptors bit for bit (exit status 1 if not).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mnemoslam.client.datasets import open_dataset  # noqa: E402
+from mnemoslam.service.config import load_config  # noqa: E402
+from mnemoslam.service.tracking.features import FeatureExtractor, _keypoint_arrays  # noqa: E402
+
+
+def two_passes(extractor: FeatureExtractor, grey: np.ndarray):
+    """The code before: detect, spread the cv2.KeyPoints, compute the kept ones' descriptors."""
+    kps = extractor._orb.detect(grey, None)
+    if len(kps) < extractor.max_features // 2:
+        kps = extractor._orb_low.detect(grey, None)
+    xy, response, _ = _keypoint_arrays(kps)
+    kps = [kps[i] for i in extractor._spread(xy, response, grey.shape)]
+    kps, desc = extractor._orb.compute(grey, kps)
+    xy, _, octave = _keypoint_arrays(kps)
+    return desc, xy.astype(np.float32), octave
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sequence", default="rgbd_dataset_freiburg1_desk", help="folder in MNEMOSLAM_DATA")
+    ap.add_argument("--frames", type=int, default=200)
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
+    ds = open_dataset(data / args.sequence, max_frames=args.frames)
+    cfg = load_config()
+    extractor = FeatureExtractor(ds.calibration, cfg.features, cfg.stereo)
+    greys = [ds.frame(i).grey for i in range(len(ds))]
+    same = all(all(np.array_equal(a, b) for a, b in zip(extractor._detect(g), two_passes(extractor, g)))
+               for g in greys)
+    best = {"today": np.inf, "before": np.inf}
+    for _ in range(3):  # alternated, best of three
+        for name, fn in (("today", extractor._detect), ("before", lambda g: two_passes(extractor, g))):
+            t0 = time.perf_counter()
+            for g in greys:
+                fn(g)
+            best[name] = min(best[name], (time.perf_counter() - t0) / len(greys) * 1e3)
+    print(f"{len(greys)} frames of {args.sequence}: one pass {best['today']:.2f} ms, two passes "
+          f"{best['before']:.2f} ms per frame (ratio {best['before'] / best['today']:.2f}); "
+          f"same keypoints and descriptors: {same}")
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
