@@ -11,19 +11,17 @@ same keypoints and descriptors bit for bit (exit status 1 if not).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mnemoslam.client.datasets import open_dataset  # noqa: E402
-from mnemoslam.service.config import load_config  # noqa: E402
+from bench_matching import sequence_extractor  # noqa: E402  (bench/, the script's folder)
+
 from mnemoslam.service.tracking.features import FeatureExtractor, _keypoint_arrays  # noqa: E402
 
 
@@ -44,11 +42,7 @@ def main() -> int:
     ap.add_argument("--sequence", default="rgbd_dataset_freiburg1_desk", help="folder in MNEMOSLAM_DATA")
     ap.add_argument("--frames", type=int, default=200)
     args = ap.parse_args()
-    cv2.setNumThreads(1)
-    data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
-    ds = open_dataset(data / args.sequence, max_frames=args.frames)
-    cfg = load_config()
-    extractor = FeatureExtractor(ds.calibration, cfg.features, cfg.stereo)
+    ds, extractor = sequence_extractor(args.sequence, args.frames)
     greys = [ds.frame(i).grey for i in range(len(ds))]
     same = all(all(np.array_equal(a, b) for a, b in zip(extractor._detect(g), two_passes(extractor, g)))
                for g in greys)

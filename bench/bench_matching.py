@@ -32,17 +32,23 @@ def opencv_two_nearest(query: np.ndarray, train: np.ndarray):
     return nearest[:, 0].astype(int), dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
 
 
+def sequence_extractor(sequence: str, frames: int):
+    """The first `frames` of a sequence in MNEMOSLAM_DATA and the default feature extractor for
+    it, OpenCV on one thread (the benches time one core): (dataset, extractor)."""
+    cv2.setNumThreads(1)
+    data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
+    ds = open_dataset(data / sequence, max_frames=frames)
+    cfg = load_config()
+    return ds, FeatureExtractor(ds.calibration, cfg.features, cfg.stereo)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sequence", default="rgbd_dataset_freiburg1_desk", help="folder in MNEMOSLAM_DATA")
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--map-size", type=int, default=3000)
     args = ap.parse_args()
-    cv2.setNumThreads(1)
-    data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
-    ds = open_dataset(data / args.sequence, max_frames=args.frames)
-    cfg = load_config()
-    extractor = FeatureExtractor(ds.calibration, cfg.features, cfg.stereo)
+    ds, extractor = sequence_extractor(args.sequence, args.frames)
     descs = [extractor.extract(ds.frame(i)).descriptors for i in range(len(ds))]
     pairs = []
     for i in range(1, len(descs)):
