@@ -22,8 +22,8 @@ demo: $(STAMP)
 ## the environment sets PYTHONDONTWRITEBYTECODE (this one does): the suite starts ~100 Python
 ## processes (services, their mapping children, CLI runs) that would each compile the package's
 ## sources again, and each xdist worker would rewrite and compile every test module's asserts again
-## (~10 s of its collection). `make check` on the 2-core AVX2 machine: 98.8 s with the caches
-## written by an earlier run, 119 s on a fresh clone (the caches written as it goes), 131 s without.
+## (~10 s of its collection). `make check` on the 2-core AVX2 machine (pytest's time): 96 s with the
+## caches written by an earlier run, 114 s on a fresh clone (written as it goes), 125 s without.
 PYCACHE := PYTHONDONTWRITEBYTECODE=
 
 ## The test suite (real-data tests read MNEMOSLAM_DATA, default ../shared/data), on two pytest-xdist

@@ -114,15 +114,17 @@ class FeatureExtractor:
     def _detect(self, grey: np.ndarray):
         # One pass over the image pyramid: every detected keypoint gets its descriptor (the
         # same bits `compute` gives the kept ones alone; the pyramid is then built once, not
-        # twice), and the spread keeps the rows of the ones it keeps.
+        # twice), and the spread keeps the rows of the ones it keeps. A low-texture image's
+        # first pass is thrown away with its few descriptors (the TUM cabinet, mostly such
+        # images, is no slower than detecting twice and computing once: bench/bench_features.py).
         kps, desc = self._orb.detectAndCompute(grey, None)
         if len(kps) < self.max_features // 2:
             kps, desc = self._orb_low.detectAndCompute(grey, None)  # low-texture image: lower FAST threshold
         if desc is None or not len(kps):
             return np.zeros((0, 32), np.uint8), np.zeros((0, 2), np.float32), np.zeros(0, np.int8)
-        xy, response, octave = _keypoint_arrays(kps)
+        xy, response, octave = _keypoint_arrays(kps)  # (xy float32, as OpenCV gives it)
         keep = self._spread(xy, response, grey.shape)
-        return desc[keep], xy[keep].astype(np.float32), octave[keep]
+        return desc[keep], xy[keep], octave[keep]
 
     def _spread(self, xy: np.ndarray, response: np.ndarray, shape) -> np.ndarray:
         """Indices (ascending) of the keypoints kept: the strongest max_features/(rows*cols)
