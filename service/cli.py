@@ -317,16 +317,26 @@ def main(argv: list[str] | None = None) -> int:
 
     from .config import ConfigError
 
+    owns_process = argv is None  # the console script or `python -m`: nothing of this process outlives main
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        return args.func(args)
+        code = args.func(args)
     except (DatasetError, ConfigError, StoreError, ValueError, OSError) as e:
         print(f"mnemoslam {args.command}: error: {e}", file=sys.stderr)
-        return 2
+        code = 2
     except KeyboardInterrupt:
-        return 130
+        code = 130
+    if owns_process and args.command == "serve":
+        # everything the service owned is closed (SlamService.stop): skip Python's finalization (service/shutdown.py)
+        from mnemoslam.client.transport import close_all_sessions
+
+        from .shutdown import exit_process
+
+        close_all_sessions()  # (what its exit hook would have done: none is left open)
+        exit_process(code)
+    return code
 
 
 if __name__ == "__main__":

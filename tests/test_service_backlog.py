@@ -41,8 +41,9 @@ def array_bytes(update) -> int:
 
 
 def test_map_backlog_keeps_images_of_a_bounded_number_of_keyframes(tmp_path):
-    ds = open_dataset("synthetic:loop", max_frames=120)
-    config = load_config(overrides={"loop": {"backlog_images": 4}, "keyframe": {"linear_update": 0.05}})
+    # 60 frames, a keyframe every 3 cm: 20 keyframes (120 frames at 5 cm gave ~40 and took twice as long)
+    ds = open_dataset("synthetic:loop", max_frames=60)
+    config = load_config(overrides={"loop": {"backlog_images": 4}, "keyframe": {"linear_update": 0.03}})
     mapper = StalledMapper()
     with MapStore(tmp_path / "map.db") as store:
         memory = KeyframeWriter(store, "r1", ds.calibration, config)

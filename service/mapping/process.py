@@ -187,6 +187,11 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
     finally:
         store.close()
         lock.close()
+    # every message answered and the database closed: skip Python's finalization (service/shutdown.py),
+    # which the service's stop would wait for
+    from ..shutdown import exit_process
+
+    exit_process(0)
 
 
 def _handle(msg, config, memory, store, cameras, mappers, counts, send) -> None:
