@@ -296,6 +296,18 @@ def _stop(proc: subprocess.Popen) -> int:
         proc.stdout.close()
 
 
+def test_exit_process_flushes_what_was_written_and_skips_finalization():
+    """`serve` and its mapping child end with `exit_process` (service/shutdown.py): what the
+    process logged and printed reaches its pipes, the exit code is the one given, and nothing of
+    Python's finalization runs (an atexit handler would)."""
+    code = ("import atexit, logging; from mnemoslam.service.shutdown import exit_process; "
+            "logging.basicConfig(); logging.getLogger('x').warning('the last line'); print('out', end=''); "
+            "atexit.register(lambda: print(' atexit ran')); exit_process(3)")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # a pipe's stdout is then buffered
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
+    assert p.returncode == 3 and p.stdout == "out" and "the last line" in p.stderr, p
+
+
 def test_serve_prints_where_it_listens(tmp_path):
     db = tmp_path / "map.db"
     zenoh = f"tcp/127.0.0.1:{free_port()}"
