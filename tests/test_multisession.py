@@ -476,7 +476,7 @@ def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(t
     robot the service admitted second) joins the older once both walk the shared stretch, by two
     agreeing verified links. One `relocalized` event, for the newer; /maps one map with both
     sessions; both trajectories over REST in the older map's frame; the objects of both merged
-    (no same-label pair within 0.4 m anchored one in each robot's session)."""
+    (no same-label pair within 0.25 m anchored one in each robot's session)."""
     import threading
     import time
 
@@ -558,14 +558,18 @@ def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(t
         # each robot's part (same-label objects within 0.4 m anchored in the two sessions; with the
         # merge switched off, paintings anchored in both were). Two objects anchored in one session are
         # parts of one thing its robot saw segmented apart: in the failing run examined (this check failed
-        # 2 in 19 runs when it took any pair) a chair's legs 0.37 m from its seat, both A's.
+        # 2 in 19 runs when it took any pair) a chair's legs 0.37 m from its seat, both A's. The same split
+        # across the two sessions (a chair pair 0.4 m apart, one anchored in each: once in a CI run of
+        # 2026-11-28) is no twin either: within 0.25 m. With the merge off (semantics.merge_overlap 1.01)
+        # the twins anchored in both are 0.017-0.146 m apart (two chairs, a table, a door, a painting), the
+        # next pairs 0.30 m (a cabinet seen whole and in part) and 0.44 m (a chair and a 0.10 m part of one).
         objects = api.objects(limit=1000)["objects"]
         assert len({o["label"] for o in objects}) >= 2, objects
         svc.stop()  # (the map file read by the test alone)
         with MapStore(tmp_path / "map.db", create=False) as store:
             session_of = {n.id: n.session_id for n in store.nodes(limit=None, merged=None)}
         anchored_in = {o["id"]: session_of[o["node_id"]] for o in objects}
-        twins = [(a, b, label) for a, b, label in _twins(objects) if anchored_in[a] != anchored_in[b]]
+        twins = [(a, b, label) for a, b, label in _twins(objects, radius=0.25) if anchored_in[a] != anchored_in[b]]
         assert not twins, (twins, _twins(objects))
     finally:
         svc.stop()
