@@ -328,8 +328,10 @@ def main(argv: list[str] | None = None) -> int:
         code = 2
     except KeyboardInterrupt:
         code = 130
-    if owns_process and args.command == "serve":
-        # everything the service owned is closed (SlamService.stop): skip Python's finalization (service/shutdown.py)
+    if owns_process and args.command == "serve" and code == 0:
+        # a clean stop: everything the service owned is closed (SlamService.stop), so Python's finalization
+        # is skipped (service/shutdown.py); a service that failed to start exits as usual (multiprocessing's
+        # exit hook then ends a mapping child it may have spawned)
         from mnemoslam.client.transport import close_all_sessions
 
         from .shutdown import exit_process
