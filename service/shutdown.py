@@ -5,8 +5,9 @@ database, the Zenoh session, the child joined, every committed row on disk: a ki
 moment leaves a consistent database anyway). What Python's finalization then does (tearing
 down the modules of OpenCV, GTSAM, FAISS, onnxruntime, NumPy, and collecting their objects)
 took ~0.6 s of CPU for each of the two processes on the 2-core AVX2 machine: a service's stop
-(SIGTERM to exit) 1.0-1.2 s with it, 0.4-0.5 s without (issue 27: the test suite starts ~50
-services). `exit_process` flushes the logs and the standard streams and leaves with `os._exit`.
+(SIGTERM to exit) 1.0-1.2 s with it, 0.19-0.38 s without (issue 27: the test suite starts ~50
+services). `exit_process` flushes the logs and the standard streams and leaves with `os._exit`;
+`serve` first closes the Zenoh sessions left open, as client/transport.py's exit hook would.
 """
 from __future__ import annotations
 

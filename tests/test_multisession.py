@@ -555,7 +555,7 @@ def test_service_walk_a_and_walk_b_streamed_at_once_join_in_the_shared_stretch(t
         # the issue asks for 2 cm; measured 0.13 / 0.12 cm (in-process, interleaved: 0.19 / 0.23)
         assert rmse["A"] < 0.006 and rmse["B"] < 0.006, rmse
         # objects: B's fused into A's where both saw the same things: no thing kept twice, once in
-        # each robot's part (same-label objects within 0.4 m anchored in the two sessions; with the
+        # each robot's part (same-label objects within 0.25 m anchored in the two sessions; with the
         # merge switched off, paintings anchored in both were). Two objects anchored in one session are
         # parts of one thing its robot saw segmented apart: in the failing run examined (this check failed
         # 2 in 19 runs when it took any pair) a chair's legs 0.37 m from its seat, both A's. The same split

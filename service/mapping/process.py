@@ -43,6 +43,7 @@ import numpy as np
 from mnemoslam.client.kernel.frames import PinholeCamera
 
 from ..config import LoopConfig, MemoryConfig
+from ..shutdown import exit_process
 from .mapper import KeyframeUpdate
 
 log = logging.getLogger("mnemoslam.mapping")
@@ -189,8 +190,6 @@ def _child_main(db_path: str, config: LoopConfig, inbox, conn, parent_pid: int, 
         lock.close()
     # every message answered and the database closed: skip Python's finalization (service/shutdown.py),
     # which the service's stop would wait for
-    from ..shutdown import exit_process
-
     exit_process(0)
 
 
