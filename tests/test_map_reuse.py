@@ -80,8 +80,10 @@ def test_trimmed_points_come_back_when_the_camera_looks_at_them_again(reuse):
     if reuse:
         assert len(ids) >= 60 and reused >= 0.8
         assert len(odo.map.archive) > 0
+        # the points that came back are marked so (`odometry.window_ba_hold: returned` holds them)
+        assert odo.map.returned[np.isin(odo.map.ids, list(first))].all()
     else:
-        assert reused == 0.0 and odo.map.archive is None
+        assert reused == 0.0 and odo.map.archive is None and not odo.map.returned.any()
 
 
 def test_matching_from_the_map_keeps_the_oldest_of_duplicate_points():

@@ -70,7 +70,7 @@ class TrackResult:
 
 # every per-point array of LocalMap (and of its archive), in one place
 _POINT_FIELDS = ("points", "descriptors", "observations", "last_seen", "rays", "sigma", "origins", "disparity",
-                 "cos0", "ids", "info", "info_x", "fused")
+                 "cos0", "ids", "info", "info_x", "fused", "returned")
 
 
 class PointArchive:
@@ -153,6 +153,7 @@ class LocalMap:
         self.info = np.zeros((0, 3, 3), np.float64)
         self.info_x = np.zeros((0, 3), np.float64)
         self.fused = np.zeros(0, np.int32)  # depth readings fused into the point after its first
+        self.returned = np.zeros(0, bool)  # `map_reuse`: the point came back from the archive
         self._next_id = 0
         # `odometry.map_reuse`: the points trimmed from the map, brought back when in view again
         self.archive: PointArchive | None = PointArchive(archive) if archive > 0 else None
@@ -208,6 +209,7 @@ class LocalMap:
         self.info = np.concatenate([self.info, info])
         self.info_x = np.concatenate([self.info_x, np.einsum("nij,nj->ni", info, world[new])])
         self.fused = np.concatenate([self.fused, np.zeros(n_new, np.int32)])
+        self.returned = np.concatenate([self.returned, np.zeros(n_new, bool)])
         if features.disparity is None:
             self.disparity = np.concatenate([self.disparity, np.full(n_new, np.nan)])
             self.cos0 = np.concatenate([self.cos0, np.full(n_new, np.nan)])
@@ -274,6 +276,7 @@ class LocalMap:
             return 0
         back = self.archive.pop(idx)
         back["last_seen"][:] = stamp_id
+        back["returned"][:] = True
         merged = {f: np.concatenate([getattr(self, f), back[f]]) for f in _POINT_FIELDS}
         order = np.argsort(merged["ids"], kind="stable")
         for f in _POINT_FIELDS:
@@ -350,7 +353,7 @@ class Odometry:
         # RGB-D: windowed BA of the map updates' poses and points (ORB-SLAM's local mapping)
         self.window_ba = WindowBA(self.K, config.window_ba_size, config.window_ba_fixed, config.window_ba_every,
                                   config.window_ba_iterations, config.window_ba_history,
-                                  config.window_ba_points) \
+                                  config.window_ba_points, config.window_ba_hold) \
             if config.window_ba and not baseline else None
 
     @property
@@ -457,7 +460,7 @@ class Odometry:
         (this frame's), which it returns."""
         wba = self.window_ba
         assert wba is not None
-        out = wba.run(self.map.ids, self.map.points)
+        out = wba.run(self.map.ids, self.map.points, self.map.returned)
         if out is None:
             return pose
         old, new, pts, X = out

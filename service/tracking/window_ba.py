@@ -23,6 +23,7 @@ from mnemoslam.client.kernel.geometry import invert, make_pose
 
 CHI2_PX = 5.991  # χ² 95 %, 2 dof (no depth)
 CHI2_DEPTH = 7.815  # 3 dof (pixel and depth)
+HOLD = ("none", "old", "returned")  # `odometry.window_ba_hold`: the points an adjustment holds
 
 
 @dataclass
@@ -114,12 +115,13 @@ def _terms(T: np.ndarray, X: np.ndarray, bounds: np.ndarray, pt: np.ndarray, px:
 
 def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray, pt: np.ndarray,
                   pixels: np.ndarray, sigma_px: np.ndarray, depth: np.ndarray, sigma_z: np.ndarray, K: np.ndarray,
-                  iterations: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  iterations: int = 5,
+                  held_points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg–Marquardt over camera poses `T_cw` (C, 4, 4; the first `n_fixed` held) and world
-    points `X` (P, 3) from observations o of point `pt[o]` by camera `cam[o]`: pixel `pixels[o]`
-    (σ `sigma_px[o]`) and measured depth `depth[o]` (NaN: none; σ `sigma_z[o]`). Huber weights on
-    each observation's Mahalanobis distance. Returns (T_cw, X, inlier mask per observation:
-    within the χ² 95 % bound at the solution)."""
+    points `X` (P, 3; those `held_points` marks held) from observations o of point `pt[o]` by
+    camera `cam[o]`: pixel `pixels[o]` (σ `sigma_px[o]`) and measured depth `depth[o]` (NaN: none;
+    σ `sigma_z[o]`). Huber weights on each observation's Mahalanobis distance. Returns (T_cw, X,
+    inlier mask per observation: within the χ² 95 % bound at the solution)."""
     T = np.array(T_cw, np.float64)
     X = np.array(X, np.float64)
     C, P = len(T), len(X)
@@ -137,10 +139,14 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
     chi2_max = np.where(has_z, CHI2_DEPTH, CHI2_PX)
     free = cam >= n_fixed
     vc_f, pt_f = cam[free] - n_fixed, pt[free]
+    # the free cameras' observations of points that move (a held point's terms only add to its
+    # camera's own block): the Schur complement's
+    moving = np.ones(len(pt_f), bool) if held_points is None else ~held_points[pt_f]
+    vc_m, pt_m = vc_f[moving], pt_f[moving]
     # the pairs of free cameras that see a point (each point is seen by few of them):
-    # (v, w, v's observations, w's observations of the points both see)
+    # (v, w, v's observations, w's observations of the points both see), indices into the moving ones
     slot = np.full((P, V), -1)
-    slot[pt_f, vc_f] = np.arange(len(pt_f))
+    slot[pt_m, vc_m] = np.arange(len(pt_m))
     pairs = []
     for v in range(V):
         for w in range(v, V):
@@ -174,16 +180,18 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
             WJcT = (W[:, :, None] * Jc)[free].transpose(0, 2, 1)
             Hcc = _scatter(vc_f, WJcT @ Jc[free], V)
             bc = _scatter(vc_f, (WJcT @ r[free][:, :, None])[:, :, 0], V)
-            BoT = WJp[free].transpose(0, 2, 1) @ Jc[free]  # (n_free, 3, 6): ∂²/∂point∂camera per free observation
+            BoT = WJp[free][moving].transpose(0, 2, 1) @ Jc[free][moving]  # (n_moving, 3, 6): ∂²/∂point∂camera
         improved = False
         for _attempt in range(4):
             Hpp_d = Hpp + lam * (np.trace(Hpp, axis1=1, axis2=2)[:, None, None] / 3 + 1e-9) * np.eye(3)
             Cinv = _inv3(Hpp_d)
+            if held_points is not None:
+                Cinv[held_points] = 0.0  # a held point does not move (its terms still constrain the cameras)
             dc = np.zeros((V, 6))
             if V:
                 # Schur complement S = Hcc − Σ_p B_p C_p⁻¹ B_pᵀ over the pairs of free cameras
                 # that see a point (each point is seen by few of them)
-                YoT = Cinv[pt_f] @ BoT  # (n_free, 3, 6): (B·C⁻¹)ᵀ
+                YoT = Cinv[pt_m] @ BoT  # (n_moving, 3, 6): (B·C⁻¹)ᵀ
                 S = np.zeros((6 * V, 6 * V))
                 for v in range(V):
                     S[6 * v:6 * v + 6, 6 * v:6 * v + 6] = Hcc[v]
@@ -193,12 +201,12 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
                     if v != w:
                         S[6 * w:6 * w + 6, 6 * v:6 * v + 6] -= block.T
                 S += lam * np.diag(np.diag(S).clip(min=1e-9))
-                rhs = -bc + _scatter(vc_f, (bp[pt_f][:, None, :] @ YoT)[:, 0, :], V)
+                rhs = -bc + _scatter(vc_m, (bp[pt_m][:, None, :] @ YoT)[:, 0, :], V)
                 try:
                     dc = np.linalg.solve(S, rhs.reshape(-1)).reshape(V, 6)
                 except np.linalg.LinAlgError:
                     return T, X, np.zeros(n_obs, bool)
-                Bdc = _scatter(pt_f, (BoT @ dc[vc_f][:, :, None])[:, :, 0], P)
+                Bdc = _scatter(pt_m, (BoT @ dc[vc_m][:, :, None])[:, :, 0], P)
                 dX = -(Cinv @ (bp + Bdc)[:, :, None])[:, :, 0]
             else:
                 dX = -(Cinv @ bp[:, :, None])[:, :, 0]
@@ -224,8 +232,11 @@ class WindowBA:
     """The tracker's keyframe records and the windowed BA over them (`odometry.window_ba`)."""
 
     def __init__(self, K: np.ndarray, size: int, fixed: int, every: int, iterations: int = 5, history: int = 0,
-                 max_points: int = 0):
+                 max_points: int = 0, hold: str = "none"):
+        if hold not in HOLD:
+            raise ValueError(f"odometry.window_ba_hold: {hold!r} is not one of {', '.join(HOLD)}")
         self.K = K
+        self.hold = hold
         self.size, self.fixed, self.every, self.iterations = size, fixed, every, iterations
         self.history, self.max_points = history, max_points
         self.records: list[KeyframeRecord] = []
@@ -244,7 +255,7 @@ class WindowBA:
     def due(self) -> bool:
         return self._since >= self.every and len(self.records) >= 3
 
-    def run(self, map_ids: np.ndarray, map_points: np.ndarray):
+    def run(self, map_ids: np.ndarray, map_points: np.ndarray, map_returned: np.ndarray | None = None):
         """Adjust the window. `map_ids` (sorted) and `map_points`: the local map's. Returns
         (old poses T_cw (C, 4, 4), new poses, map indices of the adjusted points, their new
         positions), or None when nothing was adjusted."""
@@ -291,12 +302,25 @@ class WindowBA:
                 ok &= keep[inv]
         if ok.sum() < 30:
             return None
+        held = None
+        if self.hold != "none":
+            # points made before the adjustment's oldest map update ("old"), or those of them the
+            # map brought back from its archive ("returned"), are held: older map updates, outside
+            # it, anchor them; a held camera's view of a held point is a constant term, left out
+            hold = oid < min(r.created_lo for r in recs)
+            if self.hold == "returned":
+                hold &= map_returned[idx] if map_returned is not None and len(map_returned) else False
+            ok &= ~(hold & (cam < n_fixed))
+            held_obs = hold[ok]
         cam, oid, midx = cam[ok], oid[ok], idx[ok]
         pts, pt = np.unique(midx, return_inverse=True)
+        if self.hold != "none":
+            held = np.zeros(len(pts), bool)
+            held[pt[held_obs]] = True
         old = np.stack([r.T_cw for r in recs])
         T, X, _inl = bundle_adjust(old, n_fixed, map_points[pts], cam, pt, np.concatenate(pix)[ok],
                                    np.concatenate(spx)[ok], np.concatenate(dep)[ok], np.concatenate(sz)[ok],
-                                   self.K, self.iterations)
+                                   self.K, self.iterations, held)
         for rec, Tn in zip(recs, T):
             rec.T_cw = Tn
         self._last = recs
