@@ -24,6 +24,7 @@ from mnemoslam.client.kernel.geometry import invert, make_pose
 CHI2_PX = 5.991  # χ² 95 %, 2 dof (no depth)
 CHI2_DEPTH = 7.815  # 3 dof (pixel and depth)
 HOLD = ("none", "old", "returned")  # `odometry.window_ba_hold`: the points an adjustment holds
+MIN_GAUGE_OBSERVATIONS = 30  # views of the adjusted points by its held map updates, at least
 
 
 @dataclass
@@ -286,11 +287,20 @@ class WindowBA:
         # observations of points still in the map, seen by at least two records, one of them free
         idx = np.searchsorted(map_ids, oid)
         idx = np.minimum(idx, max(len(map_ids) - 1, 0))
-        ok = (len(map_ids) > 0) & (map_ids[idx] == oid) if len(map_ids) else np.zeros(len(oid), bool)
+        in_map = (len(map_ids) > 0) & (map_ids[idx] == oid) if len(map_ids) else np.zeros(len(oid), bool)
         uniq, inv, counts = np.unique(oid, return_inverse=True, return_counts=True)
-        free_seen = np.zeros(len(uniq), bool)
-        free_seen[inv[cam >= n_fixed]] = True
-        ok &= (counts[inv] >= 2) & free_seen[inv]
+        while True:
+            free_seen = np.zeros(len(uniq), bool)
+            free_seen[inv[cam >= n_fixed]] = True
+            ok = in_map & (counts[inv] >= 2) & free_seen[inv]
+            # the gauge: the held map updates must see the adjusted points, else the window floats
+            # (map updates tracked by ICP, TUM cabinet's keyframes, observe no map point): the
+            # window's oldest are held too until they do (none left free: no adjustment)
+            if (ok & (cam < n_fixed)).sum() >= MIN_GAUGE_OBSERVATIONS:
+                break
+            if n_fixed >= len(recs) - 1:
+                return None
+            n_fixed += 1
         if self.max_points > 0:
             # the points seen most often (the longest tracks constrain the poses most; ties: newest)
             eligible = np.zeros(len(uniq), bool)
