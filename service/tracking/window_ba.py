@@ -11,6 +11,11 @@ measured depth (the extractor's σ), Huber-weighted, solved by Levenberg–Marqu
 arrays with the points eliminated (Schur complement: a 6·W system). The refined points go
 back into the local map; a point seen by one map update alone moves with that update's pose
 (it is anchored to it), and the tracker continues from the refined pose of the newest one.
+With `window_ba_hold` the points that older map updates, outside the window, anchor (those the
+map brought back from its archive on a revisit, or all made before the window) keep their
+place: their views constrain the poses, and the revisit's old map is not bent to the drift.
+When the held map updates see too few of the adjusted points (frames tracked by ICP observe
+none), the window's oldest are held too: the gauge never rests on the solver's damping.
 """
 from __future__ import annotations
 
@@ -257,7 +262,8 @@ class WindowBA:
         return self._since >= self.every and len(self.records) >= 3
 
     def run(self, map_ids: np.ndarray, map_points: np.ndarray, map_returned: np.ndarray | None = None):
-        """Adjust the window. `map_ids` (sorted) and `map_points`: the local map's. Returns
+        """Adjust the window. `map_ids` (sorted), `map_points` and `map_returned` (points brought
+        back from the archive; `hold` "returned" holds them): the local map's. Returns
         (old poses T_cw (C, 4, 4), new poses, map indices of the adjusted points, their new
         positions), or None when nothing was adjusted."""
         self._since = 0
