@@ -144,11 +144,13 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
     z_meas = np.where(has_z, depth, np.nan)
     chi2_max = np.where(has_z, CHI2_DEPTH, CHI2_PX)
     free = cam >= n_fixed
-    vc_f, pt_f = cam[free] - n_fixed, pt[free]
+    vc_f = cam[free] - n_fixed
     # the free cameras' observations of points that move (a held point's terms only add to its
     # camera's own block): the Schur complement's
-    moving = np.ones(len(pt_f), bool) if held_points is None else ~held_points[pt_f]
-    vc_m, pt_m = vc_f[moving], pt_f[moving]
+    moving = np.nonzero(free)[0]  # (observation indices)
+    if held_points is not None:
+        moving = moving[~held_points[pt[moving]]]
+    vc_m, pt_m = cam[moving] - n_fixed, pt[moving]
     # the pairs of free cameras that see a point (each point is seen by few of them):
     # (v, w, v's observations, w's observations of the points both see), indices into the moving ones
     slot = np.full((P, V), -1)
@@ -186,7 +188,7 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
             WJcT = (W[:, :, None] * Jc)[free].transpose(0, 2, 1)
             Hcc = _scatter(vc_f, WJcT @ Jc[free], V)
             bc = _scatter(vc_f, (WJcT @ r[free][:, :, None])[:, :, 0], V)
-            BoT = WJp[free][moving].transpose(0, 2, 1) @ Jc[free][moving]  # (n_moving, 3, 6): ∂²/∂point∂camera
+            BoT = WJp[moving].transpose(0, 2, 1) @ Jc[moving]  # (n_moving, 3, 6): ∂²/∂point∂camera
         improved = False
         for _attempt in range(4):
             Hpp_d = Hpp + lam * (np.trace(Hpp, axis1=1, axis2=2)[:, None, None] / 3 + 1e-9) * np.eye(3)
@@ -325,14 +327,14 @@ class WindowBA:
             # it, anchor them; a held camera's view of a held point is a constant term, left out
             hold = oid < min(r.created_lo for r in recs)
             if self.hold == "returned":
-                hold &= map_returned[idx] if map_returned is not None and len(map_returned) else False
+                assert map_returned is not None  # (the tracker passes its map's)
+                hold &= map_returned[idx]
             ok &= ~(hold & (cam < n_fixed))
-            held_obs = hold[ok]
         cam, oid, midx = cam[ok], oid[ok], idx[ok]
         pts, pt = np.unique(midx, return_inverse=True)
         if self.hold != "none":
             held = np.zeros(len(pts), bool)
-            held[pt[held_obs]] = True
+            held[pt] = hold[ok]  # (a property of the point: the same for each of its views)
         old = np.stack([r.T_cw for r in recs])
         T, X, _inl = bundle_adjust(old, n_fixed, map_points[pts], cam, pt, np.concatenate(pix)[ok],
                                    np.concatenate(spx)[ok], np.concatenate(dep)[ok], np.concatenate(sz)[ok],
