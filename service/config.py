@@ -62,6 +62,7 @@ class OdometryConfig:
     pnp_reprojection_error: float = 2.0  # px (Vis/PnPReprojError)
     pnp_iterations: int = 200  # RANSAC iterations (Vis/PnPIterations is 100; we refine after)
     pnp_confidence: float = 0.999
+    pnp_ransac_max_sigma: float = 0.0  # px; > 0: RANSAC samples and scores only the matches whose keypoint σ (scale_factor^octave) is at most this (1.45: the three finest levels), when at least 40 are; the inliers are then selected among all under the refined pose. 0: all
     max_translation: float = 0.0  # m between frames, 0 = unlimited (Odom/MaxTranslation)
     local_map_size: int = 3000  # 3-D points kept in the local map (OdomF2M/MaxSize)
     motion_model: bool = True  # predict with constant velocity (Odom/GuessMotion)

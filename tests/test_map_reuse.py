@@ -14,7 +14,7 @@ from mnemoslam.service.tracking.matching import (
     match_map_points_tiled,
     one_per_query,
 )
-from mnemoslam.service.tracking.odometry import Odometry
+from mnemoslam.service.tracking.odometry import _POINT_FIELDS, Odometry, PointArchive
 
 CAM = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 
@@ -104,3 +104,63 @@ def test_matching_from_the_map_keeps_the_oldest_of_duplicate_points():
         assert len(qi) == 20
         qk, tk = one_per_query(qi, ti, d, prefer=np.arange(20))
         assert np.array_equal(np.sort(qk), np.arange(10)) and np.array_equal(tk[np.argsort(qk)], np.arange(10))
+
+
+def test_archive_keeps_what_a_plain_list_of_points_keeps():
+    """The archive stores its points in preallocated rows (a point brought back leaves a dead
+    row, compacted later): after any sequence of archiving, bringing back and overflowing its
+    capacity it holds the same points as plain arrays concatenated and cut would, in the same
+    order, and `in_view` never gives a dead row."""
+    assert set(_FIELD_SHAPES) == set(_POINT_FIELDS)
+    rng = np.random.default_rng(7)
+    capacity = 3000
+    archive = PointArchive(capacity)
+    ref: dict[str, np.ndarray] | None = None
+    next_id, stamp = 0, 0
+    for step in range(300):
+        stamp += 1
+        k = int(rng.integers(1, 400))
+        batch = {f: np.zeros((k,) + shape, dtype) for f, (shape, dtype) in _FIELD_SHAPES.items()}
+        batch["ids"] = np.arange(next_id, next_id + k)
+        batch["last_seen"] = stamp - rng.integers(0, 50, k)  # some older than points already in
+        batch["points"] = rng.normal(0, 3, (k, 3))
+        batch["origins"] = np.zeros((k, 3))
+        next_id += k
+        archive.add({f: v.copy() for f, v in batch.items()})
+        ref = batch if ref is None else {f: np.concatenate([ref[f], batch[f]]) for f in ref}
+        if len(ref["ids"]) > capacity:
+            keep = np.sort(np.argsort(-ref["last_seen"], kind="stable")[:capacity])
+            ref = {f: v[keep] for f, v in ref.items()}
+        if step % 3 == 0:  # bring back the points a random camera sees
+            pose = make_pose(cv2.Rodrigues(rng.normal(0, 1, 3))[0], rng.normal(0, 0.5, 3))
+            idx = archive.in_view(pose, CAM, 2.0, 60.0)
+            assert archive.arrays is not None
+            popped = archive.pop(idx)
+            gone = np.isin(ref["ids"], popped["ids"])
+            assert gone.sum() == len(idx)  # every row given was a living one
+            ref = {f: v[~gone] for f, v in ref.items()}
+        assert len(archive) == len(ref["ids"])
+        assert archive.arrays is not None
+        living = archive.arrays["ids"][archive.in_view(np.eye(4), CAM, 1e9, 180.0)]
+        seen = ref["ids"][_in_front(ref["points"])]
+        assert np.array_equal(np.sort(living), np.sort(seen))
+    # the living rows, compacted, are the plain arrays (same order)
+    archive._compact()
+    assert archive.arrays is not None
+    for f in ("ids", "last_seen", "points"):
+        assert np.array_equal(archive.arrays[f], ref[f])
+
+
+_FIELD_SHAPES = {"points": ((3,), np.float64), "descriptors": ((32,), np.uint8), "observations": ((), np.int32),
+                 "last_seen": ((), np.int64), "rays": ((3,), np.float64), "sigma": ((), np.float64),
+                 "origins": ((3,), np.float64), "disparity": ((), np.float64), "cos0": ((), np.float64),
+                 "ids": ((), np.int64), "info": ((3, 3), np.float64), "info_x": ((3,), np.float64),
+                 "fused": ((), np.int32), "returned": ((), bool)}
+
+
+def _in_front(points):
+    """Which world points a camera at the origin sees inside its image (any distance or angle)."""
+    z = points[:, 2]
+    zs = np.where(z > 0.05, z, 1.0)
+    u, v = points[:, 0] / zs * CAM.fx + CAM.cx, points[:, 1] / zs * CAM.fy + CAM.cy
+    return (z > 0.05) & (u >= 0) & (u < CAM.width) & (v >= 0) & (v < CAM.height)

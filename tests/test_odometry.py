@@ -169,3 +169,49 @@ def test_map_point_fusion_averages_readings_and_gates_outliers():
     bad = np.ones(n, bool)
     assert lmap.fuse(reading(poses[1], bad), poses[1], np.arange(n), gate=3.0, max_readings=8) < 0.05 * n
     assert np.median(np.linalg.norm(lmap.points - good, axis=1)) < 1e-9
+
+
+def test_ransac_on_the_fine_keypoints_keeps_the_coarse_inliers(monkeypatch):
+    """`odometry.pnp_ransac_max_sigma`: RANSAC samples and scores only the matches of fine
+    keypoints (its one pixel threshold fits them), and the re-selection under the refined pose
+    takes the coarse keypoints' matches in at their own σ: half the keypoints here sit at octave 4
+    (σ 2.07 px) with 1.6 px of noise, a third of them beyond RANSAC's 2 px."""
+    import mnemoslam.service.tracking.odometry as odometry_module
+
+    pts, desc = _scene(n=600)
+    sizes = []
+    real = cv2.solvePnPRansac
+
+    def counted(world, pixels, *args, **kwargs):
+        sizes.append(len(world))
+        return real(world, pixels, *args, **kwargs)
+
+    monkeypatch.setattr(odometry_module.cv2, "solvePnPRansac", counted)
+    R, _ = cv2.Rodrigues(np.array([0.03, -0.05, 0.02]))
+    truth = make_pose(R, [0.08, -0.02, 0.12])
+    f0, _ = _observe(pts, desc, np.eye(4))
+    f1, _ = _observe(pts, desc, truth, noise=0.3, seed=5)
+    rng = np.random.default_rng(3)
+    n = len(f1)
+    octaves = np.where(rng.random(n) < 0.5, 4, 0).astype(np.int8)
+    kp = f1.keypoints.astype(np.float64)
+    kp[octaves == 4] += rng.normal(0, 1.6, ((octaves == 4).sum(), 2))
+    bad = rng.random(n) < 0.15
+    kp[bad] = rng.uniform([0, 0], [640, 480], (bad.sum(), 2))
+    f1 = FrameFeatures(kp.astype(np.float32), f1.descriptors, f1.points, octaves)
+    for max_sigma in (0.0, 1.45):
+        cfg = load_config(overrides={"odometry": {"pnp_ransac_max_sigma": max_sigma, "icp_fallback": False}})
+        odo = Odometry(CAM, cfg.odometry)
+        assert odo.track(f0, 0.0).status == "init"
+        sizes.clear()
+        res = odo.track(f1, 1 / 30)
+        assert res.status == "ok"
+        err = invert(truth) @ res.pose
+        assert np.linalg.norm(err[:3, 3]) < 0.01 and np.degrees(rotation_angle(err[:3, :3])) < 0.3
+        matched = res.map_index >= 0
+        # RANSAC saw the fine matches alone (all of them without the setting; the registration
+        # with the most matches is the unguided one, the motion being beyond the guided radius)
+        assert max(sizes) == int((matched & (octaves == 0 if max_sigma else True)).sum())
+        good_coarse = (octaves == 4) & ~bad & matched
+        assert res.inlier_mask[good_coarse].mean() > 0.85  # the coarse matches are inliers at their σ
+        assert (res.inlier_mask & bad).sum() <= 3

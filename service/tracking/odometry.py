@@ -27,6 +27,8 @@ from .refinement import mahalanobis2, offset_information, refine_pose, sigma_fro
 from .stereo_calibration import DisparityOffsetEstimator
 from .window_ba import KeyframeRecord, WindowBA
 
+RANSAC_MIN_SAMPLE = 40  # `odometry.pnp_ransac_max_sigma`: fewer fine matches than this: RANSAC sees all
+
 
 def _within(predicted: np.ndarray, keypoints: np.ndarray, radius: float) -> np.ndarray:
     """Which matches keep their keypoint within `radius` px of where the motion model
@@ -75,32 +77,75 @@ _POINT_FIELDS = ("points", "descriptors", "observations", "last_seen", "rays", "
 
 class PointArchive:
     """Points trimmed from the local map, with everything the map keeps per point, at most
-    `capacity` of them (the least recently seen go first): `odometry.map_reuse`."""
+    `capacity` of them (the least recently seen go first): `odometry.map_reuse`. The points
+    live in rows of preallocated arrays, in the order they came (a point brought back leaves a
+    dead row, compacted away when the dead outnumber the living), so that archiving and
+    bringing back cost what moves, not the whole archive."""
 
     def __init__(self, capacity: int):
         self.capacity = capacity
-        self.arrays: dict[str, np.ndarray] | None = None
+        self._rows: dict[str, np.ndarray] | None = None  # every field's rows, the first `_used` of them written
+        self._alive = np.zeros(0, bool)
+        self._used = 0
+        self._count = 0  # living rows
 
     def __len__(self) -> int:
-        return 0 if self.arrays is None else len(self.arrays["ids"])
+        return self._count
+
+    @property
+    def arrays(self) -> dict[str, np.ndarray] | None:
+        """The written rows of every field (living or not: the indices `in_view` gives)."""
+        if self._rows is None:
+            return None
+        return {f: v[: self._used] for f, v in self._rows.items()}
 
     def add(self, arrays: dict[str, np.ndarray]) -> None:
-        if self.arrays is None:
-            self.arrays = arrays
-        else:
-            self.arrays = {f: np.concatenate([self.arrays[f], arrays[f]]) for f in _POINT_FIELDS}
-        if len(self) > self.capacity:
-            keep = np.sort(np.argsort(-self.arrays["last_seen"], kind="stable")[: self.capacity])
-            self.arrays = {f: v[keep] for f, v in self.arrays.items()}
+        k = len(arrays["ids"])
+        if self._rows is None:
+            self._rows = {f: np.empty((max(2 * k, 1024),) + v.shape[1:], v.dtype) for f, v in arrays.items()}
+            self._alive = np.zeros(len(self._rows["ids"]), bool)
+        if self._used + k > len(self._alive):
+            self._compact()
+            if self._used + k > len(self._alive):
+                size = max(2 * len(self._alive), self._used + k)
+                for f, v in self._rows.items():
+                    grown = np.empty((size,) + v.shape[1:], v.dtype)
+                    grown[: self._used] = v[: self._used]
+                    self._rows[f] = grown
+                alive = np.zeros(size, bool)
+                alive[: self._used] = self._alive[: self._used]
+                self._alive = alive
+        for f, v in arrays.items():
+            self._rows[f][self._used: self._used + k] = v
+        self._alive[self._used: self._used + k] = True
+        self._used += k
+        self._count += k
+        if self._count > self.capacity:  # the least recently seen go (ties: the oldest row)
+            self._compact()
+            keep = np.sort(np.argsort(-self._rows["last_seen"][: self._used], kind="stable")[: self.capacity])
+            self._keep_rows(keep)
 
     def pop(self, idx: np.ndarray) -> dict[str, np.ndarray]:
-        """Remove points `idx` and return their arrays."""
-        assert self.arrays is not None
-        out = {f: v[idx] for f, v in self.arrays.items()}
-        rest = np.ones(len(self), bool)
-        rest[idx] = False
-        self.arrays = {f: v[rest] for f, v in self.arrays.items()}
+        """Remove the living rows `idx` and return their arrays."""
+        assert self._rows is not None
+        out = {f: v[idx] for f, v in self._rows.items()}
+        self._alive[idx] = False
+        self._count -= len(idx)
+        if self._used - self._count > max(self._count, 1024):
+            self._compact()
         return out
+
+    def _compact(self) -> None:
+        if self._count < self._used:
+            self._keep_rows(np.nonzero(self._alive[: self._used])[0])
+
+    def _keep_rows(self, keep: np.ndarray) -> None:
+        assert self._rows is not None
+        for v in self._rows.values():
+            v[: len(keep)] = v[keep]
+        self._alive[:] = False
+        self._alive[: len(keep)] = True
+        self._used = self._count = len(keep)
 
     def in_view(self, pose: np.ndarray, camera: PinholeCamera, distance_ratio: float,
                 max_angle_deg: float) -> np.ndarray:
@@ -125,7 +170,7 @@ class PointArchive:
         cos = np.einsum("ij,ij->i", view, X - a["origins"]) / np.maximum(dist * first, 1e-12)
         ok = (front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
               & (dist >= first / distance_ratio) & (dist <= first * distance_ratio)
-              & (cos >= np.cos(np.radians(max_angle_deg))))
+              & (cos >= np.cos(np.radians(max_angle_deg))) & self._alive[: self._used])
         return np.nonzero(ok)[0]
 
 
@@ -637,13 +682,21 @@ class Odometry:
         and the map points' depth uncertainty, with this frame's measured depth as a third
         residual (`refinement.refine_pose`); the inliers are selected again under the refined
         pose (within pnp_reprojection_error pixels at level 0, scaled by the level and
-        widened along an uncertain point's ray)."""
+        widened along an uncertain point's ray). With `odometry.pnp_ransac_max_sigma` RANSAC sees
+        only the matches of fine keypoints (σ at most that): its one pixel threshold fits them,
+        their larger inlier share ends it in fewer iterations, and the re-selection under the
+        refined pose takes the inliers among all the matches, each at its own σ."""
         c = self.config
         rvec0, _ = cv2.Rodrigues(T_cw_guess[:3, :3])
         tvec0 = T_cw_guess[:3, 3].reshape(3, 1).copy()
         cv2.setRNGSeed(self._seed)
+        sample = np.arange(len(world))
+        if c.pnp_ransac_max_sigma > 0:  # the fine keypoints, whose pixels the one threshold fits
+            fine = np.nonzero(sigma_px <= c.pnp_ransac_max_sigma)[0]
+            if len(fine) >= RANSAC_MIN_SAMPLE:
+                sample = fine
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            world.astype(np.float64), pixels.astype(np.float64), self.K, None,
+            world[sample].astype(np.float64), pixels[sample].astype(np.float64), self.K, None,
             rvec=rvec0.copy(), tvec=tvec0.copy(), useExtrinsicGuess=False,
             iterationsCount=c.pnp_iterations, reprojectionError=c.pnp_reprojection_error,
             confidence=c.pnp_confidence, flags=cv2.SOLVEPNP_AP3P,
@@ -651,7 +704,7 @@ class Odometry:
         if not ok or inl is None or len(inl) < 4:
             return None, np.zeros(len(world), bool), None
         mask = np.zeros(len(world), bool)
-        mask[inl.ravel()] = True
+        mask[sample[inl.ravel()]] = True
         R, _ = cv2.Rodrigues(rvec)
         T_cw, H = refine_pose(make_pose(R, tvec.ravel()), self.K, world[mask], pixels[mask], sigma_px[mask],
                               rays[mask], sigma_ray[mask], depth[mask], depth_sigma[mask], hessian=True)

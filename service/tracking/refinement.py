@@ -77,12 +77,14 @@ class _Observations:
     def normal_equations(self, w: np.ndarray, J: np.ndarray | None = None):
         """H, b of Σ w Jᵀ Λ J ξ = −Σ w Jᵀ Λ r; `J` (n, k, p) defaults to the pose Jacobian."""
         J = self.J if J is None else J
-        dJ = self.d[:, :, None] * J  # (n, k, p)
+        n, k, p = J.shape
+        wdJ = ((w[:, None] * self.d)[:, :, None] * J).reshape(n * k, p)  # w·diag(d)·J, stacked
         g = np.einsum("nk,nkj->nj", self.dm, J)  # Jᵀ d∘m
         q = np.einsum("ni,ni->n", self.dm, self.r)
-        wc = w * self.c
-        H = np.einsum("n,nki,nkj->ij", w, dJ, J) - np.einsum("n,ni,nj->ij", wc, g, g)
-        b = np.einsum("n,nki,nk->i", w, dJ, self.r) - np.einsum("n,ni->i", wc * q, g)
+        wcg = (w * self.c)[:, None] * g
+        # the sums over observations as matrix products (BLAS), not one einsum over three operands
+        H = wdJ.T @ J.reshape(n * k, p) - wcg.T @ g
+        b = wdJ.T @ self.r.reshape(n * k) - wcg.T @ q
         return H, b
 
 

@@ -48,15 +48,13 @@ class KeyframeRecord:
     created_hi: int
 
 
-def _scatter(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Sum of `values` (m, ...) by `index` (m,) into (n, ...) (np.add.at, sorted and reduced)."""
-    out = np.zeros((n,) + values.shape[1:])
-    if len(index):
-        order = np.argsort(index, kind="stable")
-        idx = index[order]
-        starts = np.concatenate([[0], np.nonzero(np.diff(idx))[0] + 1])
-        out[idx[starts]] = np.add.reduceat(values[order], starts, axis=0)
-    return out
+def _sums(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Sum of `values` (m, ...) by `index` (m,) into (n, ...): one bincount per component."""
+    flat = values.reshape(len(values), -1)
+    out = np.empty((n, flat.shape[1]))
+    for k in range(flat.shape[1]):
+        out[:, k] = np.bincount(index, weights=flat[:, k], minlength=n)
+    return out.reshape((n,) + values.shape[1:])
 
 
 def _inv3(A: np.ndarray) -> np.ndarray:
@@ -79,22 +77,17 @@ def _exp(xi: np.ndarray) -> np.ndarray:
     return make_pose(R, xi[3:])
 
 
-def _terms(T: np.ndarray, X: np.ndarray, bounds: np.ndarray, pt: np.ndarray, px: np.ndarray, z_meas: np.ndarray,
-           K: np.ndarray, jacobians: bool = True):
-    """Residuals (n, 3) (u, v, depth; depth 0 where none), camera Jacobians (n, 3, 6) for a left
-    perturbation (ω, τ) of T_cw, point Jacobians (n, 3, 3) in world, and whether each point lies
-    in front of its camera. The observations are sorted by camera: camera c's are
-    bounds[c]:bounds[c + 1]."""
+def _terms(T: np.ndarray, X: np.ndarray, cam: np.ndarray, pt: np.ndarray, px: np.ndarray, z_meas: np.ndarray,
+           has_z: np.ndarray, K: np.ndarray, jacobians: bool = True):
+    """Residuals (n, 3) (u, v, depth; depth 0 where none: `has_z` false), camera Jacobians
+    (n, 3, 6) for a left perturbation (ω, τ) of T_cw, point Jacobians (n, 3, 3) in world, and
+    whether each point lies in front of its camera, for the observations of point `pt[o]` by
+    camera `cam[o]`."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     Xo = X[pt]
-    p = np.empty_like(Xo)
-    R = np.empty((len(Xo), 3, 3)) if jacobians else None
-    for c in range(len(T)):
-        a, b = bounds[c], bounds[c + 1]
-        if b > a:
-            p[a:b] = Xo[a:b] @ T[c, :3, :3].T + T[c, :3, 3]
-            if R is not None:
-                R[a:b] = T[c, :3, :3]
+    Tg = T[cam]
+    R = Tg[:, :3, :3]
+    p = np.einsum("nij,nj->ni", R, Xo) + Tg[:, :3, 3]
     front = p[:, 2] > 1e-3
     z = np.where(front, p[:, 2], 1.0)
     x, y = p[:, 0], p[:, 1]
@@ -102,8 +95,8 @@ def _terms(T: np.ndarray, X: np.ndarray, bounds: np.ndarray, pt: np.ndarray, px:
     r = np.empty((len(p), 3))
     r[:, 0] = fx * x * iz + cx - px[:, 0]
     r[:, 1] = fy * y * iz + cy - px[:, 1]
-    r[:, 2] = np.where(np.isfinite(z_meas), p[:, 2] - np.nan_to_num(z_meas), 0.0)
-    if R is None:
+    r[:, 2] = np.where(has_z, p[:, 2] - z_meas, 0.0)
+    if not jacobians:
         return r, None, None, front
     xz, yz = x * iz, y * iz
     Jc = np.zeros((len(p), 3, 6))  # ∂(u, v, z)/∂(ω, τ), p' = p + ω × p + τ
@@ -135,22 +128,22 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
     # sorted by camera; a second observation of a point by one camera is left out
     _, order = np.unique(np.asarray(cam, np.int64) * max(P, 1) + pt, return_index=True)
     cam, pt, pixels, sigma_px, depth, sigma_z = (a[order] for a in (cam, pt, pixels, sigma_px, depth, sigma_z))
-    bounds = np.searchsorted(cam, np.arange(C + 1))
     V = C - n_fixed  # cameras optimised
     has_z = np.isfinite(depth) & np.isfinite(sigma_z) & (sigma_z > 0)
     w_obs = np.empty((len(cam), 3))
     w_obs[:, :2] = (1.0 / sigma_px ** 2)[:, None]
     w_obs[:, 2] = np.where(has_z, 1.0 / np.where(has_z, sigma_z, 1.0) ** 2, 0.0)
-    z_meas = np.where(has_z, depth, np.nan)
+    z_meas = np.where(has_z, depth, 0.0)
     chi2_max = np.where(has_z, CHI2_DEPTH, CHI2_PX)
-    free = cam >= n_fixed
-    vc_f = cam[free] - n_fixed
+    # the free cameras' observations (sorted by camera): free camera v's from free_bounds[v] to [v + 1]
+    free_bounds = np.searchsorted(cam, np.arange(n_fixed, C + 1))
     # the free cameras' observations of points that move (a held point's terms only add to its
     # camera's own block): the Schur complement's
-    moving = np.nonzero(free)[0]  # (observation indices)
+    moving = np.arange(free_bounds[0], len(cam))  # (observation indices)
     if held_points is not None:
         moving = moving[~held_points[pt[moving]]]
     vc_m, pt_m = cam[moving] - n_fixed, pt[moving]
+    moving_bounds = np.searchsorted(vc_m, np.arange(V + 1))
     # the pairs of free cameras that see a point (each point is seen by few of them):
     # (v, w, v's observations, w's observations of the points both see), indices into the moving ones
     slot = np.full((P, V), -1)
@@ -163,7 +156,7 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
                 pairs.append((v, w, slot[both, v], slot[both, w]))
 
     def cost(T_, X_):
-        r, _, _, front = _terms(T_, X_, bounds, pt, pixels, z_meas, K, jacobians=False)
+        r, _, _, front = _terms(T_, X_, cam, pt, pixels, z_meas, has_z, K, jacobians=False)
         e2 = (w_obs * r * r).sum(axis=1)
         e = np.sqrt(e2)
         k = np.sqrt(chi2_max)
@@ -173,21 +166,26 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
     lam = 1e-4
     current, e2, front = cost(T, X)
     for _ in range(iterations):
-        r, Jc, Jp, front = _terms(T, X, bounds, pt, pixels, z_meas, K)
+        r, Jc, Jp, front = _terms(T, X, cam, pt, pixels, z_meas, has_z, K)
         e = np.sqrt(e2)
         k = np.sqrt(chi2_max)
         hub = np.where(front, np.where(e <= k, 1.0, k / np.maximum(e, 1e-12)), 0.0)
         W = w_obs * hub[:, None]  # (n, 3)
         WJp = W[:, :, None] * Jp
         WJpT = WJp.transpose(0, 2, 1)
-        Hpp = _scatter(pt, WJpT @ Jp, P)
-        bp = _scatter(pt, (WJpT @ r[:, :, None])[:, :, 0], P)
+        Hpp = _sums(pt, WJpT @ Jp, P)
+        bp = _sums(pt, np.einsum("nji,nj->ni", WJp, r), P)
         Hcc = np.zeros((V, 6, 6))
         bc = np.zeros((V, 6))
         if V:
-            WJcT = (W[:, :, None] * Jc)[free].transpose(0, 2, 1)
-            Hcc = _scatter(vc_f, WJcT @ Jc[free], V)
-            bc = _scatter(vc_f, (WJcT @ r[free][:, :, None])[:, :, 0], V)
+            # a camera's blocks: one product over its observations (sorted by camera)
+            WJc = W[:, :, None] * Jc
+            for v in range(V):
+                a, b = free_bounds[v], free_bounds[v + 1]
+                if b > a:
+                    A = WJc[a:b].reshape(-1, 6).T
+                    Hcc[v] = A @ Jc[a:b].reshape(-1, 6)
+                    bc[v] = A @ r[a:b].reshape(-1)
             BoT = WJp[moving].transpose(0, 2, 1) @ Jc[moving]  # (n_moving, 3, 6): ∂²/∂point∂camera
         improved = False
         for _attempt in range(4):
@@ -195,7 +193,7 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
             Cinv = _inv3(Hpp_d)
             if held_points is not None:
                 Cinv[held_points] = 0.0  # a held point does not move (its terms still constrain the cameras)
-            dc = np.zeros((V, 6))
+            dc: np.ndarray = np.zeros((V, 6))
             if V:
                 # Schur complement S = Hcc − Σ_p B_p C_p⁻¹ B_pᵀ over the pairs of free cameras
                 # that see a point (each point is seen by few of them)
@@ -209,12 +207,17 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
                     if v != w:
                         S[6 * w:6 * w + 6, 6 * v:6 * v + 6] -= block.T
                 S += lam * np.diag(np.diag(S).clip(min=1e-9))
-                rhs = -bc + _scatter(vc_m, (bp[pt_m][:, None, :] @ YoT)[:, 0, :], V)
+                rhs = -bc
+                bpm = bp[pt_m]
+                for v in range(V):
+                    a, b = moving_bounds[v], moving_bounds[v + 1]
+                    if b > a:
+                        rhs[v] += YoT[a:b].reshape(-1, 6).T @ bpm[a:b].reshape(-1)
                 try:
                     dc = np.linalg.solve(S, rhs.reshape(-1)).reshape(V, 6)
                 except np.linalg.LinAlgError:
                     return T, X, np.zeros(n_obs, bool)
-                Bdc = _scatter(pt_m, (BoT @ dc[vc_m][:, :, None])[:, :, 0], P)
+                Bdc = _sums(pt_m, np.einsum("nij,nj->ni", BoT, dc[vc_m]), P)
                 dX = -(Cinv @ (bp + Bdc)[:, :, None])[:, :, 0]
             else:
                 dX = -(Cinv @ bp[:, :, None])[:, :, 0]
