@@ -113,7 +113,9 @@ class OdometryConfig:
     # window_ba_hold: returned with window_ba and the fourth pass's reuse settings (map_reuse,
     # match_from_map, match_tile 160, min_observations 3, at map updates): fr1/desk odometry mean
     # of six draws 2.20 cm, with loops 2.24 (today 2.55), 7-Scenes 3.31 / 3.05, cabinet
-    # 2.40 / 2.25, but tracking 0.56-0.70x (issue 26, docs/benchmarks.md, eighth pass)
+    # 2.40 / 2.25, but tracking 0.56-0.70x (issue 26, docs/benchmarks.md, eighth pass); with
+    # window_ba_every 5 and pnp_ransac_max_sigma 1.45 tracking 0.72x alone, ~0.9x end to end (ninth pass),
+    # fr1/desk 2.14 / 2.32, cabinet 2.44 / 2.37, KITTI a / b 7.66 / 6.96 cm (today 7.03 / 22.19)
     window_ba_hold: str = "none"  # points the adjustment holds: none; old (made before its oldest map update); returned (brought back by map_reuse)
     # Map reuse on revisits (ORB-SLAM tracks against the points of the keyframes covisible with
     # the current one, old ones included): points trimmed from the local map go to an archive
