@@ -44,6 +44,7 @@ def main() -> int:
                     help="settings run alternated with the base configuration (repeatable)")
     ap.add_argument("--rounds", type=int, default=1, help="times every draw of every variant runs")
     args = ap.parse_args()
+    variants = [("base", {})] + [_variant(v) for v in args.variant or []]
     data = Path(os.environ.get("MNEMOSLAM_DATA", ROOT.parent / "shared" / "data"))
     ds = open_dataset(data / args.sequence)
     if ds.ground_truth is None:
@@ -56,7 +57,6 @@ def main() -> int:
     for i in range(len(ds)):
         f = ds.frame(i)
         frames.append((f.stamp, f.extras.get("depth_stamp"), extractor.extract(f)))
-    variants = [("base", {})] + [_variant(v) for v in args.variant or []]
     ate: dict[str, dict[int, float]] = {name: {} for name, _ in variants}
     rpe30: dict[str, dict[int, float]] = {name: {} for name, _ in variants}
     fps: dict[str, dict[int, float]] = {name: {} for name, _ in variants}
