@@ -84,12 +84,12 @@ def main() -> int:
                       f"RPE 30 frames {e30.rpe_trans_rmse * 100:.2f} cm, "
                       f"lost {len(frames) - len(stamps)}, tracking {rate:.1f} frames/s", flush=True)
     for name, _ in variants:
-        label = f"{name}: " if len(variants) > 1 else ""
-        ratio = np.mean([fps[name][d] / fps["base"][d] for d in fps[name]])
-        print(f"{label}mean of {len(ate[name])} draws: ATE {np.mean(list(ate[name].values())) * 100:.2f} cm, "
-              f"RPE 30 frames {np.mean(list(rpe30[name].values())) * 100:.2f} cm"
-              + (f", tracking frames/s {ratio:.2f}x the base's (best of {args.rounds} per draw)"
-                 if len(variants) > 1 else ""))
+        line = (f"mean of {len(ate[name])} draws: ATE {np.mean(list(ate[name].values())) * 100:.2f} cm, "
+                f"RPE 30 frames {np.mean(list(rpe30[name].values())) * 100:.2f} cm")
+        if len(variants) > 1:
+            ratio = np.mean([fps[name][d] / fps["base"][d] for d in fps[name]])
+            line = f"{name}: {line}, tracking frames/s {ratio:.2f}x the base's (best of {args.rounds} per draw)"
+        print(line)
     return 0
 
 

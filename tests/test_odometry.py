@@ -176,8 +176,6 @@ def test_ransac_on_the_fine_keypoints_keeps_the_coarse_inliers(monkeypatch):
     keypoints (its one pixel threshold fits them), and the re-selection under the refined pose
     takes the coarse keypoints' matches in at their own σ: half the keypoints here sit at octave 4
     (σ 2.07 px) with 1.6 px of noise, a third of them beyond RANSAC's 2 px."""
-    import mnemoslam.service.tracking.odometry as odometry_module
-
     pts, desc = _scene(n=600)
     sizes = []
     real = cv2.solvePnPRansac
@@ -186,7 +184,7 @@ def test_ransac_on_the_fine_keypoints_keeps_the_coarse_inliers(monkeypatch):
         sizes.append(len(world))
         return real(world, pixels, *args, **kwargs)
 
-    monkeypatch.setattr(odometry_module.cv2, "solvePnPRansac", counted)
+    monkeypatch.setattr(cv2, "solvePnPRansac", counted)  # (the module the tracker calls it from)
     R, _ = cv2.Rodrigues(np.array([0.03, -0.05, 0.02]))
     truth = make_pose(R, [0.08, -0.02, 0.12])
     f0, _ = _observe(pts, desc, np.eye(4))

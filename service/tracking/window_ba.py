@@ -172,8 +172,7 @@ def bundle_adjust(T_cw: np.ndarray, n_fixed: int, X: np.ndarray, cam: np.ndarray
         hub = np.where(front, np.where(e <= k, 1.0, k / np.maximum(e, 1e-12)), 0.0)
         W = w_obs * hub[:, None]  # (n, 3)
         WJp = W[:, :, None] * Jp
-        WJpT = WJp.transpose(0, 2, 1)
-        Hpp = _sums(pt, WJpT @ Jp, P)
+        Hpp = _sums(pt, WJp.transpose(0, 2, 1) @ Jp, P)
         bp = _sums(pt, np.einsum("nji,nj->ni", WJp, r), P)
         Hcc = np.zeros((V, 6, 6))
         bc = np.zeros((V, 6))
